@@ -1,0 +1,55 @@
+# damcap: two commands for a newcomer, `make demo` and `make test`.
+SHELL := /bin/bash
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip
+STAMP := $(VENV)/.installed
+APT_PACKAGES := libusb-1.0-0 libllvm19 libgomp1
+
+.PHONY: demo test bench system venv clean
+
+# System libraries the stack needs (open3d: libusb; mitsuba llvm_ad_rgb: libLLVM 19).
+system:
+	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing system packages:$$missing"; \
+	  SUDO=""; [ "$$(id -u)" = 0 ] || SUDO=sudo; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends $$missing >/dev/null \
+	    || { echo "error: could not install system packages:$$missing (run as root or with sudo)"; exit 1; }; \
+	fi
+
+$(STAMP): constraints.txt pyproject.toml
+	@test -x $(PY) || python3 -m venv $(VENV)
+	$(PIP) install -q --upgrade pip -c constraints.txt
+	$(PIP) install -q -c constraints.txt -e '.[test]'
+	@$(PY) -c "import torch; assert torch.__version__.startswith('2.13.0'), torch.__version__"
+	@touch $(STAMP)
+
+venv: system $(STAMP)
+
+DAMCAP := $(VENV)/bin/damcap
+SAMPLE := samples/torus_env
+DEMO_OUT ?= demo_out
+
+# The main job on the bundled closed-form capture: validate, fit, render the novel views, evaluate.
+demo: venv
+	$(DAMCAP) inspect $(SAMPLE)
+	$(DAMCAP) fit $(SAMPLE) -o $(DEMO_OUT)/model.dam
+	$(DAMCAP) render $(DEMO_OUT)/model.dam $(SAMPLE) -o $(DEMO_OUT)/renders --split test
+	$(DAMCAP) evaluate $(SAMPLE) --model $(DEMO_OUT)/model.dam --json $(DEMO_OUT)/evaluation.json
+	@echo
+	@echo "demo results are in $(DEMO_OUT)/:"
+	@echo "  model.dam          the fitted deep appearance map (safetensors + JSON metadata)"
+	@echo "  renders/*.exr      the model rendered into the $(SAMPLE) test views (linear EXR)"
+	@echo "  evaluation.json    mean and per-frame DSSIM of DAM, RM++ and RM, same and novel view"
+	@echo "  evaluation.png     per-frame DSSIM sorted, one curve per method"
+
+test: venv
+	$(PY) -m pytest -q
+
+# Slow studies (never in CI): results in bench/results/*.json and bench/*.md
+bench: venv
+	$(PY) bench/dam_core.py
+
+clean:
+	rm -rf $(VENV) $(DEMO_OUT)

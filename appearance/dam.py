@@ -1,0 +1,195 @@
+"""The deep appearance map: a tiny MLP from (view direction, normal) in world space to RGB.
+
+Maximov et al. 2019, Sec. 3: the paper's network has 3360 weights (4 hidden layers of 32, no
+biases) on the raw 6 inputs. The weights live in ONE flat parameter vector so that a
+learning-to-learn network can produce them directly (:func:`dam_forward` takes a batch of
+weight vectors).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from damcap.common.errors import DamcapError
+from damcap.common.numerics import reflect, safe_normalize
+
+Encoding = Literal["vn", "nr", "vnr"]
+Activation = Literal["leaky_relu", "relu", "softplus", "tanh"]
+
+ENCODING_DIMS = {"vn": 6, "nr": 6, "vnr": 9}
+
+
+@dataclass(frozen=True)
+class DamArchitecture:
+    """Shape of a deep appearance map."""
+
+    width: int = 32
+    """units per hidden layer"""
+    depth: int = 4
+    """hidden layers"""
+    activation: Activation = "leaky_relu"
+    """hidden non-linearity"""
+    encoding: Encoding = "nr"
+    """network input: 'vn' = (V, N), the paper's raw 6 numbers; 'nr' = (N, R) with R the view
+    mirrored about N (also 6 numbers, same information: V = 2 (N.R) N - R; specular lobes under
+    distant light are functions of R); 'vnr' = all 9"""
+    bias: bool = False
+    """biases in every layer (the paper: none)"""
+
+    def __post_init__(self) -> None:
+        if self.width < 1 or self.depth < 1:
+            raise DamcapError(f"DAM width and depth must be >= 1, got width={self.width}, depth={self.depth}")
+        if self.encoding not in ENCODING_DIMS:
+            raise DamcapError(f"unknown DAM input encoding {self.encoding!r}; use one of {sorted(ENCODING_DIMS)}")
+        if self.activation not in ("leaky_relu", "relu", "softplus", "tanh"):
+            raise DamcapError(f"unknown activation {self.activation!r}")
+
+    @property
+    def layer_shapes(self) -> list[tuple[int, int]]:
+        """(out, in) of each linear layer, input to output."""
+        dims = [ENCODING_DIMS[self.encoding]] + [self.width] * self.depth + [3]
+        return [(dims[k + 1], dims[k]) for k in range(len(dims) - 1)]
+
+    @property
+    def num_weights(self) -> int:
+        """Length of the flat weight vector.
+
+        >>> DamArchitecture(encoding="vn").num_weights
+        3360
+        """
+        return sum(o * i + (o if self.bias else 0) for o, i in self.layer_shapes)
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+def encode_inputs(view_dir_world: torch.Tensor, normal_world: torch.Tensor, encoding: Encoding) -> torch.Tensor:
+    """The network input of a DAM.
+
+    Args:
+        view_dir_world: (..., 3) unit vectors from the surface toward the camera (any float dtype).
+        normal_world: (..., 3) unit normals.
+        encoding: see :class:`DamArchitecture`.
+
+    Returns:
+        (..., 6 or 9) float32 (inputs are renormalised: half-precision or interpolated normals
+        do not change the result beyond rounding).
+    """
+    v = safe_normalize(view_dir_world.float())
+    n = safe_normalize(normal_world.float())
+    if encoding == "vn":
+        return torch.cat([v, n], -1)
+    r = reflect(v, n)
+    if encoding == "nr":
+        return torch.cat([n, r], -1)
+    return torch.cat([v, n, r], -1)
+
+
+def _activation(x: torch.Tensor, name: Activation) -> torch.Tensor:
+    if name == "leaky_relu":
+        return F.leaky_relu(x, 0.01)
+    if name == "relu":
+        return F.relu(x)
+    if name == "softplus":
+        return F.softplus(x)
+    return torch.tanh(x)
+
+
+def split_weights(weights_flat: torch.Tensor, arch: DamArchitecture) -> list[tuple[torch.Tensor, torch.Tensor | None]]:
+    """Views of a (B, P) flat weight batch as per-layer (B, out, in) matrices and (B, out) biases."""
+    layers = []
+    k = 0
+    for o, i in arch.layer_shapes:
+        w = weights_flat[:, k:k + o * i].reshape(-1, o, i)
+        k += o * i
+        b = None
+        if arch.bias:
+            b = weights_flat[:, k:k + o]
+            k += o
+        layers.append((w, b))
+    return layers
+
+
+def dam_forward(weights_flat: torch.Tensor, inputs: torch.Tensor, arch: DamArchitecture) -> torch.Tensor:
+    """Evaluate a batch of DAMs.
+
+    Args:
+        weights_flat: (P,) or (B, P) flat weights (P = arch.num_weights).
+        inputs: (N, C) or (B, N, C) encoded inputs (:func:`encode_inputs`).
+        arch: the architecture.
+
+    Returns:
+        (N, 3) or (B, N, 3) radiance in units of the model's radiance scale, >= 0 and finite
+        (softplus output).
+    """
+    single = weights_flat.dim() == 1
+    if single:
+        weights_flat, inputs = weights_flat[None], inputs[None]
+    if weights_flat.shape[-1] != arch.num_weights:
+        raise ValueError(f"expected {arch.num_weights} weights, got {weights_flat.shape[-1]}")
+    x = inputs.to(weights_flat.dtype)
+    layers = split_weights(weights_flat, arch)
+    for k, (w, b) in enumerate(layers):
+        x = torch.bmm(x, w.transpose(1, 2))
+        if b is not None:
+            x = x + b[:, None, :]
+        if k < len(layers) - 1:
+            x = _activation(x, arch.activation)
+    if x.dtype in (torch.float16, torch.bfloat16):
+        x = x.float()  # the output is radiance: never in a format that overflows at 65504
+    out = F.softplus(x).clamp_max(torch.finfo(x.dtype).max)
+    return out[0] if single else out
+
+
+def init_weights(arch: DamArchitecture, generator: torch.Generator | None = None) -> torch.Tensor:
+    """He-uniform initial flat weights, (P,) float32; biases 0."""
+    parts = []
+    for o, i in arch.layer_shapes:
+        bound = math.sqrt(6.0 / i)
+        parts.append((torch.rand(o * i, generator=generator) * 2 - 1) * bound)
+        if arch.bias:
+            parts.append(torch.zeros(o))
+    return torch.cat(parts)
+
+
+class DeepAppearanceMap(nn.Module):
+    """A DAM: one flat weight vector plus its architecture and the radiance scale of its capture.
+
+    ``forward(view_dir_world, normal_world)`` returns linear radiance in the capture's units.
+    """
+
+    def __init__(self, arch: DamArchitecture, radiance_scale: float = 1.0, weights_flat: torch.Tensor | None = None, generator: torch.Generator | None = None) -> None:
+        super().__init__()
+        self.arch = arch
+        if not (math.isfinite(radiance_scale) and radiance_scale > 0):
+            raise DamcapError(f"radiance scale must be a positive finite number, got {radiance_scale}")
+        self.radiance_scale = float(radiance_scale)
+        w = init_weights(arch, generator) if weights_flat is None else weights_flat.detach().float().clone()
+        if w.shape != (arch.num_weights,):
+            raise DamcapError(f"weight vector has shape {tuple(w.shape)}, the architecture needs ({arch.num_weights},)")
+        self.weights_flat = nn.Parameter(w)
+
+    def forward_normalised(self, inputs: torch.Tensor) -> torch.Tensor:
+        """(N, C) encoded inputs -> (N, 3) radiance / radiance_scale."""
+        return dam_forward(self.weights_flat, inputs, self.arch)
+
+    def forward(self, view_dir_world: torch.Tensor, normal_world: torch.Tensor) -> torch.Tensor:
+        """(N, 3) view directions and normals -> (N, 3) linear radiance, >= 0."""
+        return self.forward_normalised(encode_inputs(view_dir_world, normal_world, self.arch.encoding)) * self.radiance_scale
+
+    def get_flat_weights(self) -> torch.Tensor:
+        """(P,) copy of the weights."""
+        return self.weights_flat.detach().clone()
+
+    def set_flat_weights(self, weights_flat: torch.Tensor) -> None:
+        """Replace the weights by a (P,) vector."""
+        if weights_flat.shape != self.weights_flat.shape:
+            raise DamcapError(f"weight vector has shape {tuple(weights_flat.shape)}, expected {tuple(self.weights_flat.shape)}")
+        with torch.no_grad():
+            self.weights_flat.copy_(weights_flat)

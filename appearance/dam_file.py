@@ -1,0 +1,102 @@
+"""``.dam`` files: one safetensors file, the flat weights plus a JSON metadata block.
+
+safetensors stores raw tensors and a JSON header only: opening a stranger's file executes
+nothing. Layout: tensor ``weights`` (P,) float32; metadata key ``damcap`` holding JSON with
+``format_version``, ``architecture``, ``radiance_scale``, ``colorspace``, ``made_by`` and
+free-form ``provenance`` (options, loss, capture).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load as st_load
+from safetensors.torch import save as st_save
+
+from damcap.common.atomic import atomic_path
+from damcap.common.errors import DamcapError
+
+from .dam import DamArchitecture, DeepAppearanceMap
+
+DAM_FORMAT_VERSION = 1
+METADATA_KEY = "damcap"
+
+
+def save_dam(path: str | os.PathLike, model: DeepAppearanceMap, *, colorspace: str, made_by: str, provenance: dict[str, Any] | None = None) -> None:
+    """Write a model atomically as a ``.dam`` file.
+
+    Args:
+        path: destination.
+        model: the DAM.
+        colorspace: the capture's ``colorspace`` (e.g. ``lin_rec709``).
+        made_by: ``fit``, ``predict`` or ``segment``.
+        provenance: JSON-serialisable record of how it was made (options, seed, loss, ...).
+    """
+    meta = {
+        "format_version": DAM_FORMAT_VERSION,
+        "architecture": model.arch.to_json(),
+        "radiance_scale": model.radiance_scale,
+        "colorspace": colorspace,
+        "made_by": made_by,
+        "provenance": provenance or {},
+    }
+    blob = st_save({"weights": model.get_flat_weights().float().contiguous()}, metadata={METADATA_KEY: json.dumps(meta)})
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(blob)
+
+
+def load_dam(path: str | os.PathLike) -> tuple[DeepAppearanceMap, dict[str, Any]]:
+    """Read a ``.dam`` file; refuses anything else with a clear error.
+
+    Returns:
+        the model (on CPU) and the metadata dictionary.
+
+    Raises:
+        DamcapError: missing file, not a safetensors file (random bytes, a pickle, truncated),
+            missing or invalid metadata, a newer format version, weights that do not match the
+            architecture, non-finite weights.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DamcapError(f"{path}: model file not found")
+    data = path.read_bytes()
+    try:
+        tensors = st_load(data)
+        meta_raw = _read_metadata(data)
+    except (SafetensorError, ValueError, OverflowError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise DamcapError(f"{path}: not a damcap .dam model file (not valid safetensors: {str(e).splitlines()[0][:120]})") from None
+    if METADATA_KEY not in meta_raw:
+        raise DamcapError(f"{path}: a safetensors file without damcap metadata; not a .dam model")
+    try:
+        meta = json.loads(meta_raw[METADATA_KEY])
+        version = meta["format_version"]
+        arch_json = meta["architecture"]
+        scale = float(meta["radiance_scale"])
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+        raise DamcapError(f"{path}: damcap metadata is invalid ({e!r})") from None
+    if not isinstance(version, int) or version > DAM_FORMAT_VERSION:
+        raise DamcapError(f"{path}: .dam format version {version!r} is newer than this damcap reads ({DAM_FORMAT_VERSION}); upgrade damcap")
+    try:
+        arch = DamArchitecture(**arch_json)
+    except TypeError as e:
+        raise DamcapError(f"{path}: unknown architecture fields ({e})") from None
+    if set(tensors) != {"weights"}:
+        raise DamcapError(f"{path}: expected one tensor 'weights', found {sorted(tensors)}")
+    w = tensors["weights"]
+    if w.dim() != 1 or w.shape[0] != arch.num_weights:
+        raise DamcapError(f"{path}: weights have shape {tuple(w.shape)}, the stated architecture needs ({arch.num_weights},)")
+    if not torch.isfinite(w).all():
+        raise DamcapError(f"{path}: weights contain NaN or inf")
+    return DeepAppearanceMap(arch, scale, w), meta
+
+
+def _read_metadata(data: bytes) -> dict[str, str]:
+    """The ``__metadata__`` block of a safetensors blob (already validated by ``st_load``)."""
+    n = int.from_bytes(data[:8], "little")
+    header = json.loads(data[8:8 + n].decode("utf-8"))
+    return header.get("__metadata__") or {}

@@ -1,0 +1,70 @@
+"""Evaluation: mean DSSIM per split for a model, RM and RM++ (capture-format.md), and the plot."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .baselines import ViewData, rm_oracle, rm_plus_plus
+from .dam import DeepAppearanceMap
+from .metrics import dssim
+from .render import render_frame
+
+
+@dataclass
+class MethodScores:
+    """Per-frame DSSIM of one method on one split (None = frame without foreground)."""
+
+    per_frame: dict[str, float | None] = field(default_factory=dict)
+    note: str = ""
+
+    @property
+    def mean(self) -> float:
+        vals = [v for v in self.per_frame.values() if v is not None]
+        return float(np.mean(vals)) if vals else float("nan")
+
+
+def score_view(view: ViewData, prediction_lin: np.ndarray) -> float | None:
+    """DSSIM of a prediction against the view's radiance."""
+    return dssim(view.data.radiance_lin, prediction_lin, view.data.coverage)
+
+
+def evaluate_split(train: list[ViewData], targets: list[ViewData], models: dict[str, DeepAppearanceMap], baselines: bool = True) -> dict[str, MethodScores]:
+    """DSSIM of every model and of RM / RM++ on ``targets``, with ``train`` as the baselines' sources."""
+    out: dict[str, MethodScores] = {}
+    for name, model in models.items():
+        out[name] = MethodScores({t.name: score_view(t, render_frame(model, t.data, t.centre_world)) for t in targets})
+    if baselines and len(train) >= 2:
+        preds = rm_plus_plus(train, targets)
+        out["RM++"] = MethodScores({t.name: score_view(t, p) for t, p in zip(targets, preds)})
+        preds, chosen = rm_oracle(train, targets, score_view)
+        out["RM"] = MethodScores({t.name: score_view(t, p) for t, p in zip(targets, preds)}, note=f"source {chosen}")
+    return out
+
+
+def plot_sorted_dssim(results: dict[str, dict[str, MethodScores]], path: str | Path, title: str = "") -> None:
+    """The paper-style plot: per-frame DSSIM sorted, one curve per method, one panel per split."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from damcap.common.atomic import atomic_path
+
+    splits = list(results)
+    fig, axes = plt.subplots(1, len(splits), figsize=(5 * len(splits), 3.6), squeeze=False)
+    for ax, split in zip(axes[0], splits):
+        for method, scores in results[split].items():
+            vals = sorted(v for v in scores.per_frame.values() if v is not None)
+            ax.plot(np.arange(1, len(vals) + 1), vals, marker="o", ms=3, label=f"{method} ({scores.mean:.3f})")
+        ax.set_title(f"{title} {split}".strip())
+        ax.set_xlabel("frames, sorted")
+        ax.set_ylabel("DSSIM (lower is better)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    plt.close(fig)

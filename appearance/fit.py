@@ -1,0 +1,305 @@
+"""Fitting a DAM to a capture by gradient descent (Maximov et al. 2019, Sec. 3.2, Eq. 3).
+
+Cost: the per-sample-weighted L1 distance between the DAM's radiance and the captured radiance
+over covered training pixels, plus optionally alpha times an adversarial cost. Radiance is
+divided by the capture's radiance scale (95th percentile of the training foreground) so that
+learning rates do not depend on the units.
+
+Stopping rule: a few training views are held out; the weights with the lowest held-out L1 are
+kept (training on a 3360-weight network can overfit the training views and get worse on novel
+ones). ``holdout_views = 0`` trains on all views and keeps the last weights.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Literal
+
+import numpy as np
+import torch
+
+from damcap.common.atomic import atomic_path
+from damcap.common.device import resolve_device
+from damcap.common.errors import DamcapError
+
+from .adversarial import PatchDiscriminator, discriminator_loss, generator_loss
+from .dam import Activation, DamArchitecture, DeepAppearanceMap, Encoding, dam_forward, encode_inputs
+from .pixels import PixelSamples
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Options of ``damcap fit`` (every knob that trades speed for accuracy is here)."""
+
+    steps: int = 2000
+    """optimiser steps (Adam); time grows linearly"""
+    batch_size: int = 4096
+    """pixels per step"""
+    learning_rate: float = 1e-2
+    """initial Adam learning rate; cosine-decayed to 5% of it"""
+    width: int = 32
+    """DAM hidden units per layer"""
+    depth: int = 4
+    """DAM hidden layers"""
+    activation: Activation = "leaky_relu"
+    """DAM hidden non-linearity"""
+    encoding: Encoding = "nr"
+    """DAM input: 'vn' (paper), 'nr' (normal + mirrored view), 'vnr'"""
+    adversarial: bool = False
+    """add the paper's adversarial cost (patch discriminator)"""
+    adversarial_alpha: float = 0.001
+    """weight of the adversarial cost (the paper: 0.001)"""
+    holdout_views: int = 2
+    """training views held out for the stopping rule (0 = none, keep the last weights)"""
+    eval_every: int = 100
+    """steps between held-out evaluations"""
+    seed: int = 0
+    """seeds initialisation and pixel sampling: same seed, same model"""
+    device: str = "cpu"
+    """'cpu', 'cuda' or 'auto'"""
+    checkpoint_every: int = 250
+    """steps between checkpoints (0 = never)"""
+
+    def validate(self) -> None:
+        for name in ("steps", "batch_size", "width", "depth", "eval_every"):
+            if getattr(self, name) < 1:
+                raise DamcapError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
+        if self.holdout_views < 0 or self.checkpoint_every < 0:
+            raise DamcapError("--holdout-views and --checkpoint-every must be >= 0")
+        if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)):
+            raise DamcapError(f"--learning-rate must be positive, got {self.learning_rate}")
+
+    @property
+    def architecture(self) -> DamArchitecture:
+        return DamArchitecture(width=self.width, depth=self.depth, activation=self.activation, encoding=self.encoding)
+
+
+@dataclass
+class TrainingFrame:
+    """A training frame as the adversarial cost needs it (whole images)."""
+
+    radiance_norm: torch.Tensor
+    """(3, H, W) radiance / scale, 0 on background"""
+    inputs: torch.Tensor
+    """(H, W, C) encoded DAM inputs (0 on background)"""
+    foreground: torch.Tensor
+    """(H, W) bool"""
+
+
+@dataclass
+class FitResult:
+    """A fitted model and how it got there."""
+
+    model: DeepAppearanceMap
+    history: list[dict[str, float]] = field(default_factory=list)
+    best_step: int = 0
+    seconds: float = 0.0
+    resumed_from: int = 0
+
+
+def radiance_scale_of(radiance_lin: torch.Tensor, weight: torch.Tensor | None = None) -> float:
+    """95th percentile of the pooled channels of (N, 3) radiance over samples with weight > 0
+    (1 if that is 0)."""
+    if weight is not None:
+        radiance_lin = radiance_lin[weight > 0]
+    if radiance_lin.numel() == 0:
+        return 1.0
+    x = radiance_lin.reshape(-1).float()
+    if x.numel() > 1_000_000:
+        x = x[torch.linspace(0, x.numel() - 1, 1_000_000).long()]
+    p = float(torch.quantile(x, 0.95))
+    return p if p > 0 and math.isfinite(p) else 1.0
+
+
+def holdout_frames(n_frames: int, k: int) -> list[int]:
+    """k training-frame indices spread over the interior of the (consecutive) training views.
+
+    >>> holdout_frames(10, 2)
+    [3, 6]
+    """
+    if k <= 0 or n_frames < 3:
+        return []
+    k = min(k, n_frames - 2)
+    return sorted({int(round((i + 1) * (n_frames - 1) / (k + 1))) for i in range(k)})
+
+
+def _weighted_l1(pred: torch.Tensor, target: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    return ((pred - target).abs().mean(-1) * w).sum() / w.sum().clamp_min(1e-12)
+
+
+def _state_json(opts: FitOptions) -> str:
+    return json.dumps(asdict(opts), sort_keys=True)
+
+
+def fit_dam(
+    samples: PixelSamples,
+    opts: FitOptions,
+    *,
+    frames_for_adversarial: list[TrainingFrame] | None = None,
+    checkpoint_path: str | os.PathLike | None = None,
+    progress: Callable[[int, int, dict[str, float]], None] | None = None,
+    init_weights: torch.Tensor | None = None,
+) -> FitResult:
+    """Fit one DAM to pixel samples.
+
+    Args:
+        samples: training pixels (frame_index says which training frame each came from).
+        opts: options.
+        frames_for_adversarial: whole training frames (needed when opts.adversarial).
+        checkpoint_path: where to checkpoint; an existing checkpoint made with the same options is
+            resumed (the result is the same as an uninterrupted run).
+        progress: called as progress(step, steps, stats) after every step.
+        init_weights: optional (P,) initial weights (e.g. a predicted DAM) instead of random.
+
+    Returns:
+        the fitted model (on CPU) and its training history.
+    """
+    opts.validate()
+    if len(samples) == 0:
+        raise DamcapError("no covered training pixels to fit (is the train split's coverage A all 0?)")
+    if opts.adversarial and not frames_for_adversarial:
+        raise DamcapError("the adversarial cost needs whole training frames")
+    device = resolve_device(opts.device)
+    arch = opts.architecture
+    scale = radiance_scale_of(samples.radiance_lin, samples.weight)
+    gen = torch.Generator().manual_seed(opts.seed)
+    torch.manual_seed(opts.seed)
+    model = DeepAppearanceMap(arch, scale, init_weights, generator=gen).to(device)
+
+    n_frames = int(samples.frame_index.max()) + 1
+    held = holdout_frames(n_frames, opts.holdout_views)
+    is_held = torch.zeros(len(samples), dtype=torch.bool)
+    for k in held:
+        is_held |= samples.frame_index == k
+    if is_held.all():
+        is_held[:] = False
+    inputs = encode_inputs(samples.view_dir_world, samples.normal_world, arch.encoding)
+    target = samples.radiance_lin.float() / scale
+    train_idx = torch.nonzero(~is_held).squeeze(1)
+    x_tr, y_tr, w_tr = inputs[train_idx].to(device), target[train_idx].to(device), samples.weight[train_idx].to(device)
+    x_ho, y_ho, w_ho = inputs[is_held].to(device), target[is_held].to(device), samples.weight[is_held].to(device)
+
+    optim = torch.optim.Adam(model.parameters(), lr=opts.learning_rate)
+    lr_at = lambda s: opts.learning_rate * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * s / opts.steps)))  # noqa: E731
+    disc = d_optim = None
+    if opts.adversarial:
+        disc = PatchDiscriminator().to(device)
+        d_optim = torch.optim.Adam(disc.parameters(), lr=2e-4, betas=(0.5, 0.999))
+
+    start, best_loss, best_step = 0, math.inf, 0
+    best_weights = model.get_flat_weights()
+    history: list[dict[str, float]] = []
+    elapsed_before = 0.0
+    ckpt = Path(checkpoint_path) if checkpoint_path else None
+    if ckpt and ckpt.is_file():
+        state = _load_checkpoint(ckpt)
+        if state.get("options") == _state_json(opts) and int(state["n_samples"]) == len(samples):
+            model.set_flat_weights(state["weights"].to(device))
+            optim.load_state_dict(state["optim"])
+            gen.set_state(state["generator"])
+            torch.set_rng_state(state["torch_rng"])
+            start, best_loss, best_step = int(state["step"]), float(state["best_loss"]), int(state["best_step"])
+            best_weights = state["best_weights"]
+            history = json.loads(state["history"])
+            elapsed_before = float(state["elapsed"])
+            if disc is not None and "disc" in state:
+                disc.load_state_dict(state["disc"])
+                d_optim.load_state_dict(state["d_optim"])  # type: ignore[union-attr]
+    resumed_from = start
+
+    t0 = time.perf_counter()
+    n_tr = x_tr.shape[0]
+    for step in range(start, opts.steps):
+        for g in optim.param_groups:
+            g["lr"] = lr_at(step)
+        idx = torch.randint(0, n_tr, (min(opts.batch_size, n_tr),), generator=gen).to(device)
+        pred = dam_forward(model.weights_flat, x_tr[idx], arch)
+        loss = _weighted_l1(pred, y_tr[idx], w_tr[idx])
+        stats = {"loss": float(loss.detach())}
+        if disc is not None:
+            real, fake = _patches(model, frames_for_adversarial, arch, gen, device)  # type: ignore[arg-type]
+            d_optim.zero_grad()  # type: ignore[union-attr]
+            discriminator_loss(disc, real, fake).backward()
+            d_optim.step()  # type: ignore[union-attr]
+            adv = generator_loss(disc, fake)
+            loss = loss + opts.adversarial_alpha * adv
+            stats["adv"] = float(adv.detach())
+        optim.zero_grad()
+        loss.backward()
+        optim.step()
+        done = step + 1
+        if done % opts.eval_every == 0 or done == opts.steps:
+            ho = _evaluate_l1(model, x_ho, y_ho, w_ho, arch) if x_ho.shape[0] else stats["loss"]
+            record = {"step": done, "train_l1": stats["loss"], "holdout_l1": ho, "seconds": elapsed_before + time.perf_counter() - t0}
+            history.append(record)
+            if x_ho.shape[0] == 0 or ho < best_loss:
+                best_loss, best_step, best_weights = ho, done, model.get_flat_weights().cpu()
+            stats["holdout"] = ho
+        if progress:
+            progress(done, opts.steps, stats)
+        if ckpt and opts.checkpoint_every and done % opts.checkpoint_every == 0 and done < opts.steps:
+            _save_checkpoint(ckpt, {
+                "options": _state_json(opts), "n_samples": len(samples), "step": done,
+                "weights": model.get_flat_weights().cpu(), "optim": optim.state_dict(),
+                "generator": gen.get_state(), "torch_rng": torch.get_rng_state(),
+                "best_loss": best_loss, "best_step": best_step, "best_weights": best_weights,
+                "history": json.dumps(history), "elapsed": elapsed_before + time.perf_counter() - t0,
+                **({"disc": disc.state_dict(), "d_optim": d_optim.state_dict()} if disc is not None else {}),  # type: ignore[union-attr]
+            })
+    final = DeepAppearanceMap(arch, scale, best_weights.cpu())
+    if ckpt and ckpt.is_file():
+        ckpt.unlink()
+    return FitResult(final, history, best_step, elapsed_before + time.perf_counter() - t0, resumed_from)
+
+
+@torch.no_grad()
+def _evaluate_l1(model: DeepAppearanceMap, x: torch.Tensor, y: torch.Tensor, w: torch.Tensor, arch: DamArchitecture, chunk: int = 1 << 16) -> float:
+    total, wsum = 0.0, 0.0
+    for s in range(0, x.shape[0], chunk):
+        p = dam_forward(model.weights_flat, x[s:s + chunk], arch)
+        total += float(((p - y[s:s + chunk]).abs().mean(-1) * w[s:s + chunk]).sum())
+        wsum += float(w[s:s + chunk].sum())
+    return total / max(wsum, 1e-12)
+
+
+def _patches(model: DeepAppearanceMap, frames: list[TrainingFrame], arch: DamArchitecture, gen: torch.Generator, device: torch.device, n: int = 4, size: int = 32) -> tuple[torch.Tensor, torch.Tensor]:
+    """n random (real, re-synthesised) patch pairs, (n, 3, size, size) each, centred on foreground."""
+    reals, fakes = [], []
+    for _ in range(n):
+        f = frames[int(torch.randint(0, len(frames), (1,), generator=gen))]
+        fg = torch.nonzero(f.foreground)
+        i, j = fg[int(torch.randint(0, fg.shape[0], (1,), generator=gen))].tolist()
+        h, w = f.foreground.shape
+        top = min(max(i - size // 2, 0), max(h - size, 0))
+        left = min(max(j - size // 2, 0), max(w - size, 0))
+        sl = (slice(top, top + size), slice(left, left + size))
+        mask = f.foreground[sl].to(device)
+        x = f.inputs[sl].to(device)
+        pred = dam_forward(model.weights_flat, x.reshape(-1, x.shape[-1]), arch).reshape(*x.shape[:2], 3)
+        fake = torch.where(mask[..., None], pred, torch.zeros_like(pred)).permute(2, 0, 1)
+        real = f.radiance_norm[:, sl[0], sl[1]].to(device)
+        ph, pw = real.shape[1:]
+        pad = (0, size - pw, 0, size - ph)
+        reals.append(torch.nn.functional.pad(real, pad))
+        fakes.append(torch.nn.functional.pad(fake, pad))
+    return torch.stack(reals), torch.stack(fakes)
+
+
+def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
+def _load_checkpoint(path: Path) -> dict[str, Any]:
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # a damaged checkpoint is not fatal: start afresh
+        import warnings
+
+        warnings.warn(f"{path}: ignoring unreadable checkpoint ({e.__class__.__name__})", stacklevel=2)
+        return {}

@@ -1,0 +1,36 @@
+"""Rendering a DAM into a frame's pixels (pure)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from damcap.common.capture_folder import FrameData
+
+from .dam import DeepAppearanceMap
+from .pixels import view_dir_world
+
+
+@torch.no_grad()
+def render_frame(model: DeepAppearanceMap, data: FrameData, camera_centre_world: np.ndarray, chunk: int = 1 << 16) -> np.ndarray:
+    """Evaluate the DAM on every covered pixel (A > 0) of a frame.
+
+    Args:
+        model: the DAM.
+        data: the frame's geometry (radiance is not read).
+        camera_centre_world: (3,) camera centre.
+        chunk: pixels per forward pass.
+
+    Returns:
+        (H, W, 3) float32 linear radiance; 0 on background.
+    """
+    covered = data.coverage > 0
+    out = np.zeros(data.coverage.shape + (3,), np.float32)
+    if not covered.any():
+        return out
+    v = torch.from_numpy(view_dir_world(data.position_world[covered], camera_centre_world))
+    n = torch.from_numpy(np.ascontiguousarray(data.normal_world[covered]))
+    dev = model.weights_flat.device
+    parts = [model(v[s:s + chunk].to(dev), n[s:s + chunk].to(dev)).cpu() for s in range(0, v.shape[0], chunk)]
+    out[covered] = torch.cat(parts).numpy()
+    return out

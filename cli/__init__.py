@@ -1,0 +1,1 @@
+"""The ``damcap`` command line: commands only (load, call the pipeline, save)."""

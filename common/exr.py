@@ -1,0 +1,106 @@
+"""OpenEXR reading and writing through OpenImageIO (the only image I/O for linear data)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Literal, Mapping, Sequence
+
+import numpy as np
+import OpenImageIO as oiio
+
+from .atomic import atomic_path
+from .errors import DamcapError
+
+
+def _one_line(message: str, path: Path) -> str:
+    """OpenImageIO's error text as one short line (it repeats the path on every line)."""
+    lines = [ln.replace(f"({path})", "").replace(str(path), "").strip(" :") for ln in message.strip().splitlines()]
+    lines = [ln for ln in lines if ln]
+    return lines[-1] if lines else "unknown error"
+
+
+def read_exr(path: str | os.PathLike) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Read every channel of an image file.
+
+    Args:
+        path: an EXR (or any OpenImageIO-readable) file.
+
+    Returns:
+        pixels: (H, W, C) float32, as stored (linear for EXR).
+        channel_names: C names, e.g. ``("R", "G", "B")`` or ``("N.X", ...)``.
+
+    Raises:
+        DamcapError: the file is missing, unreadable or truncated.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DamcapError(f"{path}: file not found")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise DamcapError(f"{path}: cannot read image ({_one_line(oiio.geterror(), path)})")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        err = inp.geterror()
+    finally:
+        inp.close()
+    if pixels is None or err:
+        raise DamcapError(f"{path}: cannot read pixels, the file is damaged or truncated ({_one_line(err or '', path)})")
+    pixels = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    return pixels, tuple(spec.channelnames)
+
+
+def read_exr_channels(path: str | os.PathLike, names: Sequence[str]) -> np.ndarray:
+    """Read the named channels, in the order asked, as (H, W, len(names)) float32.
+
+    Raises:
+        DamcapError: a channel is missing (the message lists what the file has).
+    """
+    pixels, have = read_exr(path)
+    missing = [n for n in names if n not in have]
+    if missing:
+        raise DamcapError(
+            f"{path}: missing channel(s) {', '.join(missing)}; the file has {', '.join(have)}"
+        )
+    return np.stack([pixels[..., have.index(n)] for n in names], axis=-1)
+
+
+def write_exr(
+    path: str | os.PathLike,
+    pixels: np.ndarray,
+    channel_names: Sequence[str],
+    *,
+    dtype: Literal["half", "float"] = "half",
+    attributes: Mapping[str, str | int | float] | None = None,
+) -> None:
+    """Write (H, W, C) pixels as a ZIP-compressed OpenEXR file, atomically.
+
+    Args:
+        path: destination ``.exr``.
+        pixels: (H, W, C) or (H, W) array, finite; half storage keeps values up to 65504.
+        channel_names: C names.
+        dtype: ``"half"`` (float16) or ``"float"`` (float32) storage.
+        attributes: extra header attributes (strings or numbers).
+    """
+    pixels = np.asarray(pixels, dtype=np.float32)
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    if pixels.ndim != 3 or pixels.shape[2] != len(channel_names):
+        raise ValueError(f"pixels shape {pixels.shape} does not match channels {list(channel_names)}")
+    h, w, c = pixels.shape
+    spec = oiio.ImageSpec(w, h, c, dtype)
+    spec.channelnames = tuple(channel_names)
+    spec.attribute("compression", "zip")
+    for key, value in (attributes or {}).items():
+        spec.attribute(key, value)
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None:
+            raise DamcapError(f"{path}: cannot create image writer ({oiio.geterror().strip()})")
+        try:
+            ok = out.open(str(tmp), spec) and out.write_image(np.ascontiguousarray(pixels))
+            if not ok:
+                raise DamcapError(f"{path}: cannot write image ({out.geterror().strip()})")
+        finally:
+            out.close()

@@ -1,0 +1,1 @@
+"""Cameras, geometry and per-pixel buffers: everything that produces a capture folder."""

@@ -1,0 +1,89 @@
+"""Pinhole cameras in the capture convention (OpenGL axes: x right, y up, looking down -z)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def look_at_world_from_cam(centre_world: np.ndarray, target_world: np.ndarray, up_world: np.ndarray) -> np.ndarray:
+    """Camera-to-world matrix of a camera at ``centre_world`` looking at ``target_world``.
+
+    Args:
+        centre_world: (3,) camera centre.
+        target_world: (3,) point the optical axis passes through.
+        up_world: (3,) approximate up direction (must not be parallel to the viewing direction).
+
+    Returns:
+        (4, 4) float64 world_from_cam; its column 2 points backwards (away from the target).
+    """
+    centre = np.asarray(centre_world, dtype=np.float64)
+    back = centre - np.asarray(target_world, dtype=np.float64)
+    back /= np.linalg.norm(back)
+    right = np.cross(np.asarray(up_world, dtype=np.float64), back)
+    norm = np.linalg.norm(right)
+    if norm < 1e-9:
+        raise ValueError("up_world is parallel to the viewing direction")
+    right /= norm
+    up = np.cross(back, right)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, up, back, centre
+    return m
+
+
+def orbit_world_from_cam(n_views: int, distance: float, elevation_deg: float, azimuth0_deg: float = 0.0) -> np.ndarray:
+    """Cameras equally spaced on a circle around the origin (y up), all looking at the origin.
+
+    Args:
+        n_views: number of cameras.
+        distance: distance from the origin, scene units.
+        elevation_deg: angle above the xz-plane, degrees, in (-90, 90).
+        azimuth0_deg: azimuth of the first camera, degrees.
+
+    Returns:
+        (n_views, 4, 4) float64 world_from_cam.
+    """
+    el = math.radians(elevation_deg)
+    mats = []
+    for k in range(n_views):
+        az = math.radians(azimuth0_deg) + 2 * math.pi * k / n_views
+        centre = distance * np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
+        mats.append(look_at_world_from_cam(centre, np.zeros(3), np.array([0.0, 1.0, 0.0])))
+    return np.stack(mats)
+
+
+def focal_px_from_fov(fov_deg: float, size_px: int) -> float:
+    """Focal length in pixels of a pinhole with full field of view ``fov_deg`` over ``size_px``.
+
+    >>> round(focal_px_from_fov(90.0, 256), 6)
+    128.0
+    """
+    return 0.5 * size_px / math.tan(math.radians(fov_deg) / 2)
+
+
+def pixel_rays_world(
+    world_from_cam: np.ndarray, fl_x: float, fl_y: float, cx: float, cy: float, w: int, h: int, offsets: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """World-space rays through pixel centres (or sub-pixel offsets from them).
+
+    Args:
+        world_from_cam: (4, 4) camera-to-world.
+        fl_x, fl_y, cx, cy: pinhole intrinsics, pixels; pixel (i, j) centre is (j + 0.5, i + 0.5).
+        w, h: image size, pixels.
+        offsets: optional (S, 2) sub-pixel offsets (dx, dy) in pixels from the centre.
+
+    Returns:
+        origin_world: (3,) camera centre.
+        dir_world: (H, W, 3) or (S, H, W, 3) unit ray directions.
+    """
+    j, i = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    offs = np.zeros((1, 2)) if offsets is None else np.asarray(offsets, dtype=np.float64)
+    u = j[None] + offs[:, 0, None, None]
+    v = i[None] + offs[:, 1, None, None]
+    d_cam = np.stack([(u - cx) / fl_x, -(v - cy) / fl_y, -np.ones_like(u)], axis=-1)
+    d_world = d_cam @ world_from_cam[:3, :3].T
+    d_world /= np.linalg.norm(d_world, axis=-1, keepdims=True)
+    if offsets is None:
+        d_world = d_world[0]
+    return world_from_cam[:3, 3].copy(), d_world

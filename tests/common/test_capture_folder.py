@@ -1,0 +1,157 @@
+"""The capture folder: round trip and every validation error (capture-format.md)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from damcap.common.capture_folder import (
+    GEOMETRY_CHANNELS, inspect_capture, read_capture, read_frame, rigid_problem, write_transforms,
+)
+from damcap.common.errors import DamcapError
+from damcap.common.exr import read_exr, write_exr
+
+
+def test_round_trip_preserves_arrays_and_unknown_keys(capture_copy):
+    cap = read_capture(capture_copy)
+    doc = json.loads((capture_copy / "transforms.json").read_text())
+    doc["my_tool_key"] = {"a": [1, 2]}
+    doc["frames"][0]["my_frame_key"] = "x"
+    (capture_copy / "transforms.json").write_text(json.dumps(doc))
+    cap = read_capture(capture_copy)
+    before = read_frame(cap, cap.frames[0])
+    write_transforms(cap)
+    again = read_capture(capture_copy)
+    out = json.loads((capture_copy / "transforms.json").read_text())
+    assert out["my_tool_key"] == {"a": [1, 2]} and out["frames"][0]["my_frame_key"] == "x"
+    assert again.train_filenames == cap.train_filenames and again.test_filenames == cap.test_filenames
+    np.testing.assert_allclose(again.frames[3].world_from_cam, cap.frames[3].world_from_cam, atol=1e-12)
+    after = read_frame(again, again.frames[0])
+    for a, b in [(before.radiance_lin, after.radiance_lin), (before.normal_world, after.normal_world), (before.coverage, after.coverage)]:
+        np.testing.assert_array_equal(a, b)
+
+
+def test_exr_round_trip_float_and_half(tmp_path):
+    rng = np.random.default_rng(0)
+    img = rng.random((5, 7, 3)).astype(np.float32) * 1000
+    write_exr(tmp_path / "f.exr", img, ["R", "G", "B"], dtype="float")
+    back, names = read_exr(tmp_path / "f.exr")
+    assert names == ("R", "G", "B")
+    np.testing.assert_array_equal(back, img)
+    write_exr(tmp_path / "h.exr", img, ["R", "G", "B"], dtype="half")
+    np.testing.assert_allclose(read_exr(tmp_path / "h.exr")[0], img, rtol=1e-3)
+
+
+def test_summary_reports_frames_and_splits(small_capture):
+    s = inspect_capture(small_capture)
+    assert (s.frames, s.resolution, s.train, s.test, s.problems) == (12, (32, 32), 4, 8, [])
+    assert 0.1 < s.coverage_mean < 0.9 and s.radiance_max > s.radiance_min >= 0
+
+
+def _geometry(capture_dir, idx=0):
+    path = capture_dir / "geometry" / f"{idx:04d}.exr"
+    px, names = read_exr(path)
+    return path, px, list(names)
+
+
+def _problems(capture_dir):
+    return " | ".join(inspect_capture(capture_dir).problems)
+
+
+def test_missing_image_file_is_named(capture_copy):
+    (capture_copy / "images" / "0002.exr").unlink()
+    assert "0002.exr: file not found" in _problems(capture_copy)
+
+
+def test_wrong_channel_names(capture_copy):
+    path, px, names = _geometry(capture_copy)
+    names[names.index("N.X")] = "nx"
+    write_exr(path, px, names, dtype="float")
+    assert "missing channel(s) N.X" in _problems(capture_copy)
+
+
+def test_non_unit_normals(capture_copy):
+    path, px, names = _geometry(capture_copy)
+    a = px[..., names.index("A")] > 0
+    for c in ("N.X", "N.Y", "N.Z"):
+        px[..., names.index(c)][a] *= 1.5
+    write_exr(path, px, names, dtype="float")
+    assert "normals must be unit length" in _problems(capture_copy)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_nan_inf_named_with_pixel(capture_copy, bad):
+    path = capture_copy / "images" / "0001.exr"
+    px, names = read_exr(path)
+    px[3, 4, 1] = bad
+    write_exr(path, px, names, dtype="float")
+    assert "0001.exr: radiance has 1 NaN/inf value(s), first at pixel (row 3, col 4)" in _problems(capture_copy)
+
+
+def test_mismatched_sizes(capture_copy):
+    path = capture_copy / "images" / "0005.exr"
+    write_exr(path, np.zeros((16, 32, 3)), ["R", "G", "B"])
+    assert "0005.exr: image is 32x16 (WxH) but transforms.json says 32x32" in _problems(capture_copy)
+
+
+def test_non_rigid_camera(capture_copy):
+    doc = json.loads((capture_copy / "transforms.json").read_text())
+    m = np.array(doc["frames"][2]["transform_matrix"])
+    m[:3, :3] *= 2.0
+    doc["frames"][2]["transform_matrix"] = m.tolist()
+    (capture_copy / "transforms.json").write_text(json.dumps(doc))
+    with pytest.raises(DamcapError, match=r"frames\[2\].*not a rigid camera-to-world.*not orthonormal"):
+        read_capture(capture_copy)
+
+
+def test_rigid_problem_cases():
+    assert rigid_problem(np.eye(4)) is None
+    refl = np.diag([1.0, 1.0, -1.0, 1.0])
+    assert "determinant" in rigid_problem(refl)
+    bad = np.eye(4)
+    bad[3, 0] = 1
+    assert "last row" in rigid_problem(bad)
+
+
+def test_empty_split(capture_copy):
+    doc = json.loads((capture_copy / "transforms.json").read_text())
+    doc["test_filenames"] = []
+    (capture_copy / "transforms.json").write_text(json.dumps(doc))
+    assert "the 'test' split is empty" in _problems(capture_copy)
+    with pytest.raises(DamcapError, match="'test' split is empty"):
+        read_capture(capture_copy).split("test")
+
+
+def test_split_naming_unknown_frame(capture_copy):
+    doc = json.loads((capture_copy / "transforms.json").read_text())
+    doc["train_filenames"].append("images/9999.exr")
+    (capture_copy / "transforms.json").write_text(json.dumps(doc))
+    with pytest.raises(DamcapError, match="images/9999.exr"):
+        read_capture(capture_copy)
+
+
+def test_bad_json_and_newer_version(capture_copy):
+    tj = capture_copy / "transforms.json"
+    doc = json.loads(tj.read_text())
+    tj.write_text("{not json")
+    with pytest.raises(DamcapError, match="transforms.json: invalid JSON"):
+        read_capture(capture_copy)
+    doc["damcap_version"] = 99
+    tj.write_text(json.dumps(doc))
+    with pytest.raises(DamcapError, match="newer than this damcap reads"):
+        read_capture(capture_copy)
+
+
+def test_truncated_exr(capture_copy):
+    path = capture_copy / "geometry" / "0000.exr"
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    cap = read_capture(capture_copy)
+    with pytest.raises(DamcapError, match="0000.exr"):
+        read_frame(cap, cap.frames[0])
+
+
+def test_geometry_channels_constant():
+    assert GEOMETRY_CHANNELS == ("N.X", "N.Y", "N.Z", "P.X", "P.Y", "P.Z", "A")

@@ -1,0 +1,66 @@
+"""Shared fixtures: real third-party data (one fixture), small generated captures, tolerances."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("DAMCAP_SHARED_DATA", REPO.parent / "shared" / "data"))
+SAMPLE_CAPTURE = REPO / "samples" / "torus_env"
+
+#: tolerances per dtype, in one place
+TOL = {torch.float64: 1e-10, torch.float32: 1e-5, torch.float16: 2e-3}
+
+torch.set_num_threads(min(2, torch.get_num_threads()))
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """../shared/data (real third-party data). Missing data fails under CI=true, skips elsewhere."""
+    if not (SHARED_DATA / "MANIFEST.md").is_file():
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(f"shared test data not found at {SHARED_DATA} (CI requires it)")
+        pytest.skip(f"shared test data not found at {SHARED_DATA}")
+    return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def sample_capture() -> Path:
+    """The bundled closed-form capture (torus under an environment, 32 views at 96x96)."""
+    if not (SAMPLE_CAPTURE / "transforms.json").is_file():
+        pytest.fail(f"bundled sample missing: {SAMPLE_CAPTURE}")
+    return SAMPLE_CAPTURE
+
+
+@pytest.fixture(scope="session")
+def small_capture(tmp_path_factory) -> Path:
+    """A tiny closed-form capture: sphere, directional light, 12 views at 32x32, 4 train."""
+    from damcap.reconstruct.closed_form import ClosedFormOptions, make_closed_form_capture
+
+    out = tmp_path_factory.mktemp("cap") / "sphere"
+    make_closed_form_capture(out, ClosedFormOptions(views=12, resolution=32, train_views=4, seed=1, dtype="float"))
+    return out
+
+
+@pytest.fixture()
+def capture_copy(small_capture, tmp_path) -> Path:
+    """A private copy of the tiny capture that a test may damage."""
+    dst = tmp_path / "copy"
+    shutil.copytree(small_capture, dst)
+    return dst
+
+
+def tree_digest(root: Path) -> str:
+    """Hash of every file's path and bytes under root (to prove inputs are untouched)."""
+    h = hashlib.sha256()
+    for p in sorted(root.rglob("*")):
+        if p.is_file():
+            h.update(str(p.relative_to(root)).encode())
+            h.update(p.read_bytes())
+    return h.hexdigest()

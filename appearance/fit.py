@@ -18,9 +18,8 @@ import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import Any, Callable
 
-import numpy as np
 import torch
 
 from damcap.common.atomic import atomic_path
@@ -168,7 +167,6 @@ def fit_dam(
     arch = opts.architecture
     scale = radiance_scale_of(samples.radiance_lin, samples.weight)
     gen = torch.Generator().manual_seed(opts.seed)
-    torch.manual_seed(opts.seed)
     model = DeepAppearanceMap(arch, scale, init_weights, generator=gen).to(device)
 
     n_frames = int(samples.frame_index.max()) + 1
@@ -187,8 +185,11 @@ def fit_dam(
     optim = torch.optim.Adam(model.parameters(), lr=opts.learning_rate)
     lr_at = lambda s: opts.learning_rate * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * s / opts.steps)))  # noqa: E731
     disc = d_optim = None
+    adv_frames = [f for k, f in enumerate(frames_for_adversarial or []) if k not in held] or frames_for_adversarial
     if opts.adversarial:
-        disc = PatchDiscriminator().to(device)
+        with torch.random.fork_rng(devices=[]):  # seeded, without touching the global RNG
+            torch.manual_seed(opts.seed)
+            disc = PatchDiscriminator().to(device)
         d_optim = torch.optim.Adam(disc.parameters(), lr=2e-4, betas=(0.5, 0.999))
 
     start, best_loss, best_step = 0, math.inf, 0
@@ -202,7 +203,6 @@ def fit_dam(
             model.set_flat_weights(state["weights"].to(device))
             optim.load_state_dict(state["optim"])
             gen.set_state(state["generator"])
-            torch.set_rng_state(state["torch_rng"])
             start, best_loss, best_step = int(state["step"]), float(state["best_loss"]), int(state["best_step"])
             best_weights = state["best_weights"]
             history = json.loads(state["history"])
@@ -222,7 +222,7 @@ def fit_dam(
         loss = _weighted_l1(pred, y_tr[idx], w_tr[idx])
         stats = {"loss": float(loss.detach())}
         if disc is not None:
-            real, fake = _patches(model, frames_for_adversarial, arch, gen, device)  # type: ignore[arg-type]
+            real, fake = _patches(model, adv_frames, arch, gen, device)  # type: ignore[arg-type]
             d_optim.zero_grad()  # type: ignore[union-attr]
             discriminator_loss(disc, real, fake).backward()
             d_optim.step()  # type: ignore[union-attr]
@@ -246,7 +246,7 @@ def fit_dam(
             _save_checkpoint(ckpt, {
                 "options": _state_json(opts), "n_samples": len(samples), "step": done,
                 "weights": model.get_flat_weights().cpu(), "optim": optim.state_dict(),
-                "generator": gen.get_state(), "torch_rng": torch.get_rng_state(),
+                "generator": gen.get_state(),
                 "best_loss": best_loss, "best_step": best_step, "best_weights": best_weights,
                 "history": json.dumps(history), "elapsed": elapsed_before + time.perf_counter() - t0,
                 **({"disc": disc.state_dict(), "d_optim": d_optim.state_dict()} if disc is not None else {}),  # type: ignore[union-attr]

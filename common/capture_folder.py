@@ -20,7 +20,7 @@ import numpy as np
 
 from .atomic import write_json_atomic
 from .errors import DamcapError
-from .exr import read_exr, read_exr_channels, write_exr
+from .exr import read_exr_channels, write_exr
 
 FORMAT_VERSION = 1
 RADIANCE_CHANNELS = ("R", "G", "B")

@@ -1,0 +1,46 @@
+"""The typer application and what every command shares (progress bars, output guards)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from damcap.common.errors import DamcapError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="damcap: from photos to deep appearance maps.",
+)
+
+
+def progress_bar(total: int, desc: str):
+    """A tqdm bar as a ``progress(step, steps, stats)`` callback (silent when not a terminal)."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, desc=desc, unit="step", dynamic_ncols=True, leave=False, disable=None)
+
+    def update(step: int, steps: int, stats: dict) -> None:
+        bar.n = step
+        if step % 25 == 0 or step == steps:
+            bar.set_postfix({k: f"{v:.4f}" for k, v in stats.items()}, refresh=False)
+            bar.refresh()
+        if step == steps:
+            bar.close()
+
+    return update
+
+
+def refuse_input_overlap(out: Path, *inputs: Path) -> None:
+    """Outputs never land on or inside an input (inputs are never modified).
+
+    Raises:
+        DamcapError: ``out`` is an input or lies inside an input folder.
+    """
+    o = out.resolve()
+    for i in inputs:
+        r = i.resolve()
+        if o == r or (r.is_dir() and r in o.parents):
+            raise DamcapError(f"{out}: output would overwrite or write into the input {i}; choose another output path")

@@ -1,0 +1,197 @@
+"""Commands of the appearance stage: inspect, closed-form, fit, render, evaluate."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from damcap.common.errors import DamcapError
+
+from .app import app, progress_bar, refuse_input_overlap
+
+
+@app.command()
+def inspect(capture: Path = typer.Argument(..., help="capture folder")) -> None:
+    """Summarise a capture folder and validate every file in it."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from damcap.common.capture_folder import inspect_capture
+
+    s = inspect_capture(capture)
+    t = Table(title=str(capture), show_header=False)
+    for k, v in [
+        ("frames", s.frames), ("resolution", f"{s.resolution[0]}x{s.resolution[1]}"),
+        ("mean coverage (A > 0.5)", f"{s.coverage_mean:.1%}"),
+        ("radiance range (foreground)", f"{s.radiance_min:.4g} .. {s.radiance_max:.4g} (median {s.radiance_p50:.4g})"),
+        ("splits", f"train {s.train}, test {s.test}"), ("materials", s.materials or "unknown"),
+        ("colorspace", s.colorspace),
+    ]:
+        t.add_row(k, str(v))
+    Console().print(t)
+    if s.problems:
+        for p in s.problems:
+            typer.echo(f"problem: {p}", err=True)
+        raise DamcapError(f"{capture}: {len(s.problems)} problem(s) found")
+    typer.echo("valid capture")
+
+
+@app.command("closed-form")
+def closed_form(
+    out: Path = typer.Argument(..., help="new capture folder"),
+    shape: str = typer.Option("sphere", help="sphere | torus"),
+    light: str = typer.Option("directional", help="directional | env"),
+    materials: int = typer.Option(1, help="1 or 2"),
+    views: int = typer.Option(32, min=3),
+    resolution: int = typer.Option(128, "--res", min=8),
+    elevation: float = typer.Option(25.0, help="camera elevation, degrees"),
+    train_views: int = typer.Option(10, help="consecutive training views"),
+    seed: int = typer.Option(0),
+    dtype: str = typer.Option("half", help="radiance storage: half | float"),
+) -> None:
+    """Write a capture whose appearance is known in closed form (Lambert + GGX, distant light)."""
+    from damcap.reconstruct.closed_form import ClosedFormOptions, make_closed_form_capture
+
+    if shape not in ("sphere", "torus") or light not in ("directional", "env") or dtype not in ("half", "float"):
+        raise DamcapError(f"--shape sphere|torus, --light directional|env, --dtype half|float; got {shape}, {light}, {dtype}")
+    opts = ClosedFormOptions(shape=shape, light=light, materials=materials, views=views, resolution=resolution,  # type: ignore[arg-type]
+                             elevation_deg=elevation, train_views=train_views, seed=seed, dtype=dtype)  # type: ignore[arg-type]
+    cap = make_closed_form_capture(out, opts)
+    typer.echo(f"wrote {len(cap.frames)} frames to {out}")
+
+
+@app.command()
+def fit(
+    capture: Path = typer.Argument(..., help="capture folder"),
+    output: Path = typer.Option(..., "-o", "--output", help="model file to write (.dam)"),
+    split: str = typer.Option("train", help="frames to fit: train | all"),
+    steps: int = typer.Option(None, help="optimiser steps"),
+    batch_size: int = typer.Option(None, help="pixels per step"),
+    learning_rate: float = typer.Option(None, help="initial Adam learning rate"),
+    width: int = typer.Option(None, help="hidden units per layer"),
+    depth: int = typer.Option(None, help="hidden layers"),
+    encoding: str = typer.Option(None, help="network input: vn (paper) | nr | vnr"),
+    activation: str = typer.Option(None, help="leaky_relu | relu | softplus | tanh"),
+    adversarial: bool = typer.Option(None, "--adversarial/--no-adversarial", help="add the adversarial cost (alpha 0.001)"),
+    holdout_views: int = typer.Option(None, help="training views held out for the stopping rule (0 = none)"),
+    seed: int = typer.Option(None),
+    device: str = typer.Option(None, help="cpu | cuda | auto"),
+    resume: bool = typer.Option(True, "--resume/--no-resume", help="continue from OUTPUT.ckpt if a run was interrupted"),
+) -> None:
+    """Fit a deep appearance map to a capture (L1 data cost, optional adversarial cost)."""
+    from damcap.appearance.dam_file import save_dam
+    from damcap.appearance.fit import FitOptions, fit_dam, radiance_scale_of
+    from damcap.appearance.views import load_views, samples_of, training_frames
+    from damcap.common.capture_folder import read_capture
+    from damcap.common.version import damcap_version
+
+    given = dict(steps=steps, batch_size=batch_size, learning_rate=learning_rate, width=width, depth=depth,
+                 encoding=encoding, activation=activation, adversarial=adversarial, holdout_views=holdout_views,
+                 seed=seed, device=device)
+    opts = FitOptions(**{k: v for k, v in given.items() if v is not None})
+    opts.architecture  # validates width/depth/encoding/activation
+    if split not in ("train", "all"):
+        raise DamcapError(f"--split must be train or all, got {split!r}")
+    refuse_input_overlap(output, capture)
+    cap = read_capture(capture)
+    views = load_views(cap, split)  # type: ignore[arg-type]
+    samples = samples_of(views)
+    frames = training_frames(views, opts.encoding, radiance_scale_of(samples.radiance_lin)) if opts.adversarial else None
+    ckpt = output.with_name(output.name + ".ckpt")
+    if not resume and ckpt.exists():
+        ckpt.unlink()
+    if ckpt.exists():
+        typer.echo(f"resuming from {ckpt}", err=True)
+    result = fit_dam(samples, opts, frames_for_adversarial=frames, checkpoint_path=ckpt, progress=progress_bar(opts.steps, "fit"))
+    last = result.history[-1] if result.history else {}
+    save_dam(output, result.model, colorspace=cap.colorspace, made_by="fit", provenance={
+        "damcap_version": damcap_version(), "options": asdict(opts), "capture": str(capture.resolve()),
+        "split": split, "frames": [v.name for v in views], "pixels": len(samples), "best_step": result.best_step,
+        "train_l1": last.get("train_l1"), "holdout_l1": last.get("holdout_l1"), "seconds": result.seconds,
+        "history": result.history,
+    })
+    typer.echo(f"wrote {output} ({result.model.arch.num_weights} weights, {len(samples)} pixels, "
+               f"best step {result.best_step}, {result.seconds:.1f} s)")
+
+
+@app.command()
+def render(
+    model: Path = typer.Argument(..., help="model file (.dam)"),
+    capture: Path = typer.Argument(..., help="capture folder (cameras and geometry)"),
+    output: Path = typer.Option(..., "-o", "--output", help="folder for one EXR per frame"),
+    split: str = typer.Option("test", help="test | train | all"),
+) -> None:
+    """Render the model into every frame of a split: one linear EXR per frame, background 0."""
+    from damcap.appearance.dam_file import load_dam
+    from damcap.appearance.render import render_frame
+    from damcap.common.atomic import write_json_atomic
+    from damcap.common.capture_folder import RADIANCE_CHANNELS, read_capture, read_frame
+    from damcap.common.exr import write_exr
+    from damcap.common.version import damcap_version
+
+    dam, meta = load_dam(model)
+    refuse_input_overlap(output, capture, model)
+    cap = read_capture(capture)
+    frames = cap.split(split)  # type: ignore[arg-type]
+    output.mkdir(parents=True, exist_ok=True)
+    for f in frames:
+        img = render_frame(dam, read_frame(cap, f, with_weights=False), f.camera_centre_world)
+        write_exr(output / Path(f.file_path).name, img, RADIANCE_CHANNELS, dtype="float",
+                  attributes={"damcap:colorspace": meta.get("colorspace", "lin_rec709")})
+    write_json_atomic(output / "render.json", {"damcap_version": damcap_version(), "model": str(model.resolve()),
+                                                "capture": str(capture.resolve()), "split": split,
+                                                "frames": [f.file_path for f in frames]})
+    typer.echo(f"wrote {len(frames)} frames to {output}")
+
+
+@app.command()
+def evaluate(
+    capture: Path = typer.Argument(..., help="capture folder"),
+    model: Optional[Path] = typer.Option(None, "--model", help="model file (.dam); without it only the baselines"),
+    json_path: Optional[Path] = typer.Option(None, "--json", help="write the results as JSON"),
+    plot: Optional[Path] = typer.Option(None, "--plot", help="sorted per-frame DSSIM plot (PNG); default next to --json"),
+) -> None:
+    """Mean DSSIM, same view (train) and novel view (test), for the model, RM and RM++."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from damcap.appearance.dam_file import load_dam
+    from damcap.appearance.evaluate import evaluate_split, plot_sorted_dssim
+    from damcap.appearance.views import load_views
+    from damcap.common.atomic import write_json_atomic
+    from damcap.common.capture_folder import read_capture
+    from damcap.common.version import damcap_version
+
+    models = {}
+    if model is not None:
+        models["DAM"] = load_dam(model)[0]
+    for out in (json_path, plot):
+        if out is not None:
+            refuse_input_overlap(out, capture, *( [model] if model else []))
+    cap = read_capture(capture)
+    train = load_views(cap, "train")
+    test = load_views(cap, "test")
+    results = {"train": evaluate_split(train, train, models), "test": evaluate_split(train, test, models)}
+    table = Table(title=f"mean DSSIM (lower is better): {capture}")
+    table.add_column("method")
+    table.add_column("same view (train)", justify="right")
+    table.add_column("novel view (test)", justify="right")
+    for method in results["test"]:
+        table.add_row(method, f"{results['train'][method].mean:.4f}", f"{results['test'][method].mean:.4f}")
+    Console().print(table)
+    if plot is None and json_path is not None:
+        plot = json_path.with_suffix(".png")
+    if plot is not None:
+        plot_sorted_dssim(results, plot, title=capture.name)
+        typer.echo(f"plot: {plot}")
+    if json_path is not None:
+        write_json_atomic(json_path, {
+            "damcap_version": damcap_version(), "capture": str(capture.resolve()),
+            "model": str(model.resolve()) if model else None, "metric": "DSSIM (capture-format.md)",
+            "results": {split: {m: {"mean": s.mean, "per_frame": s.per_frame, **({"note": s.note} if s.note else {})}
+                                for m, s in res.items()} for split, res in results.items()},
+        })
+        typer.echo(f"json: {json_path}")

@@ -4,11 +4,12 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
 STAMP := $(VENV)/.installed
-APT_PACKAGES := libusb-1.0-0 libllvm19 libgomp1
+APT_PACKAGES := libusb-1.0-0 libllvm19 libgomp1 chromium
 
 .PHONY: demo test bench system venv clean
 
-# System libraries the stack needs (open3d: libusb; mitsuba llvm_ad_rgb: libLLVM 19).
+# System packages the stack needs (open3d: libusb; mitsuba llvm_ad_rgb: libLLVM 19; the viewer's
+# browser test: chromium).
 system:
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -n "$$missing" ]; then \
@@ -48,8 +49,9 @@ test: venv
 	$(PY) -m pytest -q
 
 # Slow studies (never in CI): results in bench/results/*.json and bench/*.md
+BENCHES ?= dam_core export
 bench: venv
-	$(PY) bench/dam_core.py
+	@set -e; for b in $(BENCHES); do echo "== bench/$$b.py"; $(PY) bench/$$b.py; done
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT)

@@ -6,6 +6,7 @@ Commands live in one module per stage; importing a module registers its commands
 
 from __future__ import annotations
 
+import os
 import sys
 
 import typer
@@ -13,6 +14,7 @@ import typer
 from damcap.common.errors import DamcapError
 
 from . import appearance_cmds  # noqa: F401  (registers inspect, closed-form, fit, render, evaluate)
+from . import export_cmds  # noqa: F401  (registers export, view)
 from .app import app
 
 
@@ -42,8 +44,16 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run() -> None:
-    """The ``damcap`` console script."""
-    sys.exit(main())
+    """The ``damcap`` console script.
+
+    Exits without interpreter teardown once every output is closed: OpenImageIO's nanobind
+    bindings print spurious reference-leak reports at shutdown when open3d or torch.onnx were
+    imported in the same process.
+    """
+    code = main()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 if __name__ == "__main__":

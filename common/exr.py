@@ -104,3 +104,36 @@ def write_exr(
                 raise DamcapError(f"{path}: cannot write image ({out.geterror().strip()})")
         finally:
             out.close()
+
+
+def write_png(path: str | os.PathLike, pixels_u8: np.ndarray) -> None:
+    """Write (H, W, 3) or (H, W, 4) uint8 display pixels as PNG (OpenImageIO), atomically."""
+    px = np.ascontiguousarray(pixels_u8, dtype=np.uint8)
+    h, w = px.shape[:2]
+    c = 1 if px.ndim == 2 else px.shape[2]
+    spec = oiio.ImageSpec(w, h, c, "uint8")
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None:
+            raise DamcapError(f"{path}: cannot create image writer ({oiio.geterror().strip()})")
+        try:
+            if not (out.open(str(tmp), spec) and out.write_image(px)):
+                raise DamcapError(f"{path}: cannot write image ({out.geterror().strip()})")
+        finally:
+            out.close()
+
+
+def read_image_u8(path: str | os.PathLike) -> np.ndarray:
+    """Read an 8-bit display image (PNG/JPEG) as (H, W, C) uint8."""
+    path = Path(path)
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise DamcapError(f"{path}: cannot read image ({_one_line(oiio.geterror(), path)})")
+    try:
+        spec = inp.spec()
+        px = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
+    finally:
+        inp.close()
+    if px is None:
+        raise DamcapError(f"{path}: cannot read pixels")
+    return np.asarray(px, np.uint8).reshape(spec.height, spec.width, spec.nchannels)

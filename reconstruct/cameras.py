@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -62,6 +63,16 @@ def focal_px_from_fov(fov_deg: float, size_px: int) -> float:
     return 0.5 * size_px / math.tan(math.radians(fov_deg) / 2)
 
 
+@functools.lru_cache(maxsize=8)
+def _centre_dirs_cam(fl_x: float, fl_y: float, cx: float, cy: float, w: int, h: int) -> np.ndarray:
+    """(H, W, 3) unit camera-space directions through pixel centres (cached per intrinsics)."""
+    j, i = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    d = np.stack([(j - cx) / fl_x, -(i - cy) / fl_y, -np.ones_like(j)], axis=-1)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    d.setflags(write=False)
+    return d
+
+
 def pixel_rays_world(
     world_from_cam: np.ndarray, fl_x: float, fl_y: float, cx: float, cy: float, w: int, h: int, offsets: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -77,13 +88,15 @@ def pixel_rays_world(
         origin_world: (3,) camera centre.
         dir_world: (H, W, 3) or (S, H, W, 3) unit ray directions.
     """
+    if offsets is None:
+        d_cam = _centre_dirs_cam(float(fl_x), float(fl_y), float(cx), float(cy), int(w), int(h))
+        d_world = d_cam @ world_from_cam[:3, :3].T.astype(d_cam.dtype)
+        return world_from_cam[:3, 3].copy(), d_world
     j, i = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    offs = np.zeros((1, 2)) if offsets is None else np.asarray(offsets, dtype=np.float64)
+    offs = np.asarray(offsets, dtype=np.float64)
     u = j[None] + offs[:, 0, None, None]
     v = i[None] + offs[:, 1, None, None]
     d_cam = np.stack([(u - cx) / fl_x, -(v - cy) / fl_y, -np.ones_like(u)], axis=-1)
+    d_cam /= np.linalg.norm(d_cam, axis=-1, keepdims=True)
     d_world = d_cam @ world_from_cam[:3, :3].T
-    d_world /= np.linalg.norm(d_world, axis=-1, keepdims=True)
-    if offsets is None:
-        d_world = d_world[0]
     return world_from_cam[:3, 3].copy(), d_world

@@ -1,0 +1,197 @@
+"""Commands that take appearance out of damcap: export (frames, ONNX, GLSL) and view (HTML)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from pathlib import Path
+from typing import List, Optional
+
+import numpy as np
+import typer
+
+from damcap.common.errors import DamcapError
+
+from .app import app, refuse_input_overlap
+
+
+def _load_mesh(mesh: Optional[Path]):
+    from damcap.reconstruct.raycast import Mesh, load_mesh, normalise_to_unit_sphere, vertex_normals_area_weighted
+
+    if mesh is None:
+        import open3d as o3d
+
+        s = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=48)
+        v, t = np.asarray(s.vertices, np.float32), np.asarray(s.triangles, np.int32)
+        return Mesh(v, t, vertex_normals_area_weighted(v, t).astype(np.float32), np.zeros(len(t), np.int32))
+    return normalise_to_unit_sphere(load_mesh(mesh))
+
+
+def _vertex_labels(path: Path, n_vertices: int) -> np.ndarray:
+    if not path.is_file():
+        raise DamcapError(f"{path}: label file not found")
+    try:
+        labels = np.load(path) if path.suffix == ".npy" else np.loadtxt(path, dtype=np.int64, ndmin=1)
+    except (ValueError, OSError) as e:
+        raise DamcapError(f"{path}: cannot read per-vertex labels ({e}); expected .npy or one integer per line") from None
+    labels = np.asarray(labels).reshape(-1)
+    if labels.shape[0] != n_vertices or not np.issubdtype(labels.dtype, np.integer):
+        raise DamcapError(f"{path}: expected {n_vertices} integer labels (one per mesh vertex), got {labels.shape[0]} of {labels.dtype}")
+    return labels.astype(np.int64)
+
+
+@app.command()
+def export(
+    models: List[Path] = typer.Argument(..., help="model file(s) (.dam); several = one per mesh part"),
+    output: Path = typer.Option(..., "-o", "--output", help="output folder (frames) or file (onnx, glsl)"),
+    fmt: str = typer.Option("frames", "--format", help="frames | onnx | glsl"),
+    mesh: Optional[Path] = typer.Option(None, "--mesh", help="OBJ/PLY shape to render the appearance on"),
+    labels: Optional[Path] = typer.Option(None, "--labels", help="per-vertex part labels (.npy or .txt), instead of OBJ material groups"),
+    views: int = typer.Option(36, help="frames on the orbit"),
+    elevation: float = typer.Option(20.0, help="camera elevation, degrees"),
+    resolution: int = typer.Option(512, help="frame size, pixels"),
+    distance: float = typer.Option(3.0, help="camera distance (the mesh is scaled into the unit sphere)"),
+    fov: float = typer.Option(45.0, help="field of view, degrees"),
+    video: bool = typer.Option(False, "--video/--no-video", help="also write an MP4 turntable"),
+    fps: int = typer.Option(24, help="video frame rate"),
+) -> None:
+    """Render appearance on a new shape along an orbit (EXR + PNG + MP4), or write ONNX / GLSL."""
+    from damcap.appearance.dam_file import load_dam
+
+    loaded = [load_dam(m) for m in models]
+    dams = [m for m, _ in loaded]
+    refuse_input_overlap(output, *models, *([mesh] if mesh else []))
+    if fmt == "onnx":
+        if len(dams) != 1:
+            raise DamcapError("--format onnx takes one model")
+        _export_onnx(dams[0], output if output.suffix == ".onnx" else output / "model.onnx")
+        return
+    if fmt == "glsl":
+        from damcap.common.atomic import write_text_atomic
+        from damcap.export.glsl import glsl_source
+
+        path = output if output.suffix in (".glsl", ".frag") else output / "dam.glsl"
+        write_text_atomic(path, "".join(glsl_source(d, prefix=f"dam{k}" if len(dams) > 1 else "dam") for k, d in enumerate(dams)))
+        typer.echo(f"wrote {path}")
+        return
+    if fmt != "frames":
+        raise DamcapError(f"--format must be frames, onnx or glsl, got {fmt!r}")
+    if mesh is None:
+        raise DamcapError("--format frames needs --mesh SHAPE.obj|ply")
+    _export_frames(dams, [meta for _, meta in loaded], models, mesh, labels, output, views, elevation, resolution, distance, fov, video, fps)
+
+
+def _export_onnx(dam, path: Path) -> None:
+    import onnxruntime as ort
+    import torch
+
+    from damcap.export.onnx_export import export_onnx
+
+    export_onnx(dam, path)
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(4096, 3)).astype(np.float32)
+    n = rng.normal(size=(4096, 3)).astype(np.float32)
+    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"view_dir_world": v, "normal_world": n})[0]
+    with torch.no_grad():
+        want = dam(torch.from_numpy(v), torch.from_numpy(n)).numpy()
+    err = float(np.abs(got - want).max() / max(float(np.abs(want).max()), 1e-12))
+    if err > 1e-5:
+        raise DamcapError(f"{path}: onnxruntime disagrees with damcap by {err:.2e} (relative); the export is wrong")
+    typer.echo(f"wrote {path} (checked against onnxruntime: max relative difference {err:.1e})")
+
+
+def _export_frames(dams, metas, model_paths, mesh_path, labels, output, views, elevation, resolution, distance, fov, video, fps) -> None:
+    from tqdm import tqdm
+
+    from damcap.common.atomic import atomic_path, write_json_atomic
+    from damcap.common.capture_folder import RADIANCE_CHANNELS
+    from damcap.common.exr import write_exr, write_png
+    from damcap.common.version import damcap_version
+    from damcap.export.display import display_srgb8, exposure_scale_for
+    from damcap.export.turntable import OrbitOptions, parts_from_vertex_labels, render_orbit
+
+    opts = OrbitOptions(views=views, elevation_deg=elevation, resolution=resolution, distance=distance, fov_deg=fov)
+    opts.validate()
+    shape = _load_mesh(mesh_path)
+    if labels is not None:
+        part = parts_from_vertex_labels(shape.triangles, _vertex_labels(labels, len(shape.vertices)))
+    elif len(dams) == 1:
+        part = np.zeros(len(shape.triangles), np.int64)
+    else:
+        part = shape.triangle_groups.astype(np.int64)
+    if part.max() >= len(dams):
+        raise DamcapError(f"{labels or mesh_path}: part {int(part.max())} has no model; give {int(part.max()) + 1} .dam files (one per part)")
+    (output / "frames").mkdir(parents=True, exist_ok=True)
+    (output / "display").mkdir(parents=True, exist_ok=True)
+    writer, tmp_video, scale, cams = None, None, None, []
+    video_ctx = atomic_path(output / "turntable.mp4") if video else None
+    try:
+        if video_ctx is not None:
+            import cv2
+
+            tmp_video = video_ctx.__enter__()
+            writer = cv2.VideoWriter(str(tmp_video), cv2.VideoWriter_fourcc(*"mp4v"), fps, (resolution, resolution))
+            if not writer.isOpened():
+                raise DamcapError(f"{output / 'turntable.mp4'}: OpenCV cannot write MP4 video here")
+        for k, (m, buf, rad) in enumerate(tqdm(render_orbit(dams, shape, part, opts), total=views, desc="export", leave=False, disable=None)):
+            if scale is None:  # one exposure for the whole turntable, from the first frame
+                scale = exposure_scale_for(rad, buf.coverage > 0.5)
+            write_exr(output / "frames" / f"{k:04d}.exr", np.concatenate([rad, buf.coverage[..., None]], -1), RADIANCE_CHANNELS + ("A",), dtype="float")
+            png = display_srgb8(rad, scale)
+            write_png(output / "display" / f"{k:04d}.png", png)
+            if writer is not None:
+                writer.write(np.ascontiguousarray(png[..., ::-1]))
+            cams.append(m.tolist())
+        if writer is not None:
+            writer.release()
+            writer = None
+            video_ctx.__exit__(None, None, None)
+            video_ctx = None
+    finally:
+        if writer is not None:
+            writer.release()
+        if video_ctx is not None:
+            video_ctx.__exit__(RuntimeError, RuntimeError("aborted"), None)
+    write_json_atomic(output / "export.json", {
+        "damcap_version": damcap_version(), "models": [str(p.resolve()) for p in model_paths],
+        "mesh": str(mesh_path.resolve()), "labels": str(labels.resolve()) if labels else None,
+        "options": asdict(opts), "exposure_scale": scale, "colorspace": metas[0].get("colorspace"),
+        "world_from_cam": cams,
+    })
+    typer.echo(f"wrote {views} frames to {output} (frames/*.exr linear, display/*.png sRGB{', turntable.mp4' if video else ''})")
+
+
+@app.command()
+def view(
+    model: Path = typer.Argument(..., help="model file (.dam)"),
+    output: Path = typer.Option(..., "-o", "--output", help="HTML file to write"),
+    mesh: Optional[Path] = typer.Option(None, "--mesh", help="OBJ/PLY shape (default: a sphere)"),
+    azimuth: float = typer.Option(30.0, help="initial camera azimuth, degrees"),
+    elevation: float = typer.Option(20.0, help="initial camera elevation, degrees"),
+    serve: bool = typer.Option(False, "--serve/--no-serve", help="serve the page on 127.0.0.1 until Ctrl-C"),
+    port: int = typer.Option(8765, help="port for --serve"),
+) -> None:
+    """Write a self-contained HTML page that shows the DAM on a mesh in real time (WebGL 2)."""
+    from damcap.appearance.dam_file import load_dam
+    from damcap.common.atomic import write_text_atomic
+    from damcap.export.display import exposure_scale_for
+    from damcap.export.turntable import OrbitOptions, render_orbit
+    from damcap.export.viewer import ViewerCamera, viewer_html
+
+    dam, _ = load_dam(model)
+    refuse_input_overlap(output, model, *([mesh] if mesh else []))
+    shape = _load_mesh(mesh)
+    cam = ViewerCamera(azimuth_deg=azimuth, elevation_deg=elevation)
+    # the page's exposure: the same rule as damcap export's PNGs, on a CPU render of the first view
+    opts = OrbitOptions(views=1, elevation_deg=elevation, azimuth0_deg=azimuth, resolution=128, distance=cam.distance, fov_deg=cam.fov_deg)
+    _, buf, rad = next(render_orbit([dam], shape, np.zeros(len(shape.triangles), np.int64), opts))
+    html = viewer_html(dam, shape, exposure_scale_for(rad, buf.coverage > 0.5), cam, title=f"{model.name} on {mesh.name if mesh else 'a sphere'}")
+    write_text_atomic(output, html)
+    typer.echo(f"wrote {output}")
+    if serve:
+        import functools
+        import http.server
+
+        handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(output.resolve().parent))
+        with http.server.ThreadingHTTPServer(("127.0.0.1", port), handler) as httpd:
+            typer.echo(f"serving http://127.0.0.1:{port}/{output.name} (Ctrl-C to stop)")
+            httpd.serve_forever()

@@ -1,0 +1,1 @@
+"""Taking appearance out of damcap: DAMs rendered on new shapes, ONNX and GLSL models, a viewer."""

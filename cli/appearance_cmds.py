@@ -153,8 +153,11 @@ def evaluate(
     model: Optional[Path] = typer.Option(None, "--model", help="model file (.dam); without it only the baselines"),
     json_path: Optional[Path] = typer.Option(None, "--json", help="write the results as JSON"),
     plot: Optional[Path] = typer.Option(None, "--plot", help="sorted per-frame DSSIM plot (PNG); default next to --json"),
+    segmentation: Optional[Path] = typer.Option(None, "--segmentation", help="a folder written by damcap segment"),
+    kmeans: Optional[int] = typer.Option(None, "--kmeans", help="also the k-means baseline with this many materials"),
 ) -> None:
-    """Mean DSSIM, same view (train) and novel view (test), for the model, RM and RM++."""
+    """Mean DSSIM, same view (train) and novel view (test), for the model, RM and RM++
+    (and segmentations: ours and the k-means baseline)."""
     from rich.console import Console
     from rich.table import Table
 
@@ -175,12 +178,30 @@ def evaluate(
     train = load_views(cap, "train")
     test = load_views(cap, "test")
     results = {"train": evaluate_split(train, train, models), "test": evaluate_split(train, test, models)}
+    segs = {}
+    if segmentation is not None:
+        from damcap.appearance.segment_file import load_segmentation
+
+        segs["segment"] = load_segmentation(segmentation)
+    if kmeans is not None:
+        from damcap.appearance.segment import kmeans_baseline
+
+        segs["k-means"] = kmeans_baseline(train, kmeans)
+    if segs:
+        from damcap.appearance.evaluate import MethodScores
+        from damcap.appearance.segment import segmentation_scores
+
+        for name, seg in segs.items():
+            for split, targets in (("train", train), ("test", test)):
+                for source, per_frame in segmentation_scores(seg, train, targets, same_view=split == "train").items():
+                    results[split][f"{name} ({source})"] = MethodScores(per_frame)
     table = Table(title=f"mean DSSIM (lower is better): {capture}")
     table.add_column("method")
     table.add_column("same view (train)", justify="right")
     table.add_column("novel view (test)", justify="right")
     for method in results["test"]:
-        table.add_row(method, f"{results['train'][method].mean:.4f}", f"{results['test'][method].mean:.4f}")
+        same = results["train"].get(method)
+        table.add_row(method, f"{same.mean:.4f}" if same else "-", f"{results['test'][method].mean:.4f}")
     Console().print(table)
     if plot is None and json_path is not None:
         plot = json_path.with_suffix(".png")

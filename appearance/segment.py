@@ -1,0 +1,588 @@
+"""Joint material estimation and segmentation (Maximov et al. 2019, Sec. 3.4).
+
+n deep appearance maps and a segmentation network Psi are trained jointly and unsupervised.
+Psi, a small encoder-decoder with skip connections shared among materials, maps a frame's
+per-pixel colour, normal and position to soft weights W over the n materials; the weights
+enter the data cost of every material (the W of Eq. 3):
+
+    c_d = mean_x sum_k W_k(x) |DAM_k(V(x), N(x)) - L(x)|
+    c_s = mean_x (1 - sum_k W_k(x)^2)         (zero when every pixel picks one material)
+    cost = c_d + beta c_s
+
+Training starts from k-means clusters of the lit pixels' chromaticity (colour without the amount
+of light, so clusters follow materials rather than lit and unlit sides): Psi is first taught these
+labels and each DAM its cluster, then everything is refined jointly. (The paper's k-means baseline,
+clusters in RGB + normal space with one DAM fitted per cluster, is :func:`kmeans_baseline`.)
+
+The segmentation is carried onto the geometry: the training pixels' world positions with their
+weights form a point set, and any new view (or new shape in the same frame) gets weights by
+nearest-neighbour lookup, without ground truth.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
+from torch import nn
+
+from damcap.common.device import resolve_device
+from damcap.common.errors import DamcapError
+
+from .baselines import ViewData
+from .dam import DamArchitecture, DeepAppearanceMap, Encoding, dam_forward, encode_inputs, init_weights
+from .fit import radiance_scale_of
+from .pixels import FOREGROUND_COVERAGE, view_dir_world
+
+# --------------------------------------------------------------------------------------------
+# Options
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SegmentOptions:
+    """Options of ``damcap segment``."""
+
+    materials: int = 2
+    """number of materials n"""
+    steps: int = 1200
+    """joint optimisation steps (after the initialisation)"""
+    init_steps: int = 300
+    """steps that teach Psi the initial (chromaticity k-means) labels and each DAM its cluster"""
+    batch_pixels: int = 4096
+    """pixels per step"""
+    frames_per_step: int = 1
+    """training frames Psi sees per step"""
+    learning_rate: float = 5e-3
+    """Adam learning rate of the DAMs (Psi uses a fifth of it)"""
+    sparsity_beta: float = 0.05
+    """weight beta of the sparsity cost c_s"""
+    psi_resolution: int = 64
+    """Psi runs on frames area-downsampled to at most this many pixels per side; its weights are
+    upsampled bilinearly (speed: Psi's cost grows with the square of this)"""
+    psi_channels: int = 8
+    """Psi's base channel count (doubles at each of its two levels)"""
+    width: int = 32
+    """DAM hidden units"""
+    depth: int = 4
+    """DAM hidden layers"""
+    encoding: Encoding = "nr"
+    """DAM input encoding (see DamArchitecture)"""
+    seed: int = 0
+    """seeds k-means, initialisation and sampling"""
+    device: str = "cpu"
+    """'cpu', 'cuda' or 'auto'"""
+
+    def validate(self) -> None:
+        if self.materials < 1 or self.materials > 16:
+            raise DamcapError(f"--materials must be between 1 and 16, got {self.materials}")
+        for name in ("steps", "batch_pixels", "frames_per_step"):
+            if getattr(self, name) < 1:
+                raise DamcapError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
+        if self.init_steps < 0 or self.sparsity_beta < 0:
+            raise DamcapError("--init-steps and --sparsity-beta must be >= 0")
+
+    @property
+    def architecture(self) -> DamArchitecture:
+        return DamArchitecture(width=self.width, depth=self.depth, encoding=self.encoding)
+
+
+# --------------------------------------------------------------------------------------------
+# Features and k-means (the paper's baseline)
+# --------------------------------------------------------------------------------------------
+
+
+def kmeans_features(radiance_lin: np.ndarray, normal_world: np.ndarray, radiance_scale: float, eps: float = 1e-6) -> np.ndarray:
+    """Per-pixel features for k-means: RGB and normal, both groups scaled to the same spread.
+
+    RGB is divided by the radiance scale and compressed with x / (1 + x) (HDR highlights would
+    otherwise dominate); then each group (3 RGB, 3 normal components) is centred and divided by
+    its own root-mean-square spread, so colour and orientation weigh equally in the distance.
+
+    Args:
+        radiance_lin: (P, 3) linear radiance.
+        normal_world: (P, 3) unit normals.
+        radiance_scale: > 0.
+        eps: floor of a group's spread (a constant colour stays constant).
+
+    Returns:
+        (P, 6) float32.
+    """
+    rgb = radiance_lin / radiance_scale
+    rgb = rgb / (1 + rgb)
+
+    def standardise(x: np.ndarray) -> np.ndarray:
+        x = x - x.mean(0)
+        return x / max(float(np.sqrt((x * x).sum(1).mean())), eps)
+
+    return np.concatenate([standardise(rgb), standardise(normal_world)], axis=1).astype(np.float32)
+
+
+def chromaticity_features(radiance_lin: np.ndarray, radiance_scale: float, dark_fraction: float = 0.02, eps: float = 1e-8) -> tuple[np.ndarray, np.ndarray]:
+    """Shading-invariant colour features for initialising the joint segmentation.
+
+    Chromaticity rgb / (r + g + b) does not change with the amount of light a pixel receives,
+    so clusters follow materials rather than lit and unlit sides.
+
+    Args:
+        radiance_lin: (P, 3) linear radiance.
+        radiance_scale: > 0 (the capture's 95th percentile).
+        dark_fraction: pixels darker than this fraction of the scale carry no usable colour.
+        eps: floor of the denominator.
+
+    Returns:
+        features: (P, 3) float32 chromaticities; bright: (P,) bool, the pixels with usable colour.
+    """
+    total = radiance_lin.sum(1, keepdims=True)
+    chroma = radiance_lin / np.maximum(total, eps)
+    bright = total[:, 0] > 3 * dark_fraction * radiance_scale
+    return chroma.astype(np.float32), bright
+
+
+def kmeans(features: np.ndarray, k: int, seed: int, iterations: int = 50, restarts: int = 4) -> np.ndarray:
+    """Lloyd's k-means with k-means++ seeding; the best of ``restarts`` runs.
+
+    Args:
+        features: (P, D) float32.
+        k: clusters.
+        seed: random seed.
+
+    Returns:
+        (P,) int64 labels in [0, k).
+    """
+    x = torch.from_numpy(np.ascontiguousarray(features)).float()
+    gen = torch.Generator().manual_seed(seed)
+    best, best_cost = None, math.inf
+    sub = x[torch.randperm(x.shape[0], generator=gen)[:20000]]
+    for _ in range(restarts):
+        centres = sub[torch.randint(0, sub.shape[0], (1,), generator=gen)]
+        for _ in range(1, k):  # k-means++
+            d2 = torch.cdist(sub, centres).min(1).values ** 2
+            centres = torch.cat([centres, sub[torch.multinomial(d2 + 1e-12, 1, generator=gen)]])
+        for _ in range(iterations):
+            lab = torch.cdist(sub, centres).argmin(1)
+            new = torch.stack([sub[lab == j].mean(0) if (lab == j).any() else centres[j] for j in range(k)])
+            if torch.allclose(new, centres):
+                break
+            centres = new
+        cost = float((torch.cdist(sub, centres).min(1).values ** 2).sum())
+        if cost < best_cost:
+            best, best_cost = centres, cost
+    labels = torch.cat([torch.cdist(x[s:s + 65536], best).argmin(1) for s in range(0, x.shape[0], 65536)])
+    return labels.numpy().astype(np.int64)
+
+
+# --------------------------------------------------------------------------------------------
+# The segmentation network Psi
+# --------------------------------------------------------------------------------------------
+
+
+class SegmentationNet(nn.Module):
+    """Psi: a small U-Net. (B, 9, H, W) colour/normal/position -> (B, n, H, W) logits.
+
+    Frames larger than ``resolution`` are area-downsampled before the network and its logits
+    upsampled bilinearly back to the frame's size.
+    """
+
+    def __init__(self, materials: int, channels: int = 8, in_channels: int = 9, resolution: int = 64) -> None:
+        super().__init__()
+        c = channels
+        block = lambda i, o: nn.Sequential(nn.Conv2d(i, o, 3, padding=1), nn.LeakyReLU(0.1), nn.Conv2d(o, o, 3, padding=1), nn.LeakyReLU(0.1))  # noqa: E731
+        self.enc0, self.enc1, self.enc2 = block(in_channels, c), block(c, 2 * c), block(2 * c, 4 * c)
+        self.dec1, self.dec0 = block(6 * c, 2 * c), block(3 * c, c)
+        self.head = nn.Conv2d(c, materials, 1)
+        self.materials = materials
+        self.channels = channels
+        self.resolution = resolution
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        full = x.shape[-2:]
+        factor = max(1, math.ceil(max(full) / self.resolution))
+        if factor > 1:
+            x = F.avg_pool2d(x, factor, ceil_mode=True)
+        logits = self._unet(x)
+        if factor > 1:
+            logits = F.interpolate(logits, scale_factor=float(factor), mode="bilinear", align_corners=False)[..., : full[0], : full[1]]
+        return logits
+
+    def _unet(self, x: torch.Tensor) -> torch.Tensor:
+        h, w = x.shape[-2:]
+        ph, pw = (-h) % 4, (-w) % 4
+        x = F.pad(x, (0, pw, 0, ph))
+        e0 = self.enc0(x)
+        e1 = self.enc1(F.avg_pool2d(e0, 2))
+        e2 = self.enc2(F.avg_pool2d(e1, 2))
+        d1 = self.dec1(torch.cat([F.interpolate(e2, scale_factor=2.0, mode="bilinear", align_corners=False), e1], 1))
+        d0 = self.dec0(torch.cat([F.interpolate(d1, scale_factor=2.0, mode="bilinear", align_corners=False), e0], 1))
+        return self.head(d0)[..., :h, :w]
+
+
+def psi_inputs(view: ViewData, radiance_scale: float, scene_centre: np.ndarray, scene_radius: float) -> torch.Tensor:
+    """Psi's input image: (9, H, W) = tone-mapped RGB, normal, normalised position; 0 off the object."""
+    d = view.data
+    fg = (d.coverage > FOREGROUND_COVERAGE)[..., None]
+    rgb = d.radiance_lin / radiance_scale
+    rgb = 2 * rgb / (1 + rgb) - 1
+    pos = (d.position_world - scene_centre) / scene_radius
+    img = np.concatenate([rgb, d.normal_world, pos], -1) * fg
+    return torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1))).float()
+
+
+# --------------------------------------------------------------------------------------------
+# Training
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Frames:
+    images: torch.Tensor  # (F, 9, H, W)
+    fg_index: list[torch.Tensor]  # per frame: (P_f,) flat pixel indices of the foreground
+    dam_inputs: list[torch.Tensor]  # per frame: (P_f, C)
+    targets: list[torch.Tensor]  # per frame: (P_f, 3) radiance / scale
+
+
+@dataclass
+class SegmentationModel:
+    """What ``segment`` produces: n DAMs, Psi, and the segmentation carried onto the geometry."""
+
+    dams: list[DeepAppearanceMap]
+    psi: SegmentationNet
+    radiance_scale: float
+    scene_centre: np.ndarray
+    scene_radius: float
+    points_world: np.ndarray
+    """(M, 3) float32 training-pixel positions"""
+    point_weights: np.ndarray
+    """(M, n) float32 their material weights"""
+    history: list[dict[str, float]] = field(default_factory=list)
+    seconds: float = 0.0
+    has_psi: bool = True
+    """False for the k-means baseline: its weights always come from the geometry"""
+
+    @property
+    def materials(self) -> int:
+        return len(self.dams)
+
+    @torch.no_grad()
+    def weights_of(self, view: ViewData) -> np.ndarray:
+        """(H, W, n) Psi's weights for a frame with colour (a training frame); 0 off the object."""
+        if not self.has_psi:
+            return self.weights_at(view.data.position_world) * (view.data.coverage > 0)[..., None]
+        x = psi_inputs(view, self.radiance_scale, self.scene_centre, self.scene_radius)[None]
+        w = torch.softmax(self.psi(x), 1)[0].permute(1, 2, 0).numpy()
+        return w * (view.data.coverage > 0)[..., None]
+
+    def weights_at(self, position_world: np.ndarray, k: int = 4) -> np.ndarray:
+        """(..., n) weights carried from the geometry: mean of the k nearest training points."""
+        tree = cKDTree(self.points_world)
+        flat = position_world.reshape(-1, 3)
+        _, idx = tree.query(flat, k=min(k, len(self.points_world)))
+        idx = idx.reshape(len(flat), -1)
+        return self.point_weights[idx].mean(1).reshape(position_world.shape[:-1] + (self.materials,))
+
+    @torch.no_grad()
+    def render(self, view: ViewData, weights: np.ndarray) -> np.ndarray:
+        """(H, W, 3) radiance sum_k W_k DAM_k(V, N) on covered pixels."""
+        d = view.data
+        cov = d.coverage > 0
+        out = np.zeros(cov.shape + (3,), np.float32)
+        if not cov.any():
+            return out
+        v = torch.from_numpy(view_dir_world(d.position_world[cov], view.centre_world))
+        n = torch.from_numpy(np.ascontiguousarray(d.normal_world[cov]))
+        w = torch.from_numpy(np.ascontiguousarray(weights[cov])).float()
+        rad = sum(w[:, k:k + 1] * dam(v, n) for k, dam in enumerate(self.dams))
+        out[cov] = rad.numpy()
+        return out
+
+
+def _prepare(views: list[ViewData], encoding: Encoding, scale: float, centre: np.ndarray, radius: float) -> _Frames:
+    images, fg_index, inputs, targets = [], [], [], []
+    for v in views:
+        d = v.data
+        fg = d.coverage > FOREGROUND_COVERAGE
+        images.append(psi_inputs(v, scale, centre, radius))
+        fg_index.append(torch.from_numpy(np.flatnonzero(fg.reshape(-1))))
+        vd = torch.from_numpy(view_dir_world(d.position_world[fg], v.centre_world))
+        inputs.append(encode_inputs(vd, torch.from_numpy(np.ascontiguousarray(d.normal_world[fg])), encoding))
+        targets.append(torch.from_numpy(np.ascontiguousarray(d.radiance_lin[fg])).float() / scale)
+    return _Frames(torch.stack(images), fg_index, inputs, targets)
+
+
+def scene_bounds(views: list[ViewData]) -> tuple[np.ndarray, float]:
+    """Centre and radius of the training foreground's world positions."""
+    pts = np.concatenate([v.data.position_world[v.data.coverage > FOREGROUND_COVERAGE] for v in views])
+    centre = (pts.min(0) + pts.max(0)) / 2
+    return centre.astype(np.float32), float(max(np.linalg.norm(pts - centre, axis=1).max(), 1e-6))
+
+
+def segment_materials(views: list[ViewData], opts: SegmentOptions, progress: Callable[[int, int, dict[str, float]], None] | None = None) -> SegmentationModel:
+    """Train n DAMs and Psi jointly on training views (unsupervised).
+
+    Args:
+        views: training views (colour, normals, positions).
+        opts: options.
+        progress: progress(step, total, stats) after every step.
+    """
+    opts.validate()
+    if not views:
+        raise DamcapError("segment needs at least one training view")
+    t0 = time.perf_counter()
+    device = resolve_device(opts.device)
+    arch = opts.architecture
+    n = opts.materials
+    gen = torch.Generator().manual_seed(opts.seed)
+    all_rad = np.concatenate([v.data.radiance_lin[v.data.coverage > FOREGROUND_COVERAGE] for v in views])
+    scale = radiance_scale_of(torch.from_numpy(all_rad))
+    centre, radius = scene_bounds(views)
+    frames = _prepare(views, arch.encoding, scale, centre, radius)
+
+    # initial labels: k-means on chromaticity of the lit pixels (-1 = too dark to tell, ignored)
+    fg_rad = [v.data.radiance_lin[v.data.coverage > FOREGROUND_COVERAGE] for v in views]
+    chroma, bright = chromaticity_features(np.concatenate(fg_rad), scale)
+    labels_flat = np.full(len(chroma), -1, np.int64)
+    if bright.sum() >= n:
+        labels_flat[bright] = kmeans(chroma[bright], n, opts.seed)
+    else:
+        labels_flat[:] = np.arange(len(chroma)) % n
+    splits = np.cumsum([len(r) for r in fg_rad])[:-1]
+    init_labels = [torch.from_numpy(lab) for lab in np.split(labels_flat, splits)]
+
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(opts.seed)
+        psi = SegmentationNet(n, channels=opts.psi_channels, resolution=opts.psi_resolution).to(device)
+    dam_w = nn.Parameter(torch.stack([init_weights(arch, gen) for _ in range(n)]).to(device))
+    opt = torch.optim.Adam([{"params": [dam_w], "lr": opts.learning_rate}, {"params": psi.parameters(), "lr": opts.learning_rate / 5}])
+    total = opts.init_steps + opts.steps
+    history: list[dict[str, float]] = []
+    images = frames.images.to(device)
+    n_frames = images.shape[0]
+    for step in range(total):
+        joint = step >= opts.init_steps
+        lr_scale = 1.0 if not joint else 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * (step - opts.init_steps) / max(opts.steps, 1)))
+        opt.param_groups[0]["lr"] = opts.learning_rate * lr_scale
+        opt.param_groups[1]["lr"] = opts.learning_rate / 5 * lr_scale
+        fidx = torch.randperm(n_frames, generator=gen)[: opts.frames_per_step].tolist()
+        logits = psi(images[fidx])  # (B, n, H, W)
+        per = max(1, opts.batch_pixels // len(fidx))
+        w_list, x_list, y_list, lab_list = [], [], [], []
+        for b, f in enumerate(fidx):
+            m = frames.fg_index[f].shape[0]
+            if m == 0:
+                continue
+            pick = torch.randint(0, m, (min(per, m),), generator=gen)
+            flat = logits[b].reshape(n, -1)[:, frames.fg_index[f][pick].to(device)].T  # (P, n)
+            w_list.append(flat)
+            x_list.append(frames.dam_inputs[f][pick])
+            y_list.append(frames.targets[f][pick])
+            lab_list.append(init_labels[f][pick])
+        logit_px = torch.cat(w_list)
+        x = torch.cat(x_list).to(device)
+        y = torch.cat(y_list).to(device)
+        pred = dam_forward(dam_w, x.expand(n, *x.shape), arch)  # (n, P, 3)
+        l1 = (pred - y[None]).abs().mean(-1).T  # (P, n)
+        if not joint:  # teach Psi the k-means labels; fit each DAM to its cluster
+            lab = torch.cat(lab_list).to(device)
+            known = lab >= 0
+            onehot = F.one_hot(lab.clamp_min(0), n).float() * known[:, None]
+            data = (onehot * l1).sum(1).sum() / known.sum().clamp_min(1)
+            ce = F.cross_entropy(logit_px[known], lab[known]) if known.any() else logit_px.sum() * 0
+            loss = data + ce
+            stats = {"l1": float(data.detach()), "ce": float(ce.detach())}
+        else:
+            w = torch.softmax(logit_px, 1)
+            data = (w * l1).sum(1).mean()
+            sparsity = (1 - (w * w).sum(1)).mean()
+            loss = data + opts.sparsity_beta * sparsity
+            stats = {"l1": float(data.detach()), "sparsity": float(sparsity.detach())}
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if (step + 1) % 100 == 0 or step + 1 == total:
+            history.append({"step": step + 1, **stats, "seconds": time.perf_counter() - t0})
+        if progress:
+            progress(step + 1, total, stats)
+
+    psi = psi.cpu().eval()
+    dams = [DeepAppearanceMap(arch, scale, dam_w.detach()[k].cpu()) for k in range(n)]
+    model = SegmentationModel(dams, psi, scale, centre, radius, np.zeros((0, 3), np.float32), np.zeros((0, n), np.float32), history)
+    pts, wts = [], []
+    for v in views:
+        fg = v.data.coverage > FOREGROUND_COVERAGE
+        pts.append(v.data.position_world[fg])
+        wts.append(model.weights_of(v)[fg])
+    pts_a, wts_a = np.concatenate(pts), np.concatenate(wts)
+    if len(pts_a) > 200_000:
+        keep = np.random.default_rng(opts.seed).choice(len(pts_a), 200_000, replace=False)
+        pts_a, wts_a = pts_a[keep], wts_a[keep]
+    model.points_world, model.point_weights = pts_a.astype(np.float32), wts_a.astype(np.float32)
+    model.seconds = time.perf_counter() - t0
+    return model
+
+
+# --------------------------------------------------------------------------------------------
+# The k-means baseline: clusters in RGB + normal space, one DAM fitted per cluster
+# --------------------------------------------------------------------------------------------
+
+
+def kmeans_baseline(views: list[ViewData], materials: int, steps: int = 1500, seed: int = 0, encoding: Encoding = "nr") -> SegmentationModel:
+    """The paper's baseline as a :class:`SegmentationModel` (hard weights; Psi unused)."""
+    from .fit import FitOptions, fit_dam
+    from .pixels import PixelSamples
+
+    t0 = time.perf_counter()
+    fgs = [v.data.coverage > FOREGROUND_COVERAGE for v in views]
+    rad = np.concatenate([v.data.radiance_lin[fg] for v, fg in zip(views, fgs)])
+    nrm = np.concatenate([v.data.normal_world[fg] for v, fg in zip(views, fgs)])
+    pos = np.concatenate([v.data.position_world[fg] for v, fg in zip(views, fgs)])
+    vd = np.concatenate([view_dir_world(v.data.position_world[fg], v.centre_world) for v, fg in zip(views, fgs)])
+    fidx = np.concatenate([np.full(int(fg.sum()), k) for k, fg in enumerate(fgs)])
+    scale = radiance_scale_of(torch.from_numpy(rad))
+    labels = kmeans(kmeans_features(rad, nrm, scale), materials, seed)
+    dams = []
+    for k in range(materials):
+        w = torch.from_numpy((labels == k).astype(np.float32))
+        samples = PixelSamples(torch.from_numpy(vd), torch.from_numpy(nrm), torch.from_numpy(rad), w, torch.from_numpy(fidx))
+        if w.sum() == 0:
+            dams.append(DeepAppearanceMap(DamArchitecture(encoding=encoding), scale))
+            continue
+        dams.append(fit_dam(samples, FitOptions(steps=steps, seed=seed, encoding=encoding, holdout_views=0)).model)
+    centre, radius = scene_bounds(views)
+    onehot = np.eye(materials, dtype=np.float32)[labels]
+    keep = np.random.default_rng(seed).choice(len(pos), min(len(pos), 200_000), replace=False)
+    model = SegmentationModel(dams, SegmentationNet(materials), scale, centre, radius, pos[keep].astype(np.float32), onehot[keep], has_psi=False)
+    model.seconds = time.perf_counter() - t0
+    return model
+
+
+# --------------------------------------------------------------------------------------------
+# Scores
+# --------------------------------------------------------------------------------------------
+
+
+def match_materials(pred_weights: np.ndarray, true_weights: np.ndarray) -> tuple[np.ndarray, float]:
+    """Match predicted to true materials by maximum total IoU of the arg-max labels (Hungarian).
+
+    Args:
+        pred_weights: (P, n_pred) weights on foreground pixels.
+        true_weights: (P, n_true) weights on the same pixels.
+
+    Returns:
+        perm: (n_true,) predicted material index for each true material (-1 = none),
+        mean IoU over the true materials.
+    """
+    p = pred_weights.argmax(1)
+    t = true_weights.argmax(1)
+    n_p, n_t = pred_weights.shape[1], true_weights.shape[1]
+    iou = np.zeros((n_t, n_p))
+    for i in range(n_t):
+        for j in range(n_p):
+            inter = np.sum((t == i) & (p == j))
+            union = np.sum((t == i) | (p == j))
+            iou[i, j] = inter / union if union else 0.0
+    rows, cols = linear_sum_assignment(-iou)
+    perm = np.full(n_t, -1)
+    perm[rows] = cols
+    return perm, float(np.mean([iou[i, perm[i]] if perm[i] >= 0 else 0.0 for i in range(n_t)]))
+
+
+def options_json(opts: SegmentOptions) -> dict:
+    return asdict(opts)
+
+
+
+
+def novel_view_dssim(model: SegmentationModel, views: list[ViewData]) -> float:
+    """Mean DSSIM of the model on views, weights carried from the geometry (no ground truth)."""
+    from .evaluate import score_view
+
+    scores = [score_view(v, model.render(v, model.weights_at(v.data.position_world))) for v in views]
+    vals = [s for s in scores if s is not None]
+    return float(np.mean(vals)) if vals else float("nan")
+
+
+@dataclass
+class MaterialChoice:
+    """The outcome of ``--materials auto``."""
+
+    model: SegmentationModel
+    materials: int
+    curve: list[dict[str, float]]
+    """per n tried: {'materials': n, 'heldout_dssim': ...}"""
+    margin: float
+
+
+def choose_materials(train: list[ViewData], heldout: list[ViewData], opts: SegmentOptions, max_materials: int = 4, margin: float = 0.1,
+                     progress: Callable[[int, int, dict[str, float]], None] | None = None) -> MaterialChoice:
+    """The smallest n whose held-out error stops improving: n is kept when n + 1 materials lower
+    the held-out DSSIM by less than ``margin`` (relative), or when ``max_materials`` is reached.
+
+    Args:
+        train: views to fit.
+        heldout: views to score (the test split), weights carried from the geometry.
+        opts: segment options (``materials`` is ignored).
+        max_materials: the largest n tried.
+        margin: relative improvement that justifies one more material (0.1 = 10 %).
+    """
+    if not heldout:
+        raise DamcapError("--materials auto needs held-out views (a non-empty test split)")
+    curve: list[dict[str, float]] = []
+    best: SegmentationModel | None = None
+    best_err = math.inf
+    for n in range(1, max_materials + 1):
+        model = segment_materials(train, SegmentOptions(**{**asdict(opts), "materials": n}), progress)
+        err = novel_view_dssim(model, heldout)
+        curve.append({"materials": n, "heldout_dssim": err, "seconds": model.seconds})
+        if best is not None and not err < (1 - margin) * best_err:
+            return MaterialChoice(best, best.materials, curve, margin)
+        best, best_err = model, err
+    assert best is not None
+    return MaterialChoice(best, best.materials, curve, margin)
+
+
+#: false colours of the preview images (material k -> RGB in [0, 1])
+PALETTE = np.array([[0.90, 0.30, 0.25], [0.25, 0.60, 0.95], [0.95, 0.80, 0.20], [0.40, 0.80, 0.40],
+                    [0.70, 0.40, 0.85], [0.95, 0.55, 0.10], [0.30, 0.85, 0.85], [0.85, 0.85, 0.85]], np.float32)
+
+
+def false_colour(weights: np.ndarray, coverage: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 preview: each pixel the weight-blend of its materials' palette colours."""
+    pal = PALETTE[np.arange(weights.shape[-1]) % len(PALETTE)]
+    rgb = weights @ pal * (coverage > 0)[..., None]
+    return np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8)
+
+
+def segmentation_scores(model: SegmentationModel, train: list[ViewData], targets: list[ViewData], same_view: bool) -> dict[str, dict[str, float | None]]:
+    """Per-frame DSSIM of a segmentation on targets, by where the weights come from.
+
+    Returns:
+        ``{"estimated weights": {...}}`` always (Psi's weights on training frames when
+        ``same_view``), plus ``{"true weights": {...}}`` when the targets carry ground-truth
+        weights (materials matched to the truth on the training frames by IoU).
+    """
+    from .evaluate import score_view
+
+    out: dict[str, dict[str, float | None]] = {"estimated weights": {}}
+    for v in targets:
+        w = model.weights_of(v) if same_view else model.weights_at(v.data.position_world)
+        out["estimated weights"][v.name] = score_view(v, model.render(v, w))
+    if all(v.data.weights is not None for v in train + targets):
+        fgs = [v.data.coverage > FOREGROUND_COVERAGE for v in train]
+        pw = np.concatenate([model.weights_at(v.data.position_world[fg]) for v, fg in zip(train, fgs)])
+        tw = np.concatenate([v.data.weights[fg] for v, fg in zip(train, fgs)])
+        perm, _ = match_materials(pw, tw)
+        out["true weights"] = {}
+        for v in targets:
+            w = np.zeros(v.data.weights.shape[:-1] + (model.materials,), np.float32)
+            for i, j in enumerate(perm):
+                if j >= 0:
+                    w[..., j] += v.data.weights[..., i]
+            out["true weights"][v.name] = score_view(v, model.render(v, w))
+    return out

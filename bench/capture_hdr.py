@@ -1,0 +1,362 @@
+"""Benchmark: damcap's HDR merging against colour-hdri and OpenCV, on real and simulated brackets.
+
+Two parts, every method measured side by side in one run:
+
+1. **Memorial Church** (``shared/data/brackets/memorial``: 16 8-bit exposures, 1/1024 .. 32 s)
+   against its reference radiance map: absolute log ratio after one global scale, over the
+   pixel-channels the reference resolves (> 0); median and 90th percentile. Methods: damcap
+   (Debevec response recovered from the stack; and told the sRGB curve), colour-hdri's
+   ``image_stack_to_HDRI`` on sRGB-decoded frames, colour-hdri with its own Debevec response
+   (``camera_response_functions_Debevec1997``), OpenCV's Debevec calibrate + merge.
+   Issue targets for damcap: median <= 0.025 and 90th percentile <= 0.08, without the curve.
+   A diagnostic row reads the response off the reference itself (a bound, not a method).
+2. **Simulated RAW brackets** (:mod:`damcap.capture.simulate`): real HDR environment maps
+   (1024x512) through a camera model (RGGB Bayer, black level 512, 14 bits, 30000 e- full well,
+   3 e- read noise, Poisson shot noise, a real camera's colour matrix) at 5 exposures 2 stops
+   apart, written as DNG files. The same files go to damcap (``merge_bracket_files``: raw counts,
+   Poisson-optimal merge, log-domain Menon demosaic, file colour matrix) and to colour-hdri's own
+   rawpy recipe (``examples_merge_from_raw_files_using_rawpy``: ``postprocess(gamma=(1, 1),
+   no_auto_bright=True, output_bps=16) / 65535`` per frame, then ``image_stack_to_HDRI`` with its
+   default weighting; frames sorted shortest first as that function expects). Error against the
+   truth over pixels not clipped in the shortest frame. Wall time from files to merged map
+   (EXIF reading included for both), best of ``--repeats`` interleaved runs, plus process CPU time.
+   Issue targets: lower error than colour-hdri's default and at least 2x faster.
+
+Run (from the repository root)::
+
+    .venv/bin/python bench/capture_hdr.py
+
+Outputs: ``bench/results/capture_hdr.json`` and ``bench/capture_hdr.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import os
+import platform
+import shlex
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from damcap.capture.exif import read_exposure
+from damcap.capture.hdr import HdrOptions, merge_bracket_files, read_ldr_codes
+from damcap.capture.metrics import abs_log_ratio_error
+from damcap.capture.simulate import bracket_times, simulate_raw_bracket
+from damcap.common.atomic import write_json_atomic, write_text_atomic
+from damcap.common.exr import read_exr
+from damcap.common.version import damcap_version
+
+BENCH = Path(__file__).resolve().parent
+REPO = BENCH.parent
+RESULTS = BENCH / "results"
+TARGETS = {"memorial_median": 0.025, "memorial_p90": 0.08, "raw_speedup": 2.0}
+
+
+def timed(fn):
+    """(result, wall seconds, process CPU seconds) of one call."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    out = fn()
+    return out, time.perf_counter() - t0, time.process_time() - c0
+
+
+def load_avg() -> list[float]:
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return []
+
+
+def machine() -> dict:
+    import cv2
+    import OpenImageIO as oiio
+    import rawpy
+
+    import colour
+    import colour_hdri
+
+    cpu = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
+            "numpy": np.__version__, "opencv": cv2.__version__, "rawpy": rawpy.__version__, "OpenImageIO": oiio.__version__,
+            "colour-science": colour.__version__, "colour-hdri": colour_hdri.__version__, "damcap": damcap_version()}
+
+
+# --------------------------------------------------------------------------------------------
+# Memorial
+# --------------------------------------------------------------------------------------------
+
+def memorial_bench(data: Path, slow: bool = True) -> dict:
+    import cv2
+
+    import colour
+    import colour_hdri
+
+    folder = data / "brackets" / "memorial"
+    times = {}
+    for line in (folder / "memorial.hdr_image_list.txt").read_text().splitlines():
+        parts = line.split()
+        if parts and parts[0].endswith(".png"):
+            times[parts[0]] = 1.0 / float(parts[1])  # the list gives 1/shutter_speed
+    files = sorted(folder / n for n in times)
+    t = [times[f.name] for f in files]
+    ref = read_exr(folder / "memorial_reference.hdr")[0][..., :3]
+    codes = [read_ldr_codes(f)[0] for f in files]
+    order = np.argsort(t)  # colour-hdri's image_stack_to_HDRI expects the shortest exposure first
+    rows = {}
+
+    def record(name, est, wall, cpu, note):
+        e = abs_log_ratio_error(est, ref)
+        rows[name] = {"median": round(e.median, 4), "p90": round(e.p90, 4), "wall_s": round(wall, 3),
+                      "cpu_s": round(cpu, 3), "note": note}
+
+    res, wall, cpu = timed(lambda: merge_bracket_files(files, HdrOptions(exposures_s=t)))
+    record("damcap (Debevec response recovered)", res.radiance_lin, wall, cpu,
+           "default: curve recovered from the stack, reliability-weighted merge")
+    res, wall, cpu = timed(lambda: merge_bracket_files(files, HdrOptions(exposures_s=t, response="srgb")))
+    record("damcap (told: sRGB curve)", res.radiance_lin, wall, cpu, "--response srgb")
+
+    def ch_stack(decode: bool):
+        stack = colour_hdri.ImageStack()
+        for k in order:
+            im = colour_hdri.Image(str(files[k]))
+            data_k = codes[k].astype(np.float64) / 255
+            im.data = colour.cctf_decoding(data_k, "sRGB") if decode else data_k
+            im.metadata = colour_hdri.Metadata(8.0, t[k], 100)
+            stack.append(im)
+        return stack
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        est, wall, cpu = timed(lambda: colour_hdri.image_stack_to_HDRI(ch_stack(True)))
+        record("colour-hdri image_stack_to_HDRI (sRGB-decoded)", est, wall, cpu, "issue anchor: 0.030 / 0.103")
+
+        def ch_debevec():
+            stack = ch_stack(False)
+            crfs = colour_hdri.camera_response_functions_Debevec1997(stack)
+            return colour_hdri.image_stack_to_HDRI(ch_stack(False), camera_response_functions=crfs)
+
+        if slow:  # its default sampling makes this one take minutes
+            est, wall, cpu = timed(ch_debevec)
+            record("colour-hdri own Debevec response", est, wall, cpu, "issue anchor: median 0.69")
+
+    def opencv():
+        imgs = [np.ascontiguousarray(codes[k][..., ::-1]).astype(np.uint8) for k in range(len(files))]
+        tt = np.asarray(t, np.float32)
+        resp = cv2.createCalibrateDebevec().process(imgs, tt)
+        return cv2.createMergeDebevec().process(imgs, tt, resp)[..., ::-1]
+
+    est, wall, cpu = timed(opencv)
+    record("OpenCV Debevec calibrate + merge", est, wall, cpu, "issue anchor: median 0.14")
+    est, wall, cpu = timed(lambda: oracle_merge(codes, t, ref))
+    record("diagnostic: response read off the reference", est, wall, cpu,
+           "not a method (uses the answer): per-frame curves and per-code weights fitted to the reference")
+    return {"frames": len(files), "size": list(ref.shape[:2]), "rows": rows}
+
+
+def oracle_merge(codes: list[np.ndarray], times: list[float], ref: np.ndarray) -> np.ndarray:
+    """A bound, not a method: each frame's curve g_j(z) = median of ln(reference) + ln t_j over the
+    pixels with code z, weights = inverse variance of that fit; then the weighted log-domain merge."""
+    resolved = (ref > 0).all(axis=-1)
+    log_ref = np.log(np.where(ref > 0, ref, 1.0))
+    num = np.zeros(ref.shape)
+    den = np.zeros(ref.shape)
+    for j, z_all in enumerate(codes):
+        for c in range(3):
+            z = z_all[..., c].astype(np.int64)
+            lz, lv = z[resolved], log_ref[..., c][resolved] + np.log(times[j])
+            g = np.full(256, -50.0)
+            w = np.zeros(256)
+            for level in range(1, 255):
+                sel = lv[lz == level]
+                if sel.size > 10:
+                    g[level] = np.median(sel)
+                    w[level] = 1.0 / max(float(np.mean((sel - g[level]) ** 2)), 1e-4)
+            num[..., c] += w[z] * (g[z] - np.log(times[j]))
+            den[..., c] += w[z]
+    return np.exp(num / np.maximum(den, 1e-30))
+
+
+# --------------------------------------------------------------------------------------------
+# Simulated RAW brackets
+# --------------------------------------------------------------------------------------------
+
+def colour_hdri_raw(files: list[Path]) -> np.ndarray:
+    """colour-hdri's rawpy recipe (examples_merge_from_raw_files_using_rawpy) on the same files."""
+    import rawpy
+
+    import colour_hdri
+
+    exps = [read_exposure(f) for f in files]
+    order = np.argsort([e.time_s * e.iso / e.f_number**2 for e in exps])
+    stack = colour_hdri.ImageStack()
+    for k in order:
+        with rawpy.imread(str(files[k])) as raw:
+            rgb = raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16)
+        im = colour_hdri.Image(str(files[k]))
+        im.data = rgb.astype(np.float64) / 65535
+        im.metadata = colour_hdri.Metadata(exps[k].f_number, exps[k].time_s, exps[k].iso)
+        stack.append(im)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return colour_hdri.image_stack_to_HDRI(stack)
+
+
+def raw_bench(data: Path, envmaps: list[str], frames: int, stops: float, repeats: int, work: Path) -> dict:
+    out = {}
+    for name in envmaps:
+        env = read_exr(data / "envmaps" / f"{name}.hdr")[0][..., :3]
+        sb = simulate_raw_bracket(np.maximum(env, 0), work / name, bracket_times(frames, stops, 1 / 15), seed=0)
+        ok = ~sb.clipped_in_shortest
+        runs = {"damcap": [], "colour-hdri": []}
+        est = {}
+        for _ in range(repeats):  # interleaved, so both see the same machine load
+            r, wall, cpu = timed(lambda: merge_bracket_files(sb.files))
+            est["damcap"] = r.radiance_lin
+            runs["damcap"].append((wall, cpu))
+            h, wall, cpu = timed(lambda: colour_hdri_raw(sb.files))
+            est["colour-hdri"] = h
+            runs["colour-hdri"].append((wall, cpu))
+        row = {}
+        for method in runs:
+            e = abs_log_ratio_error(est[method], sb.radiance_rec709, ok)
+            walls = [w for w, _ in runs[method]]
+            cpus = [c for _, c in runs[method]]
+            row[method] = {"median": round(e.median, 4), "p90": round(e.p90, 4), "wall_s_best": round(min(walls), 3),
+                           "wall_s_all": [round(w, 3) for w in walls], "cpu_s_best": round(min(cpus), 3)}
+        row["speedup_wall"] = round(row["colour-hdri"]["wall_s_best"] / row["damcap"]["wall_s_best"], 2)
+        row["speedup_cpu"] = round(row["colour-hdri"]["cpu_s_best"] / row["damcap"]["cpu_s_best"], 2)
+        row["size"] = list(sb.radiance_rec709.shape[:2])
+        row["clipped_in_shortest_px"] = int(sb.clipped_in_shortest.sum())
+        out[name] = row
+        print(f"{name}: {json.dumps(row)}", flush=True)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Report
+# --------------------------------------------------------------------------------------------
+
+def verdict(ok: bool) -> str:
+    return "met" if ok else "**missed**"
+
+
+def markdown(doc: dict) -> str:
+    m = doc["memorial"]["rows"]
+    dm = m["damcap (Debevec response recovered)"]
+    lines = [
+        "# Capture benchmark: HDR merging (damcap vs colour-hdri vs OpenCV)",
+        "",
+        "Generated by `bench/capture_hdr.py`; the exact command (from the repository root):",
+        "",
+        "```",
+        doc["command"],
+        "```",
+        "",
+        f"- date: {doc['date']}; the run took {doc['seconds']:.0f} s",
+        f"- machine: {doc['machine']['cpu']}, {doc['machine']['cores']} cores (shared with other people's jobs: load average "
+        f"{doc['load_before']} before, {doc['load_after']} after)",
+        f"- Python {doc['machine']['python']}, numpy {doc['machine']['numpy']}, OpenCV {doc['machine']['opencv']}, rawpy "
+        f"{doc['machine']['rawpy']}, OpenImageIO {doc['machine']['OpenImageIO']}, colour-science "
+        f"{doc['machine']['colour-science']}, colour-hdri {doc['machine']['colour-hdri']}, damcap {doc['machine']['damcap']}",
+        "- raw numbers: `bench/results/capture_hdr.json`",
+        "",
+        "Error = |ln(estimate x s) - ln(reference)| per pixel and channel, with the one global scale s that makes the median "
+        "log ratio 0 (`damcap.capture.metrics.abs_log_ratio_error`); median and 90th percentile.",
+        "",
+        "## Targets",
+        "",
+        f"- Memorial, damcap without being told the curve: median {dm['median']:.4f} (target <= 0.025: "
+        f"{verdict(dm['median'] <= TARGETS['memorial_median'])}), 90th percentile {dm['p90']:.4f} (target <= 0.08: "
+        f"{verdict(dm['p90'] <= TARGETS['memorial_p90'])}).",
+    ]
+    for name, row in doc["raw"].items():
+        lower = row["damcap"]["median"] < row["colour-hdri"]["median"] and row["damcap"]["p90"] < row["colour-hdri"]["p90"]
+        lines.append(f"- RAW simulator, `{name}`: damcap error {row['damcap']['median']:.4f} / {row['damcap']['p90']:.4f} vs "
+                     f"colour-hdri {row['colour-hdri']['median']:.4f} / {row['colour-hdri']['p90']:.4f} (median / p90; lower "
+                     f"error: {verdict(lower)}); {row['speedup_wall']:.1f}x faster in wall time, {row['speedup_cpu']:.1f}x in CPU "
+                     f"time (target >= 2x: {verdict(row['speedup_wall'] >= TARGETS['raw_speedup'])}).")
+    lines += ["", "## Memorial Church (16 LDR exposures vs the reference radiance map)", "",
+              "| method | median | p90 | wall s | CPU s | note |", "|---|---:|---:|---:|---:|---|"]
+    for name, r in m.items():
+        lines.append(f"| {name} | {r['median']:.4f} | {r['p90']:.4f} | {r['wall_s']:.2f} | {r['cpu_s']:.2f} | {r['note']} |")
+    lines += ["", f"## Simulated RAW brackets ({doc['raw_setup']})", "",
+              "| envmap | method | median | p90 | wall s (best) | CPU s (best) | speedup (wall / CPU) |",
+              "|---|---|---:|---:|---:|---:|---:|"]
+    for name, row in doc["raw"].items():
+        for method in ("damcap", "colour-hdri"):
+            r = row[method]
+            sp = f"{row['speedup_wall']:.1f}x / {row['speedup_cpu']:.1f}x" if method == "damcap" else ""
+            lines.append(f"| {name} | {method} | {r['median']:.4f} | {r['p90']:.4f} | {r['wall_s_best']:.2f} | "
+                         f"{r['cpu_s_best']:.2f} | {sp} |")
+    lines += ["", "## Notes", ""] + [f"- {n}" for n in doc["notes"]] + [""]
+    return "\n".join(lines)
+
+
+NOTES = [
+    "Memorial's 90th percentile misses 0.08. Most of it comes from the darkest tenth of the reference (vignetted corners, "
+    "where the 32 s and 16 s frames sit at codes 20-45, just above the scans' black floor at about 18) and the brightest "
+    "window pixels. The diagnostic row (not part of damcap) reads each frame's curve and per-code weights off the "
+    "reference itself: even a curve fitted to the answer barely meets 0.08, so most of the remaining error is "
+    "information these 8-bit frames do not carry (or carry differently from the reference's source), not the merge.",
+    "damcap's LDR merge is Debevec & Malik's log-domain weighted mean (Eq. 6) with per-code weights = inverse variance of "
+    "the response residuals measured on the stack itself (iteratively reweighted; the first round uses the hat on "
+    "linearised values). Response samples are taken from the flattest 10 % of pixels, evenly spread in brightness.",
+    "RAW: damcap merges per photosite before demosaicing (saturation decided on the raw values), so it demosaics once; "
+    "colour-hdri demosaics every frame (AHD in LibRaw) and merges demosaiced, white-balanced, highlight-clipped frames with a "
+    "hat weighting. The speedup includes EXIF reading and file decoding for both.",
+    "Wall times on this shared 2-core machine vary with other people's jobs; both methods were run interleaved "
+    "(best of the repeats reported, all repeats in the JSON) and CPU time is reported next to wall time.",
+]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
+    ap.add_argument("--envmaps", default="sunset,forest,studio", help="comma-separated envmaps/*.hdr names")
+    ap.add_argument("--frames", type=int, default=5)
+    ap.add_argument("--stops", type=float, default=2.0)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--skip-slow", action="store_true", help="skip colour-hdri's own Debevec response (minutes)")
+    ap.add_argument("--json", type=Path, default=RESULTS / "capture_hdr.json")
+    ap.add_argument("--md", type=Path, default=BENCH / "capture_hdr.md")
+    args = ap.parse_args(argv)
+    if not (args.data / "MANIFEST.md").is_file():
+        print(f"error: shared data not found at {args.data}", file=sys.stderr)
+        return 2
+    start = time.time()
+    doc = {"command": "cd " + shlex.quote(str(REPO)) + " && .venv/bin/python bench/capture_hdr.py "
+                      + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:])),
+           "date": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC"), "machine": machine(),
+           "load_before": load_avg(), "targets": TARGETS}
+    doc["command"] = doc["command"].rstrip()
+    doc["memorial"] = memorial_bench(args.data, slow=not args.skip_slow)
+    print(json.dumps(doc["memorial"], indent=1), flush=True)
+    doc["raw_setup"] = (f"{args.frames} exposures {args.stops:g} stops apart, longest 1/15 s, ISO 100, f/8; RGGB, 14 bit, "
+                        "black 512, full well 30000 e-, read noise 3 e-; 1024x512")
+    with tempfile.TemporaryDirectory(prefix="capture_bench_") as work:
+        doc["raw"] = raw_bench(args.data, [e for e in args.envmaps.split(",") if e], args.frames, args.stops,
+                               args.repeats, Path(work))
+    doc["load_after"] = load_avg()
+    doc["seconds"] = round(time.time() - start, 1)
+    doc["notes"] = NOTES
+    write_json_atomic(args.json, doc)
+    write_text_atomic(args.md, markdown(doc))
+    print(f"wrote {args.json} and {args.md}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,86 @@
+"""``damcap hdr`` and ``damcap linearize``: outputs, one-line errors (exit 2), inputs untouched."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+
+from damcap.cli.main import main
+from damcap.common.exr import read_exr
+from tests.conftest import tree_digest
+
+
+def run(args, capsys):
+    code = main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_one_line_error(code, err, *needles):
+    assert code == 2
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert lines and lines[-1].startswith("error:") and "Traceback" not in err, err
+    for n in needles:
+        assert n in lines[-1], (n, lines[-1])
+
+
+def test_hdr_raw_bracket(sim_bracket, tmp_path, capsys):
+    before = tree_digest(sim_bracket.files[0].parent)
+    out = tmp_path / "merged.exr"
+    code, stdout, err = run(["hdr", *sim_bracket.files, "-o", out, "--dtype", "half"], capsys)
+    assert code == 0, err
+    assert "5 raw frames" in stdout and "lin_rec709" in stdout
+    pixels, names = read_exr(out)
+    assert names == ("R", "G", "B", "clipped") and pixels.shape == (128, 256, 4)
+    record = json.loads((tmp_path / "merged.exr.json").read_text())
+    assert record["kind"] == "raw" and record["options"]["dtype"] == "half"
+    assert tree_digest(sim_bracket.files[0].parent) == before
+
+
+def test_hdr_ldr_with_exposures_and_srgb(memorial, tmp_path, capsys):
+    files, times, _ = memorial
+    out = tmp_path / "m.exr"
+    sel = [0, 5, 10]
+    code, stdout, err = run(["hdr", *[files[i] for i in sel], "-o", out, "--exposures",
+                             ",".join(str(times[i]) for i in sel), "--response", "srgb"], capsys)
+    assert code == 0, err
+    pixels, _ = read_exr(out)
+    assert pixels[..., :3].min() >= 0 and np.isfinite(pixels).all()
+    assert json.loads((tmp_path / "m.exr.json").read_text())["response"]["method"] == "srgb"
+
+
+def test_hdr_errors(memorial, frobisher, tmp_path, capsys):
+    files, _, _ = memorial
+    code, _, err = run(["hdr", *files[:2], "-o", tmp_path / "a.exr"], capsys)
+    assert_one_line_error(code, err, "no exposure time", "--exposures")
+    code, _, err = run(["hdr", files[0], "-o", tmp_path / "a.exr", "--exposures", "1"], capsys)
+    assert_one_line_error(code, err, "at least 2 exposures")
+    code, _, err = run(["hdr", *files[:2], "-o", tmp_path / "a.exr", "--exposures", "1,x"], capsys)
+    assert_one_line_error(code, err, "--exposures", "'x'")
+    code, _, err = run(["hdr", *frobisher, "-o", tmp_path / "a.exr", "--colorspace", "p3"], capsys)
+    assert_one_line_error(code, err, "--colorspace must be one of lin_rec709, acescg")
+    code, _, err = run(["hdr", *frobisher, "-o", tmp_path / "a.png"], capsys)
+    assert_one_line_error(code, err, "must be an .exr")
+    code, _, err = run(["hdr", *frobisher, "-o", frobisher[0]], capsys)
+    assert_one_line_error(code, err, "would overwrite")
+    assert not (tmp_path / "a.exr").exists()
+
+
+def test_linearize_command(shared_data, tmp_path, capsys):
+    src = tmp_path / "photos"
+    src.mkdir()
+    for name in ("IMG_5881.JPG", "IMG_5890.JPG"):
+        shutil.copy(shared_data / "real" / "mold_gold_cape" / "images" / name, src / name)
+    before = tree_digest(src)
+    code, stdout, err = run(["linearize", src, "-o", tmp_path / "lin"], capsys)
+    assert code == 0, err
+    assert sorted(p.name for p in (tmp_path / "lin").iterdir()) == ["IMG_5881.exr", "IMG_5890.exr", "linearize.json"]
+    doc = json.loads((tmp_path / "lin" / "linearize.json").read_text())
+    assert doc["damcap_version"] and [p["exposure"]["iso"] for p in doc["photos"]]
+    assert tree_digest(src) == before
+    code, _, err = run(["linearize", src, "-o", src / "out"], capsys)
+    assert_one_line_error(code, err, "would overwrite or write into the input")
+    code, _, err = run(["linearize", tmp_path / "nothing", "-o", tmp_path / "x"], capsys)
+    assert_one_line_error(code, err, "not a folder of photos")

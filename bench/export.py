@@ -7,6 +7,7 @@ Run: .venv/bin/python bench/export.py   (writes bench/results/export.json and be
 from __future__ import annotations
 
 import json
+import os
 import platform
 import subprocess
 import sys
@@ -42,6 +43,7 @@ def main() -> None:
     from damcap.reconstruct.raycast import MeshRaycaster, load_mesh, normalise_to_unit_sphere
 
     torch.set_num_threads(2)
+    load_before = os.getloadavg()[0]
     model = fit_dam(samples_of(load_views(read_capture(SAMPLE), "train")), FitOptions()).model
     mesh = normalise_to_unit_sphere(load_mesh(MESH))
     caster = MeshRaycaster(mesh)
@@ -69,7 +71,8 @@ def main() -> None:
             fps[size] = frame_rate(page, size, frames=20)
     result = {
         "command": "make bench  (.venv/bin/python bench/export.py)",
-        "machine": {"cpu": cpu_name(), "cores": torch.get_num_threads(), "python": sys.version.split()[0], "torch": torch.__version__},
+        "machine": {"cpu": cpu_name(), "cores": torch.get_num_threads(), "python": sys.version.split()[0], "torch": torch.__version__,
+                    "load_average_1min": [load_before, os.getloadavg()[0]]},
         "mesh": {"file": str(MESH.name), "triangles": int(len(mesh.triangles)), "vertices": int(len(mesh.vertices))},
         "cpu_render_512": {
             "frames": len(cams), "covered_pixels_median": int(np.median(covered)),
@@ -86,6 +89,8 @@ def main() -> None:
 
 Command: `{result['command']}`. Machine: {result['machine']['cpu']}, {result['machine']['cores']} threads, torch {result['machine']['torch']}.
 Date: {time.strftime('%Y-%m-%d')}. Raw results: `bench/results/export.json`.
+Load average (1 min) at start and end: {result['machine']['load_average_1min'][0]:.1f}, {result['machine']['load_average_1min'][1]:.1f}
+(above ~2 on this 2-core machine, other processes shared the CPUs and the times are inflated).
 
 ## CPU render of a 512x512 frame (ray cast with Open3D + DAM), {result['mesh']['file']} ({result['mesh']['triangles']} triangles)
 

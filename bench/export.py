@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import os
 import platform
-import subprocess
 import sys
 import tempfile
 import time
@@ -31,7 +30,6 @@ def cpu_name() -> str:
 
 
 def main() -> None:
-    from damcap.appearance.dam_file import save_dam
     from damcap.appearance.fit import FitOptions, fit_dam
     from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import read_capture

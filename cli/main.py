@@ -15,6 +15,8 @@ from damcap.common.errors import DamcapError
 
 from . import appearance_cmds  # noqa: F401  (registers inspect, closed-form, fit, render, evaluate)
 from . import capture_cmds  # noqa: F401
+from . import synth_cmds  # noqa: F401
+from . import reconstruct_cmds  # noqa: F401
 from . import export_cmds  # noqa: F401  (registers export, view)
 from . import segment_cmds  # noqa: F401  (registers segment)
 from .app import app

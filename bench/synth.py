@@ -1,0 +1,468 @@
+"""Benchmark: the synthetic data set (``damcap synth`` / ``synth-set``) on this machine.
+
+Stages (``--stages``, default all, in this order):
+
+* ``throughput``: images per second at 128x128 and 256x256, 64 spp (bunny, one material, an
+  environment map): the path tracer alone, and whole frames (ray-cast geometry + render +
+  validation + EXR writes) through ``make_synthetic_capture``.
+* ``noise``: the path-tracing noise floor: DSSIM (capture-format.md) between two renders of the
+  same views with different sampler seeds, at 64..1024 spp under environment maps and 16..256 spp
+  under the point light, 128x128; plus the paper preset's setting at 256x256.
+* ``small``: ``damcap synth-set --preset small`` timed from scratch (in ``bench/.cache``).
+* ``paper``: the paper preset's time, estimated from measured per-frame times at its settings
+  (256x256; see ``synth_set.preset('paper')``) times its 720 x 32 frames -- rendering it all here
+  is not feasible; the estimate says so.
+* ``table1``: the paper's Table 1 representation rows on the held-out, single-material captures
+  of the small preset: mean DSSIM of a DAM fit (``fit_dam`` with default ``FitOptions``, 3 fit
+  seeds) vs RM++ and RM, same view (train frames) and novel view (test frames), point light and
+  environment map, with each capture's own noise floor (its frames re-rendered with another
+  seed, compared with the stored ones).
+
+Every timed section records the wall time and the CPU time other processes took meanwhile
+(the machine is shared). Outputs: ``bench/results/synth.json`` (stages merged into an existing
+file, so stages can be rerun alone) and ``bench/synth.md``.
+
+Run (from the repository root)::
+
+    .venv/bin/python bench/synth.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import os
+import platform
+import shutil
+import statistics
+import subprocess
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from damcap.appearance.evaluate import evaluate_split
+from damcap.appearance.fit import FitOptions, fit_dam
+from damcap.appearance.metrics import dssim
+from damcap.appearance.views import load_views, samples_of
+from damcap.common.capture_folder import read_capture, read_frame
+from damcap.reconstruct.synth import SynthOptions, compose_frame, make_synthetic_capture, render_seeds, resolve_scene
+from damcap.reconstruct.synth_geometry import GeometryBuffers, RayCaster, frame_geometry
+from damcap.reconstruct.synth_render import build_scene, pass_sample_counts, render_view, select_variant
+from damcap.reconstruct.synth_set import plan_corpus, preset
+
+BENCH = Path(__file__).resolve().parent
+REPO = BENCH.parent
+CACHE = BENCH / ".cache"
+RESULTS = BENCH / "results"
+DATA = Path(os.environ.get("DAMCAP_SHARED_DATA", REPO.parent / "shared" / "data"))
+STAGES = ("throughput", "noise", "small", "paper", "table1")
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+#: seed offset of the second render in noise-floor measurements
+NOISE_SEED_OFFSET = 7919
+
+
+# --------------------------------------------------------------------------------------------
+# helpers
+# --------------------------------------------------------------------------------------------
+
+
+def log(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+def _busy_s() -> float:
+    f = Path("/proc/stat").read_text().splitlines()[0].split()[1:]
+    user, nice, system, idle, iowait, irq, softirq, steal = (int(x) for x in f[:8])
+    return (user + nice + system + irq + softirq + steal) / CLK_TCK
+
+
+def _own_cpu_s() -> float:
+    """CPU time of this process and its finished children."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
+class Timed:
+    """Wall time of a section, this process's CPU time (all threads, plus finished child
+    processes), and the share of all cores that other processes used meanwhile.
+
+    ``idle_s`` estimates what the section would take on an otherwise idle machine (the machine
+    is shared, so wall times are inflated by others): the larger of own CPU time / cores (every
+    core busy) and wall time x (1 - others' share of the cores).
+    """
+
+    def __enter__(self) -> "Timed":
+        self.b0, self.c0, self.t0 = _busy_s(), _own_cpu_s(), time.perf_counter()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.wall = time.perf_counter() - self.t0
+        self.own_cpu = _own_cpu_s() - self.c0
+        ncpu = os.cpu_count() or 1
+        self.foreign_frac = max(0.0, (_busy_s() - self.b0) - self.own_cpu) / max(self.wall * ncpu, 1e-9)
+        self.idle = max(self.own_cpu / ncpu, self.wall * (1 - min(self.foreign_frac, 1.0)))
+
+    def as_dict(self) -> dict:
+        return {"wall_s": round(self.wall, 3), "own_cpu_s": round(self.own_cpu, 3), "idle_s": round(self.idle, 3),
+                "foreign_cpu_frac": round(self.foreign_frac, 3)}
+
+
+def machine_info() -> dict:
+    import drjit as dr
+    import mitsuba as mi
+
+    cpu = "unknown"
+    for line in Path("/proc/cpuinfo").read_text().splitlines():
+        if line.startswith("model name"):
+            cpu = line.split(":", 1)[1].strip()
+            break
+    return {
+        "date_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC"),
+        "nproc": os.cpu_count(), "cpu_model": cpu, "mem_gib": round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1),
+        "mitsuba": mi.__version__, "drjit": dr.__version__, "variant": select_variant("auto"), "drjit_threads": dr.thread_count(),
+        "torch": torch.__version__, "torch_threads": torch.get_num_threads(), "python": platform.python_version(),
+        "platform": platform.platform(),
+    }
+
+
+def bunny_options(light: str, resolution: int, spp: int, views: int = 32, seed: int = 0) -> SynthOptions:
+    return SynthOptions(object=str(DATA / "meshes" / "stanford-bunny.obj"), light=light, materials=1, views=views,
+                        resolution=resolution, spp=spp, seed=seed)
+
+
+def env(name: str, rotation: float = 0.0) -> str:
+    return f"env:{DATA / 'envmaps' / name}:{rotation:g}"
+
+
+class SceneRenderer:
+    """A capture's scene, ready to re-render any of its views with any seed."""
+
+    def __init__(self, opts: SynthOptions) -> None:
+        from damcap.reconstruct.synth import camera_setup
+
+        select_variant(opts.variant)
+        self.opts = opts
+        self.desc = resolve_scene(opts)
+        self.scene = build_scene(self.desc.parts, self.desc.materials, self.desc.light, opts.max_depth)
+        self.caster = RayCaster(self.desc.geometry)
+        self.cams, self.intr, _, _ = camera_setup(opts)
+
+    def render(self, view: int, spp: int, seed: int, geometry: GeometryBuffers | None = None) -> tuple[np.ndarray, GeometryBuffers]:
+        """Radiance of one view as a capture stores it (un-premultiplied, 0 off the object)."""
+        geo = geometry or frame_geometry(self.caster, self.cams[view], self.intr, self.opts.supersample)
+        pass_spp = pass_sample_counts(spp, self.intr.w, self.intr.h)
+        rad, alpha = render_view(self.scene, self.cams[view], self.intr, pass_spp, render_seeds(seed, view, len(pass_spp)))
+        return compose_frame(rad, alpha, geo).radiance_lin, geo
+
+
+def noise_floor_pair(r: SceneRenderer, views: list[int], spp: int) -> dict:
+    vals = []
+    with Timed() as t:
+        for v in views:
+            a, geo = r.render(v, spp, r.opts.seed)
+            b, _ = r.render(v, spp, r.opts.seed + NOISE_SEED_OFFSET, geo)
+            d = dssim(a, b, geo.coverage)
+            if d is not None:
+                vals.append(d)
+    return {"spp": spp, "views": views, "dssim_mean": statistics.fmean(vals), "dssim_per_view": vals,
+            "s_per_image": t.wall / (2 * len(views)), **t.as_dict()}
+
+
+# --------------------------------------------------------------------------------------------
+# stages
+# --------------------------------------------------------------------------------------------
+
+
+def stage_throughput() -> dict:
+    out = {}
+    for res in (128, 256):
+        r = SceneRenderer(bunny_options(env("studio.hdr"), res, 64))
+        r.render(0, 64, 1)  # warm-up: kernel compilation
+        n = 8 if res == 128 else 4
+        with Timed() as t:
+            for v in range(1, n + 1):
+                r.render(v, 64, 1)
+        render_only = {"images": n, "images_per_s": n / t.wall, "images_per_s_idle": n / t.idle, **t.as_dict()}
+        cap = CACHE / f"synth_throughput_{res}"
+        shutil.rmtree(cap, ignore_errors=True)
+        frames = 8 if res == 128 else 4
+        opts = replace(bunny_options(env("studio.hdr"), res, 64, views=frames), train_views=2)
+        with Timed() as t:
+            make_synthetic_capture(cap, opts)
+        shutil.rmtree(cap, ignore_errors=True)
+        whole = {"frames": frames, "frames_per_s": frames / t.wall, "frames_per_s_idle": frames / t.idle,
+                 "includes": "scene set-up, kernel compilation, geometry, validation, EXR writes", **t.as_dict()}
+        out[f"{res}x{res}"] = {"spp": 64, "render_only": render_only, "whole_frames": whole}
+        log(f"throughput {res}: render {render_only['images_per_s']:.2f} img/s, whole {whole['frames_per_s']:.2f} frames/s "
+            f"(others used {t.foreign_frac:.0%} of the cores)")
+    return out
+
+
+def stage_noise() -> dict:
+    out = []
+    views = [0, 8, 16, 24]
+    paper = preset("paper")
+    settings = [(env("studio.hdr"), "env studio", 128, (64, 256, 1024)),
+                (env("sunset.hdr", 90), "env sunset (held out)", 128, (64, 128, 256, 512)),
+                ("point:52.5:22.9", "point", 128, (16, 64, 128, 256)),
+                (env("sunset.hdr", 90), "env sunset (held out)", paper.resolution, (paper.spp_env,))]
+    for light, label, res, spps in settings:
+        r = SceneRenderer(bunny_options(light, res, 64, seed=3))
+        r.render(0, 4, 0)  # warm-up
+        for spp in spps:
+            rec = noise_floor_pair(r, views if res == 128 else views[:2], spp)
+            rec.update({"light": label, "resolution": res})
+            out.append(rec)
+            log(f"noise {label} {res}px {spp} spp: DSSIM {rec['dssim_mean']:.4f} ({rec['s_per_image']:.2f} s/image)")
+    return {"object": "stanford-bunny, 1 material (seed 3)", "rows": out}
+
+
+def small_corpus_dir() -> Path:
+    return CACHE / "synth_small"
+
+
+def stage_small(jobs: int, fresh: bool) -> dict:
+    out = small_corpus_dir()
+    if fresh and out.exists():
+        shutil.rmtree(out)
+    cmd = [str(REPO / ".venv" / "bin" / "damcap"), "synth-set", str(out), "--preset", "small", "--jobs", str(jobs), "--data", str(DATA)]
+    log("small preset: " + " ".join(cmd))
+    with Timed() as t:
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise SystemExit(f"synth-set failed ({proc.returncode}): {proc.stderr[-2000:]}")
+    doc = json.loads((out / "corpus.json").read_text())
+    per = [{"name": c["name"], "seconds": c["seconds"], "light": c["light_kind"], "materials": c["materials"], "status": c["status"]}
+           for c in doc["captures"]]
+    log(f"small preset: {t.wall:.0f} s for {len(per)} captures (others used {t.foreign_frac:.0%} of the cores)")
+    return {"command": " ".join(["damcap"] + cmd[1:]), "captures": len(per), "jobs": jobs, "fresh": fresh,
+            "per_capture": per, "target_s": 600, **t.as_dict()}
+
+
+def stage_paper() -> dict:
+    p = preset("paper")
+    entries, options = plan_corpus(p, DATA)
+    rows = {}
+    for kind, spp, light in (("env", p.spp_env, env("sunset.hdr", 90)), ("point", p.spp_point, "point:52.5:22.9")):
+        cap = CACHE / f"synth_paper_{kind}"
+        shutil.rmtree(cap, ignore_errors=True)
+        opts = replace(bunny_options(light, p.resolution, spp, views=3, seed=1), train_views=2)
+        with Timed() as t:
+            make_synthetic_capture(cap, opts)
+        shutil.rmtree(cap, ignore_errors=True)
+        rows[kind] = {"spp": spp, "resolution": p.resolution, "frames_timed": 3, "s_per_frame": t.wall / 3,
+                      "s_per_frame_idle": t.idle / 3, **t.as_dict()}
+        log(f"paper preset frame ({kind}, {spp} spp, {p.resolution}px): {t.wall / 3:.1f} s/frame")
+    n = {k: sum(e.light_kind == k for e in entries) for k in ("env", "point")}
+    total = sum(n[k] * p.views * rows[k]["s_per_frame"] for k in n)
+    total_idle = sum(n[k] * p.views * rows[k]["s_per_frame_idle"] for k in n)
+    return {"captures": len(entries), "captures_by_light": n, "views": p.views, "per_frame": rows, "estimated_s": total,
+            "estimated_h": total / 3600, "estimated_h_idle": total_idle / 3600, "measured": False,
+            "note": "estimated from per-frame times measured on the bunny (3 frames each, including scene set-up); "
+                    "rendering all 720 captures here is not feasible"}
+
+
+def _capture_noise_floor(root: Path, every: int) -> dict[str, float]:
+    """DSSIM between the stored radiance and a re-render with another seed, for every
+    ``every``-th frame (the floor of a split is then the mean over its re-rendered frames)."""
+    cap = read_capture(root)
+    opts = SynthOptions(**cap.extra["damcap_source"]["options"])
+    r = SceneRenderer(opts)
+    out = {}
+    for i, f in enumerate(cap.frames):
+        if i % every:
+            continue
+        d = read_frame(cap, f, with_weights=False)
+        geo = GeometryBuffers(d.normal_world, d.position_world, d.coverage, np.zeros(d.coverage.shape + (1,), np.float32))
+        again, _ = r.render(i, opts.spp, opts.seed + NOISE_SEED_OFFSET, geo)
+        out[f.name] = dssim(d.radiance_lin, again, d.coverage)
+    return out
+
+
+def stage_table1(fit_seeds: list[int], floor_every: int) -> dict:
+    corpus = json.loads((small_corpus_dir() / "corpus.json").read_text())
+    held = [c for c in corpus["captures"] if c["split"] == "heldout" and c["materials"] == 1]
+    if not held or any(c["status"] not in ("done", "skipped") for c in held):
+        raise SystemExit("run the 'small' stage first: held-out captures are missing")
+    per_capture = []
+    for c in held:
+        root = small_corpus_dir() / c["path"]
+        cap = read_capture(root)
+        train, test = load_views(cap, "train"), load_views(cap, "test")
+        samples = samples_of(train)
+        with Timed() as tn:
+            floor = _capture_noise_floor(root, floor_every)
+        rec = {"name": c["name"], "object": c["object"], "light": c["light"], "light_kind": c["light_kind"],
+               "noise_floor": {split: statistics.fmean(floor[v.name] for v in views if floor.get(v.name) is not None)
+                               for split, views in (("same_view", train), ("novel_view", test))},
+               "noise_floor_frames": sorted(floor), "noise_floor_s": round(tn.wall, 1), "fits": []}
+        base = None
+        for s in fit_seeds:
+            with Timed() as tf:
+                fit = fit_dam(samples, FitOptions(seed=s))
+            res_same = evaluate_split(train, train, {"DAM": fit.model}, baselines=base is None)
+            res_novel = evaluate_split(train, test, {"DAM": fit.model}, baselines=base is None)
+            if base is None:
+                base = {"same_view": {m: res_same[m].mean for m in ("RM++", "RM")},
+                        "novel_view": {m: res_novel[m].mean for m in ("RM++", "RM")}}
+            rec["fits"].append({"seed": s, "fit_s": round(fit.seconds, 2), "best_step": fit.best_step,
+                                "same_view": res_same["DAM"].mean, "novel_view": res_novel["DAM"].mean, **tf.as_dict()})
+        rec["baselines"] = base
+        rec["dam"] = {k: statistics.fmean(f[k] for f in rec["fits"]) for k in ("same_view", "novel_view")}
+        per_capture.append(rec)
+        log(f"table1 {c['name']}: DAM same {rec['dam']['same_view']:.4f} novel {rec['dam']['novel_view']:.4f} | "
+            f"RM++ same {base['same_view']['RM++']:.4f} novel {base['novel_view']['RM++']:.4f} | "
+            f"floor same {rec['noise_floor']['same_view']:.4f} novel {rec['noise_floor']['novel_view']:.4f}")
+    table = {}
+    for kind in ("point", "env"):
+        rows = [r for r in per_capture if r["light_kind"] == kind]
+        cell = {}
+        for col in ("same_view", "novel_view"):
+            dam = [f[col] for r in rows for f in r["fits"]]
+            cell[col] = {
+                "DAM": statistics.fmean(dam), "DAM_std_over_fits": statistics.stdev(dam) if len(dam) > 1 else 0.0,
+                "RM++": statistics.fmean(r["baselines"][col]["RM++"] for r in rows),
+                "RM": statistics.fmean(r["baselines"][col]["RM"] for r in rows),
+                "noise_floor": statistics.fmean(r["noise_floor"][col] for r in rows),
+            }
+            cell[col]["DAM/RM++"] = cell[col]["DAM"] / cell[col]["RM++"]
+            per_seed = [statistics.fmean(next(f[col] for f in r["fits"] if f["seed"] == s) for r in rows) for s in fit_seeds]
+            cell[col]["DAM/RM++_per_fit_seed"] = [x / cell[col]["RM++"] for x in per_seed]
+        table[kind] = cell
+    return {"captures": [c["name"] for c in held], "fit_options": asdict(FitOptions()), "fit_seeds": fit_seeds, "floor_every": floor_every,
+            "table": table, "per_capture": per_capture, "target_novel_ratio": 0.5}
+
+
+# --------------------------------------------------------------------------------------------
+# report
+# --------------------------------------------------------------------------------------------
+
+
+def write_markdown(res: dict, path: Path) -> None:
+    m = res.get("machine", {})
+    L = ["# Synthetic data set (Mitsuba 3): throughput, noise floor, corpus time, Table 1", "",
+         f"Machine: {m.get('cpu_model')} ({m.get('nproc')} cores, shared with other engineers; {m.get('mem_gib')} GiB), "
+         f"Mitsuba {m.get('mitsuba')} `{m.get('variant')}` ({m.get('drjit_threads')} threads), torch {m.get('torch')} "
+         f"({m.get('torch_threads')} threads), Python {m.get('python')}; {m.get('date_utc')}.", "",
+         "Command (from the repository root): `" + res.get("command", ".venv/bin/python bench/synth.py") + "`", "",
+         "*others* = share of all cores that other processes used during the timed section (the machine is shared). "
+         "*idle est.* = the larger of own CPU time / cores and wall time x (1 - others): an estimate for an otherwise "
+         "idle machine.", ""]
+    if "throughput" in res:
+        L += ["## Render throughput (64 spp, bunny, environment map)", "",
+              "| resolution | path tracer alone, images/s: measured (idle est.) | whole frames, frames/s: measured (idle est.) | others |",
+              "|---|---:|---:|---:|"]
+        for k, v in res["throughput"].items():
+            ro, wf = v["render_only"], v["whole_frames"]
+            L.append(f"| {k} | {ro['images_per_s']:.2f} ({ro['images_per_s_idle']:.2f}) | {wf['frames_per_s']:.2f} ({wf['frames_per_s_idle']:.2f}) | "
+                     f"{ro['foreign_cpu_frac']:.0%} / {wf['foreign_cpu_frac']:.0%} |")
+        L += ["", "Whole frames include scene set-up and kernel compilation (once per capture), the ray-cast geometry "
+              "(4x4 sub-pixel rays), validation and EXR writes.", ""]
+    if "noise" in res:
+        L += ["## Path-tracing noise floor", "",
+              "DSSIM (capture-format.md) between two renders of the same 4 views (2 at 256 px) with different seeds; "
+              f"{res['noise']['object']}.", "",
+              "| light | resolution | spp | noise floor DSSIM | s / image | others |", "|---|---:|---:|---:|---:|---:|"]
+        for r in res["noise"]["rows"]:
+            L.append(f"| {r['light']} | {r['resolution']} | {r['spp']} | {r['dssim_mean']:.4f} | {r['s_per_image']:.2f} | {r['foreign_cpu_frac']:.0%} |")
+        L += [""]
+    if "small" in res or "paper" in res:
+        L += ["## Corpus time", "", "| preset | captures | time: measured (idle est.) | target | how | others |", "|---|---:|---:|---:|---|---:|"]
+        if "small" in res:
+            s = res["small"]
+            sp = preset("small")
+            L.append(f"| small ({sp.resolution} px; env {sp.spp_env} spp, point {sp.spp_point} spp; --jobs {s['jobs']}) | {s['captures']} | "
+                     f"{s['wall_s'] / 60:.1f} min ({s['idle_s'] / 60:.1f} min) | "
+                     f"< 10 min | measured, from scratch | {s['foreign_cpu_frac']:.0%} |")
+        if "paper" in res:
+            p = res["paper"]
+            L.append(f"| paper (256 px; env {p['per_frame']['env']['spp']} spp, point {p['per_frame']['point']['spp']} spp) | "
+                     f"{p['captures']} | {p['estimated_h']:.0f} h ({p['estimated_h_idle']:.0f} h) | - | **estimated** from per-frame times "
+                     f"(env {p['per_frame']['env']['s_per_frame']:.1f} s, point {p['per_frame']['point']['s_per_frame']:.1f} s per frame) | "
+                     f"{p['per_frame']['env']['foreign_cpu_frac']:.0%} |")
+        if "small" in res:
+            L += ["", "Small preset command: `" + res["small"]["command"] + "`"]
+        L += [""]
+    if "table1" in res:
+        t = res["table1"]
+        tb = t["table"]
+        L += ["## Table 1, representation rows (held-out objects and illuminations, one material)", "",
+              f"Captures: {', '.join(t['captures'])} (small preset, 128 px, 32 views: 10 train, 22 test). DAM: `fit_dam` with "
+              f"default `FitOptions` ({t['fit_options']['width']}x{t['fit_options']['depth']}, encoding "
+              f"`{t['fit_options']['encoding']}`, {t['fit_options']['steps']} steps), mean over fit seeds {t['fit_seeds']}. "
+              f"Noise floor: every {t.get('floor_every', 1)}. frame of each capture re-rendered with another seed vs the stored frame, "
+              "averaged per split.", "",
+              "| method | point, same view | point, novel view | env, same view | env, novel view |", "|---|---:|---:|---:|---:|"]
+        for meth in ("DAM", "RM++", "RM", "noise_floor"):
+            cells = []
+            for kind in ("point", "env"):
+                for col in ("same_view", "novel_view"):
+                    c = tb[kind][col]
+                    extra = f" ± {c['DAM_std_over_fits']:.4f}" if meth == "DAM" else ""
+                    cells.append(f"{c[meth]:.4f}{extra}")
+            L.append(f"| {meth.replace('_', ' ')} | " + " | ".join(cells) + " |")
+        cells = []
+        for kind in ("point", "env"):
+            for col in ("same_view", "novel_view"):
+                c = tb[kind][col]
+                cells.append(f"**{c['DAM/RM++']:.2f}** ({', '.join(f'{x:.2f}' for x in c['DAM/RM++_per_fit_seed'])})")
+        L.append("| DAM / RM++ (per fit seed) | " + " | ".join(cells) + " |")
+        nv = [tb[k]["novel_view"]["DAM/RM++"] for k in ("point", "env")]
+        verdict = "met" if max(nv) <= t["target_novel_ratio"] else "missed"
+        L += ["", f"Target: novel-view DAM/RM++ <= {t['target_novel_ratio']} in both columns: point {nv[0]:.2f}, env {nv[1]:.2f} -> **{verdict}** "
+              "(the paper reports 0.80 and 0.85).", "", "Per capture:", "",
+              "| capture | DAM same | DAM novel | RM++ same | RM++ novel | floor same | floor novel |", "|---|---:|---:|---:|---:|---:|---:|"]
+        for r in t["per_capture"]:
+            L.append(f"| {r['name']} | {r['dam']['same_view']:.4f} | {r['dam']['novel_view']:.4f} | {r['baselines']['same_view']['RM++']:.4f} | "
+                     f"{r['baselines']['novel_view']['RM++']:.4f} | {r['noise_floor']['same_view']:.4f} | {r['noise_floor']['novel_view']:.4f} |")
+        L += [""]
+    if res.get("notes"):
+        L += ["## Notes", ""] + [f"- {n}" for n in res["notes"]] + [""]
+    path.write_text("\n".join(L), encoding="utf-8")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--stages", default=",".join(STAGES), help="comma-separated subset of " + ", ".join(STAGES))
+    ap.add_argument("--jobs", type=int, default=2, help="synth-set --jobs for the small preset")
+    ap.add_argument("--keep-small", action="store_true", help="reuse a finished small corpus in bench/.cache (not timed from scratch)")
+    ap.add_argument("--fit-seeds", default="0,1,2")
+    ap.add_argument("--floor-every", type=int, default=3, help="re-render every n-th frame for the Table 1 noise floors")
+    args = ap.parse_args()
+    stages = [s for s in args.stages.split(",") if s]
+    unknown = set(stages) - set(STAGES)
+    if unknown:
+        raise SystemExit(f"unknown stage(s) {sorted(unknown)}; use {STAGES}")
+    torch.set_num_threads(min(2, torch.get_num_threads()))
+    CACHE.mkdir(parents=True, exist_ok=True)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    out_json = RESULTS / "synth.json"
+    res = json.loads(out_json.read_text()) if out_json.is_file() else {}
+    res["machine"] = machine_info()
+    res["command"] = ".venv/bin/python bench/synth.py" + ("" if args.stages == ",".join(STAGES) else f" --stages {args.stages}")
+    t0 = time.perf_counter()
+    for stage in stages:
+        log(f"stage {stage}")
+        if stage == "throughput":
+            res["throughput"] = stage_throughput()
+        elif stage == "noise":
+            res["noise"] = stage_noise()
+        elif stage == "small":
+            res["small"] = stage_small(args.jobs, fresh=not args.keep_small)
+        elif stage == "paper":
+            res["paper"] = stage_paper()
+        elif stage == "table1":
+            res["table1"] = stage_table1([int(s) for s in args.fit_seeds.split(",")], args.floor_every)
+        res.setdefault("stage_wall_s", {})[stage] = round(time.perf_counter() - t0, 1)
+        t0 = time.perf_counter()
+        out_json.write_text(json.dumps(res, indent=2) + "\n")
+        write_markdown(res, BENCH / "synth.md")
+    log(f"wrote {out_json} and {BENCH / 'synth.md'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,448 @@
+"""``damcap reconstruct``: a folder of photos -> a capture folder (capture-format.md).
+
+Steps (each reports progress):
+
+1. list the photos (and match the masks by base name);
+2. cameras: COLMAP registration (:mod:`sfm`; resumable) or known poses (:mod:`poses`);
+3. normalise the scene (:mod:`normalize`): object at the origin, radius about 1, up = +y;
+4. per photo, one pinhole target camera at ``capture_size`` (:mod:`undistort`); masks resampled;
+5. geometry (:mod:`geometry`), then the final centring on its bounding sphere;
+6. per frame: the photo linearised (tone curve undone, EXIF exposure divided out) and resampled
+   once into the pinhole image; ray-cast normals, positions and coverage (:class:`MeshRaycaster`;
+   with masks, coverage is also limited to the mask); frames the geometry misses are dropped;
+7. train/test split; ``transforms.json`` written last with ``damcap_source`` (resolved options,
+   version, registration and geometry reports).
+
+Outputs are atomic per file, and ``transforms.json`` (what makes the folder a capture) is removed
+at the start of a rerun and written only at the end. Work files (COLMAP database and model, the
+mesh, the report) live in ``CAPTURE/reconstruction/``.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Literal
+
+import numpy as np
+
+from damcap.common.atomic import atomic_path, write_json_atomic
+from damcap.common.capture_folder import Capture, Frame, FrameData, Intrinsics, write_frame, write_transforms
+from damcap.common.errors import DamcapError
+from damcap.common.version import damcap_version
+
+from .geometry import GeometryInputs, GeometryOptions, GeometryResult, build_geometry
+from .normalize import normalization_transform, recentre_transform, similarity_scale, transform_points, transform_world_from_cam
+from .photos import exposure_factors, list_photos, match_masks, read_mask, read_photo_linear
+from .poses import Registration, load_known_poses
+from .raycast import Mesh, MeshRaycaster
+from .sfm import SfmOptions, StageProgress, register_photos, triangulate_known
+from .undistort import pinhole_for, resample_to_pinhole
+
+SplitKind = Literal["consecutive", "spread"]
+WORK_FOLDER = "reconstruction"
+
+
+@dataclass(frozen=True)
+class ReconstructOptions:
+    """Every option of ``damcap reconstruct`` (the CLI mirrors them one to one)."""
+
+    geometry: str = "auto"
+    """'auto', 'visual-hull', 'poisson', 'sphere' or 'mesh:FILE'"""
+    mesh_align: Literal["auto", "none", "icp"] = "auto"
+    """mesh:FILE: 'none' (in the cameras' frame), 'icp' (align to silhouettes/points), 'auto'"""
+    voxels: int = 160
+    """visual hull: voxels along the object's longest side"""
+    hull_tolerance: int = 0
+    """visual hull: views allowed to see background where the object is"""
+    poisson_depth: int = 8
+    """Poisson octree depth"""
+    smooth_iterations: int = 10
+    """Taubin smoothing iterations of carved / Poisson meshes"""
+    sphere_max_rms: float = 0.01
+    """auto: picks the sphere when it fits within this fraction of its radius"""
+    max_image_size: int = 1024
+    """registration: longest image side for features, pixels"""
+    max_num_features: int = 4096
+    """registration: SIFT features per photo"""
+    upsample_below: int = 800
+    """registration: SIFT doubles images whose longer side (after max_image_size) is below this"""
+    pairing: Literal["auto", "exhaustive", "sequential", "retrieval"] = "auto"
+    """registration: which photo pairs are matched"""
+    sequential_overlap: int = 5
+    """registration: ring neighbours on each side (file order)"""
+    retrieval_neighbours: int = 8
+    """registration: most similar photos matched per photo"""
+    camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "SIMPLE_RADIAL"
+    """registration: COLMAP camera model"""
+    single_camera: bool = True
+    """registration: photos of one size share one camera"""
+    mask_features: bool = False
+    """registration: with --masks, also restrict features to the object (a turntable whose
+    background turns with it); off, the static background of a camera moved around a fixed
+    object helps registration (a background that stands still in the image is filtered anyway)"""
+    capture_size: int = 512
+    """longest side of the capture's images, pixels (photos are undistorted and resized once)"""
+    train_views: int = 10
+    """frames in the train split (the rest are test)"""
+    split: SplitKind = "consecutive"
+    """'consecutive' (in file order from ``split_start``, as the paper) or 'spread' (evenly spaced)"""
+    split_start: int = 0
+    """first train frame of a consecutive split"""
+    min_registered: int = 3
+    """fewest registered photos that make a capture"""
+    min_registered_fraction: float = 0.5
+    """fewest registered photos, as a fraction of the photos"""
+    ignore_exposure: bool = False
+    """only undo the tone curve; do not divide by the EXIF exposure (photos at one fixed exposure)"""
+    mask_coverage: bool = True
+    """with masks: coverage A is also limited to the mask (keeps background out of silhouettes)"""
+    supersample: int = 3
+    """sub-pixel grid per axis for coverage at silhouettes"""
+    dtype: Literal["half", "float"] = "half"
+    """radiance storage in images/*.exr"""
+    threads: int = -1
+    """CPU threads for COLMAP (-1 = all)"""
+    seed: int = 0
+    """seed of COLMAP's RANSAC and mapping"""
+
+    def validate(self) -> None:
+        """Raises DamcapError for out-of-range values."""
+        for name in ("voxels", "max_image_size", "max_num_features", "capture_size", "supersample", "min_registered"):
+            if getattr(self, name) < 1:
+                raise DamcapError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
+        if self.voxels < 16:
+            raise DamcapError(f"--voxels must be >= 16, got {self.voxels}")
+        if self.train_views < 1:
+            raise DamcapError(f"--train-views must be >= 1, got {self.train_views}")
+        if self.split not in ("consecutive", "spread"):
+            raise DamcapError(f"--split must be consecutive or spread, got {self.split!r}")
+        if not 0 <= self.min_registered_fraction <= 1:
+            raise DamcapError(f"--min-registered-fraction must lie in [0, 1], got {self.min_registered_fraction}")
+        if self.dtype not in ("half", "float"):
+            raise DamcapError(f"--dtype must be half or float, got {self.dtype!r}")
+
+    def sfm(self) -> SfmOptions:
+        return SfmOptions(max_image_size=self.max_image_size, max_num_features=self.max_num_features,
+                          upsample_below=self.upsample_below, pairing=self.pairing,
+                          sequential_overlap=self.sequential_overlap, retrieval_neighbours=self.retrieval_neighbours,
+                          camera_model=self.camera_model, single_camera=self.single_camera, num_threads=self.threads,
+                          seed=self.seed)
+
+    def geometry_options(self) -> GeometryOptions:
+        return GeometryOptions(mode=self.geometry, voxels=self.voxels, hull_tolerance=self.hull_tolerance,
+                               smooth_iterations=self.smooth_iterations, poisson_depth=self.poisson_depth,
+                               sphere_max_rms=self.sphere_max_rms, mesh_align=self.mesh_align)
+
+
+@dataclass
+class ReconstructReport:
+    """What ``damcap reconstruct`` did."""
+
+    photos: int
+    registered: int
+    unregistered: dict[str, str]
+    frames: int
+    dropped: dict[str, str]
+    geometry_mode: str
+    geometry_reason: str
+    train: list[str]
+    test: list[str]
+    registration: dict[str, Any]
+    seconds: dict[str, float] = field(default_factory=dict)
+    linearisation: str = ""
+
+
+# --------------------------------------------------------------------------------------------
+# Pure helpers
+# --------------------------------------------------------------------------------------------
+
+def split_indices(n: int, train_views: int, kind: SplitKind = "consecutive", start: int = 0) -> tuple[list[int], list[int]]:
+    """Train and test frame indices.
+
+    Args:
+        n: frames.
+        train_views: train frames (clamped to n - 1 so that test is not empty when n > 1).
+        kind: 'consecutive' (k frames in a row from ``start``, wrapping) or 'spread' (evenly spaced).
+        start: first train frame of a consecutive split.
+
+    >>> split_indices(6, 2, "consecutive", 5)
+    ([0, 5], [1, 2, 3, 4])
+    >>> split_indices(6, 3, "spread")
+    ([0, 2, 4], [1, 3, 5])
+    """
+    k = max(1, min(train_views, n - 1 if n > 1 else 1))
+    if kind == "consecutive":
+        train = sorted((start + i) % n for i in range(k))
+    else:
+        train = sorted(set(int(i) for i in np.floor(np.arange(k) * n / k)))
+    test = [i for i in range(n) if i not in set(train)]
+    return train, test
+
+
+def frame_data_from_buffers(radiance_lin: np.ndarray, normal_world: np.ndarray, position_world: np.ndarray,
+                            coverage: np.ndarray, mask: np.ndarray | None = None) -> FrameData:
+    """Compose one frame: coverage (limited to the mask when given), background zeroed.
+
+    Args:
+        radiance_lin: (H, W, 3) float32 linear radiance of the whole photo.
+        normal_world, position_world: (H, W, 3) ray-cast buffers.
+        coverage: (H, W) ray-cast coverage in [0, 1].
+        mask: optional (H, W) object mask in [0, 1].
+    """
+    a = coverage if mask is None else np.minimum(coverage, np.clip(mask, 0, 1))
+    a = np.where(a > 1e-3, a, 0).astype(np.float32)
+    on = a[..., None] > 0
+    return FrameData(
+        radiance_lin=np.where(on, np.maximum(radiance_lin, 0), 0).astype(np.float32),
+        normal_world=np.where(on, normal_world, 0).astype(np.float32),
+        position_world=np.where(on, position_world, 0).astype(np.float32),
+        coverage=a,
+    )
+
+
+def _transform_mesh_similarity(mesh: Mesh, t: np.ndarray) -> Mesh:
+    s = similarity_scale(t)
+    v = transform_points(t, mesh.vertices).astype(np.float32)
+    n = (mesh.vertex_normals.astype(np.float64) @ (t[:3, :3] / s).T).astype(np.float32)
+    return Mesh(v, mesh.triangles, n, mesh.triangle_groups)
+
+
+# --------------------------------------------------------------------------------------------
+# I/O steps
+# --------------------------------------------------------------------------------------------
+
+def _prepare_output(out: Path, inputs: list[Path]) -> None:
+    for i in inputs:
+        r = i.resolve()
+        if out.resolve() == r or r in out.resolve().parents:
+            raise DamcapError(f"{out}: output would overwrite or write into the input {i}; choose another output folder")
+    if out.exists() and not out.is_dir():
+        raise DamcapError(f"{out}: exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not (out / WORK_FOLDER).is_dir():
+        raise DamcapError(f"{out}: folder exists, is not empty and was not made by damcap reconstruct; choose a new folder")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "transforms.json").unlink(missing_ok=True)  # the folder is not a capture until the end
+
+
+def _save_mesh(path: Path, mesh: Mesh) -> None:
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices.astype(np.float64)),
+                                  o3d.utility.Vector3iVector(mesh.triangles))
+    m.vertex_normals = o3d.utility.Vector3dVector(mesh.vertex_normals.astype(np.float64))
+    with atomic_path(path) as tmp:
+        if not o3d.io.write_triangle_mesh(str(tmp), m):
+            raise DamcapError(f"{path}: cannot write the mesh")
+
+
+def _registration(photos_dir: Path, names: list[str], sizes: dict[str, tuple[int, int]], work: Path, opts: ReconstructOptions,
+                  masks: dict[str, Path] | None, poses: str | None, progress: StageProgress) -> Registration:
+    if poses:
+        progress("poses", 0, 1)
+        reg = load_known_poses(poses, sizes)
+        progress("poses", 1, 1)
+        return reg
+    reg, _ = register_photos(photos_dir, names, work / "sfm", opts.sfm(), masks if opts.mask_features else None, progress)
+    return reg
+
+
+def _needs_points(opts: ReconstructOptions, has_masks: bool) -> bool:
+    """Whether the geometry mode needs sparse points (Poisson; auto/sphere without masks;
+    aligning a user mesh without masks)."""
+    from .geometry import parse_mode
+
+    mode, _ = parse_mode(opts.geometry)
+    if mode == "poisson":
+        return True
+    if has_masks:
+        return False
+    return mode in ("auto", "sphere") or (mode == "mesh" and opts.mesh_align == "icp")
+
+
+def _check_enough(reg: Registration, n_photos: int, opts: ReconstructOptions, photos_dir: Path) -> None:
+    need = max(opts.min_registered, int(np.ceil(opts.min_registered_fraction * n_photos)), 2)
+    if len(reg.photos) < need:
+        why = "; ".join(f"{k}: {v}" for k, v in list(sorted(reg.unregistered.items()))[:4])
+        raise DamcapError(
+            f"{photos_dir}: only {len(reg.photos)} of {n_photos} photos have cameras, at least {need} are needed "
+            f"(--min-registered {opts.min_registered}, --min-registered-fraction {opts.min_registered_fraction}). "
+            f"Unregistered, e.g. {why}. Photos need overlap (about 60% between neighbours) and texture; "
+            "--masks keeps features on the object"
+        )
+
+
+def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, opts: ReconstructOptions = ReconstructOptions(),
+                        masks_dir: str | os.PathLike | None = None, poses: str | None = None,
+                        progress: StageProgress | None = None, log: Callable[[str], None] | None = None) -> tuple[Capture, ReconstructReport]:
+    """Run the whole reconstruction (see the module docstring).
+
+    Args:
+        photos_dir: folder of JPEG/PNG photos (read only).
+        out: capture folder to write (new, or one this function wrote before: its registration is reused).
+        opts: options.
+        masks_dir: folder of object masks with the photos' base names, or None.
+        poses: known cameras (``transforms.json``, ``poses_bounds.npy``, ``colmap:DIR``) or None (SfM).
+        progress: called as (stage, done, total).
+        log: one-line messages (what auto picked and why, dropped photos).
+
+    Returns:
+        the capture (as written) and a report.
+
+    Raises:
+        DamcapError: a folder without photos, masks that do not match, too few registered photos,
+            geometry that no camera sees, bad options.
+    """
+    opts.validate()
+    photos_dir, out = Path(photos_dir), Path(out)
+    progress = progress or (lambda stage, done, total: None)
+    log = log or (lambda msg: None)
+    seconds: dict[str, float] = {}
+    t_all = time.perf_counter()
+
+    names = list_photos(photos_dir)
+    masks = match_masks(names, masks_dir) if masks_dir is not None else None
+    if poses and not poses.startswith("colmap:") and Path(poses).suffix.lower() not in (".json", ".npy"):
+        raise DamcapError(f"--poses {poses!r}: use a transforms.json, a poses_bounds.npy or colmap:DIR")
+    from .geometry import parse_mode
+
+    mode, mesh_path = parse_mode(opts.geometry)
+    if mesh_path is not None and not mesh_path.is_file():
+        raise DamcapError(f"{mesh_path}: mesh file not found (--geometry mesh:FILE)")
+    _prepare_output(out, [photos_dir] + ([Path(masks_dir)] if masks_dir is not None else []))
+    work = out / WORK_FOLDER
+    work.mkdir(exist_ok=True)
+    from .photos import image_size
+
+    sizes = {n: image_size(photos_dir / n) for n in names}
+
+    # ---- cameras ----
+    t0 = time.perf_counter()
+    reg = _registration(photos_dir, names, sizes, work, opts, masks, poses, progress)
+    seconds["registration"] = time.perf_counter() - t0
+    _check_enough(reg, len(names), opts, photos_dir)
+    if len(reg.points_world) == 0 and _needs_points(opts, masks is not None):
+        t0 = time.perf_counter()
+        log("known poses without sparse points: matching features and triangulating them with the poses held fixed")
+        reg = triangulate_known(photos_dir, reg, work / "sfm", opts.sfm(), masks if opts.mask_features else None, progress)
+        seconds["triangulation"] = time.perf_counter() - t0
+    for name, why in sorted(reg.unregistered.items()):
+        log(f"unregistered: {name}: {why}")
+
+    # ---- exposure (checked before the long steps) ----
+    factors, exposures, reference, lin_note = exposure_factors([photos_dir / p.name for p in reg.photos], opts.ignore_exposure)
+    log(f"linearisation: {lin_note}")
+
+    # ---- targets, masks, normalisation ----
+    targets = [pinhole_for(p.camera, opts.capture_size) for p in reg.photos]
+    mask_px: list[np.ndarray] | None = None
+    if masks is not None:
+        mask_px = []
+        for k, (p, tgt) in enumerate(zip(reg.photos, targets)):
+            progress("masks", k, len(reg.photos))
+            m = read_mask(masks[p.name], (p.camera.width, p.camera.height))
+            mask_px.append(np.clip(resample_to_pinhole(m, p.camera, tgt), 0, 1))
+        progress("masks", len(reg.photos), len(reg.photos))
+    norm_from_world = normalization_transform(reg.world_from_cams, reg.points_world if len(reg.points_world) else None)
+    cams = transform_world_from_cam(norm_from_world, reg.world_from_cams)
+    points = transform_points(norm_from_world, reg.points_world) if len(reg.points_world) else np.zeros((0, 3))
+
+    # ---- geometry ----
+    t0 = time.perf_counter()
+    progress("geometry", 0, 1)
+    inputs = GeometryInputs(cams, targets, mask_px, points, reg.points_seen_from)
+    geo: GeometryResult = build_geometry(inputs, opts.geometry_options(), norm_from_world)
+    log(f"geometry: {geo.reason}")
+    recentre = recentre_transform(geo.mesh.vertices)
+    norm_from_world = recentre @ norm_from_world
+    cams = transform_world_from_cam(recentre, cams)
+    mesh = _transform_mesh_similarity(geo.mesh, recentre)
+    sphere = None
+    if geo.sphere is not None:
+        sphere = (transform_points(recentre, geo.sphere[0][None])[0], geo.sphere[1] * similarity_scale(recentre))
+    _save_mesh(work / "mesh.ply", mesh)
+    progress("geometry", 1, 1)
+    seconds["geometry"] = time.perf_counter() - t0
+
+    # ---- frames ----
+    t0 = time.perf_counter()
+    rc = MeshRaycaster(mesh)
+    frames: list[Frame] = []
+    dropped: dict[str, str] = {}
+    for k, (p, tgt) in enumerate(zip(reg.photos, targets)):
+        progress("frames", k, len(reg.photos))
+        radiance = read_photo_linear(photos_dir / p.name, factors[k], reference)
+        radiance = resample_to_pinhole(radiance, p.camera, tgt)
+        b = rc.buffers(cams[k], tgt.fl_x, tgt.fl_y, tgt.cx, tgt.cy, tgt.w, tgt.h, supersample=opts.supersample)
+        normal = b.normal_world
+        if sphere is not None:  # analytic normals of the analytic sphere
+            hit = b.coverage > 0
+            d = b.position_world[hit] - sphere[0]
+            normal = normal.copy()
+            normal[hit] = d / np.linalg.norm(d, axis=1, keepdims=True)
+        mask = mask_px[k] if (mask_px is not None and opts.mask_coverage) else None
+        data = frame_data_from_buffers(radiance, normal, b.position_world, b.coverage, mask)
+        if not (data.coverage > 0.5).any():
+            dropped[p.name] = "the geometry is not seen from this camera (no covered pixel)"
+            log(f"dropped: {p.name}: {dropped[p.name]}")
+            continue
+        stem = Path(p.name).stem
+        frame = Frame(file_path=f"images/{stem}.exr", geometry_path=f"geometry/{stem}.exr", world_from_cam=cams[k],
+                      intrinsics=tgt, exposure=exposures[k].to_json() or None,
+                      extra={"photo": p.name, "exposure_relative": float(factors[k] / reference)})
+        tmp_capture = Capture(out, [frame], [], [])
+        write_frame(tmp_capture, frame, data, dtype=opts.dtype)
+        frames.append(frame)
+    progress("frames", len(reg.photos), len(reg.photos))
+    seconds["frames"] = time.perf_counter() - t0
+    if not frames:
+        raise DamcapError(f"{out}: no camera sees the geometry ({geo.reason}); check --geometry / the mesh's frame")
+    if len(frames) < 2:
+        raise DamcapError(f"{out}: only {len(frames)} frame sees the geometry; a capture needs at least 2")
+
+    # ---- split, stale files, transforms.json ----
+    train_idx, test_idx = split_indices(len(frames), opts.train_views, opts.split, opts.split_start % len(frames))
+    keep = {f.file_path for f in frames} | {f.geometry_path for f in frames}
+    for sub in ("images", "geometry"):
+        for f in (out / sub).glob("*.exr"):
+            if f"{sub}/{f.name}" not in keep:
+                f.unlink()
+    seconds["total"] = time.perf_counter() - t_all
+    report = ReconstructReport(
+        photos=len(names), registered=len(reg.photos), unregistered=dict(reg.unregistered), frames=len(frames),
+        dropped=dropped, geometry_mode=geo.mode, geometry_reason=geo.reason,
+        train=[frames[i].file_path for i in train_idx], test=[frames[i].file_path for i in test_idx],
+        registration={"source": reg.source, **{k: v for k, v in reg.stats.items() if k != "unregistered"}},
+        seconds={k: round(v, 2) for k, v in seconds.items()}, linearisation=lin_note)
+    source = {
+        "tool": "damcap reconstruct", "damcap_version": damcap_version(), "photos": str(photos_dir.resolve()),
+        "masks": str(Path(masks_dir).resolve()) if masks_dir is not None else None, "poses": poses,
+        "options": asdict(opts), "norm_from_input_world": norm_from_world.tolist(),
+        "geometry": {"mode": geo.mode, "reason": geo.reason, "mesh": f"{WORK_FOLDER}/mesh.ply",
+                     **({"sphere_centre": sphere[0].tolist(), "sphere_radius": sphere[1]} if sphere else {}),
+                     "stats": _jsonable(geo.stats)},
+        "registration": _jsonable(report.registration), "unregistered": report.unregistered, "dropped": dropped,
+        "linearisation": lin_note, "reference_exposure": reference,
+    }
+    capture = Capture(root=out, frames=frames, train_filenames=report.train, test_filenames=report.test,
+                      colorspace="lin_rec709", extra={"damcap_source": source})
+    write_json_atomic(work / "report.json", _jsonable(asdict(report)))
+    write_transforms(capture)
+    return capture, report
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (np.floating, np.integer)):
+        return obj.item()
+    return obj
+
+
+__all__ = ["ReconstructOptions", "ReconstructReport", "reconstruct_capture", "split_indices", "frame_data_from_buffers", "Intrinsics"]

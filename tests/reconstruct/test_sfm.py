@@ -1,0 +1,90 @@
+"""Registration helpers (pairs, retrieval, reasons, stages) and the failure path on unmatchable photos.
+
+The full registration of a synthetic photo set runs in test_reconstruct.py (end to end)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from damcap.common.errors import DamcapError
+from damcap.reconstruct.sfm import (
+    SfmOptions,
+    exhaustive_pairs,
+    fingerprint,
+    register_photos,
+    retrieval_pairs,
+    ring_pairs,
+    unregistered_reasons,
+    vlad_similarity,
+)
+
+
+def test_exhaustive_pairs_count():
+    pairs = exhaustive_pairs(7)
+    assert len(pairs) == 21 and len(set(pairs)) == 21 and all(i < j for i, j in pairs)
+
+
+def test_ring_pairs_wrap_and_no_wrap():
+    assert ring_pairs(6, 2) == [(0, 1), (0, 2), (0, 4), (0, 5), (1, 2), (1, 3), (1, 5), (2, 3), (2, 4), (3, 4), (3, 5), (4, 5)]
+    assert ring_pairs(6, 2, loop=False) == [(0, 1), (0, 2), (1, 2), (1, 3), (2, 3), (2, 4), (3, 4), (3, 5), (4, 5)]
+    # overlap larger than the set: every pair once
+    assert ring_pairs(4, 10) == exhaustive_pairs(4)
+
+
+def test_retrieval_pairs_top_k():
+    sim = np.array([[0, .9, .2, .1], [.9, 0, .3, .8], [.2, .3, 0, .7], [.1, .8, .7, 0]])
+    assert retrieval_pairs(sim, 1) == [(0, 1), (1, 3), (2, 3)]  # row 3's best is 1
+    assert retrieval_pairs(sim, 2) == [(0, 1), (0, 2), (1, 2), (1, 3), (2, 3)]
+
+
+def test_vlad_similarity_finds_the_photos_that_share_features():
+    rng = np.random.default_rng(0)
+    scene_a = rng.integers(0, 255, (300, 128)).astype(np.float32)
+    scene_b = rng.integers(0, 255, (300, 128)).astype(np.float32)
+
+    def view(scene: np.ndarray) -> np.ndarray:  # the same features, a random subset, with noise
+        pick = rng.choice(len(scene), 200, replace=False)
+        return np.clip(scene[pick] + rng.normal(0, 8, (200, 128)), 0, 255)
+
+    descs = [view(scene_a), view(scene_a), view(scene_b), view(scene_b), view(scene_a)]
+    sim = vlad_similarity(descs, words=16, seed=0)
+    assert sim.shape == (5, 5) and np.allclose(sim, sim.T) and np.allclose(np.diag(sim), 0)
+    assert set(retrieval_pairs(sim, 1)) <= {(0, 1), (0, 4), (1, 4), (2, 3)}  # never across scenes
+    assert sim[0, 1] > sim[0, 2] + 0.1 and sim[2, 3] > sim[1, 3] + 0.1
+
+
+def test_unregistered_reasons_each_branch():
+    names = ["a.jpg", "b.jpg", "c.jpg", "d.jpg", "e.jpg"]
+    reasons = unregistered_reasons(names, {"a.jpg"}, keypoints={"a.jpg": 900, "b.jpg": 10, "c.jpg": 900, "d.jpg": 900, "e.jpg": 900},
+                                   best_inliers={"a.jpg": 200, "b.jpg": 0, "c.jpg": 3, "d.jpg": 100, "e.jpg": 100},
+                                   other_models={"d.jpg": 4}, min_num_inliers=15)
+    assert set(reasons) == {"b.jpg", "c.jpg", "d.jpg", "e.jpg"}
+    assert "too few features (10)" in reasons["b.jpg"]
+    assert "best 3 < 15" in reasons["c.jpg"]
+    assert "separate model of 4 photos" in reasons["d.jpg"]
+    assert "could not be estimated" in reasons["e.jpg"]
+
+
+def test_fingerprint_is_stable_and_sensitive():
+    a = fingerprint({"x": 1, "y": [1, 2]})
+    assert a == fingerprint({"y": [1, 2], "x": 1}) and a != fingerprint({"x": 2, "y": [1, 2]}) and len(a) == 16
+
+
+def test_unmatchable_photos_fail_clearly(tmp_path):
+    from damcap.reconstruct.textured_photos import write_jpeg
+
+    rng = np.random.default_rng(3)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    names = []
+    for k in range(4):  # unrelated random textures: features, but no geometry between photos
+        write_jpeg(photos / f"noise_{k}.jpg", rng.integers(0, 256, (96, 96, 3), dtype=np.uint8), None)
+        names.append(f"noise_{k}.jpg")
+    with pytest.raises(DamcapError, match="COLMAP could not register the photos"):
+        register_photos(photos, names, tmp_path / "work", SfmOptions(max_num_features=512))
+
+
+def test_too_few_photos():
+    with pytest.raises(DamcapError, match="at least 2 photos"):
+        register_photos(".", ["one.jpg"], "/nonexistent/work", SfmOptions())

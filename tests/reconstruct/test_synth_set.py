@@ -1,0 +1,77 @@
+"""The synthetic corpus: the plan, the held-out rule, resumable parallel rendering, corpus.json."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from damcap.common.errors import DamcapError
+from damcap.reconstruct import synth_set
+from damcap.reconstruct.synth import validate_synthetic_capture
+from damcap.reconstruct.synth_set import (
+    HELDOUT_OBJECTS, OBJECTS, CorpusPreset, env_illuminations, make_corpus, plan_corpus, point_illuminations, preset,
+)
+
+
+def test_illuminations_are_distinct_and_twenty_each():
+    env, point = env_illuminations(), point_illuminations()
+    assert len({l.spec for l in env}) == 20 and len({l.spec for l in point}) == 20
+    assert {l.name.split("-r")[0] for l in env if l.heldout} == {"env-sunset"}
+    assert sum(l.heldout for l in point) == 4
+    elevations = [float(l.spec.split(":")[2]) for l in point]
+    assert min(elevations) == pytest.approx(15) and max(elevations) == pytest.approx(65)
+
+
+def test_paper_plan_and_heldout_rule(shared_data):
+    entries, options = plan_corpus(preset("paper"), shared_data)
+    assert len(entries) == len(OBJECTS) * 40 * 2 == 720
+    assert len({e.name for e in entries}) == 720 and len({e.seed for e in entries}) == 720
+    train = [e for e in entries if e.split == "train"]
+    held = [e for e in entries if e.split == "heldout"]
+    # no held-out object or illumination ever appears in training
+    assert not any(e.heldout_object or e.heldout_light for e in train)
+    assert all(e.heldout_object or e.heldout_light for e in held)
+    assert {e.object for e in train}.isdisjoint(Path(o).stem for o in HELDOUT_OBJECTS)
+    assert {e.light for e in train}.isdisjoint(e.light for e in held if e.heldout_light)
+    assert sum(e.heldout_object and e.heldout_light for e in held) == 2 * 8 * 2
+    assert {o.resolution for o in options} == {256} and {o.views for o in options} == {32}
+    assert all(Path(o.object).is_file() or o.object == "sphere" for o in options)
+
+
+def test_small_preset_is_part_of_the_paper_grid(shared_data):
+    small, _ = plan_corpus(preset("small"), shared_data)
+    paper = {e.name: e for e in plan_corpus(preset("paper"), shared_data)[0]}
+    assert all(e.name in paper and paper[e.name].split == e.split and paper[e.name].seed == e.seed for e in small)
+    held = [e for e in small if e.split == "heldout"]
+    # the paper's Table 1 setting: single material, held-out objects and lights, both light kinds
+    assert {(e.light_kind, e.materials) for e in held} == {("env", 1), ("point", 1)}
+    assert all(e.heldout_object and e.heldout_light for e in held)
+    assert {e.materials for e in small if e.split == "train"} == {1, 3}
+
+
+def test_missing_data_is_named(tmp_path):
+    with pytest.raises(DamcapError, match="mesh of the 'small' preset not found; pass --data"):
+        plan_corpus(preset("small"), tmp_path)
+    with pytest.raises(DamcapError, match="unknown preset 'big'"):
+        preset("big")  # type: ignore[arg-type]
+    with pytest.raises(DamcapError, match="--jobs must be >= 1"):
+        make_corpus(tmp_path / "c", "small", tmp_path, jobs=0)
+
+
+def test_corpus_renders_in_parallel_and_resumes(tmp_path, monkeypatch):
+    tiny = CorpusPreset("small", ("sphere",), ("point-03", "point-17"), (1,), resolution=16, views=11, spp_env=1, spp_point=2,
+                        combos=(("sphere", "point-03", 1), ("sphere", "point-17", 1)))
+    monkeypatch.setattr(synth_set, "preset", lambda name: tiny)
+    seen = []
+    entries = make_corpus(tmp_path / "corpus", "small", tmp_path, jobs=2, on_capture=lambda e, k, n: seen.append((e.status, k, n)))
+    assert sorted(seen) == [("done", 1, 2), ("done", 2, 2)]
+    doc = json.loads((tmp_path / "corpus" / "corpus.json").read_text())
+    assert [c["status"] for c in doc["captures"]] == ["done", "done"]
+    assert [c["split"] for c in doc["captures"]] == ["train", "heldout"]
+    assert doc["counts"] == {"train": 1, "heldout": 1}
+    for e in entries:
+        assert validate_synthetic_capture(tmp_path / "corpus" / e.path) == []
+    again = make_corpus(tmp_path / "corpus", "small", tmp_path, jobs=2)
+    assert [e.status for e in again] == ["skipped", "skipped"]

@@ -17,6 +17,11 @@ Stages (``--stages``, default all, in this order):
   seeds) vs RM++ and RM, same view (train frames) and novel view (test frames), point light and
   environment map, with each capture's own noise floor (its frames re-rendered with another
   seed, compared with the stored ones).
+* ``why``: what limits the DAM on each held-out capture, measured: (a) the same views, geometry
+  and material re-shaded with local shading only (the renderer's light and BRDF, no shadows, no
+  interreflection: exactly a function of (V, N), which a DAM can represent), fitted and
+  evaluated the same way; (b) how far the test pixels' DAM inputs (normal, mirrored view) lie
+  from the nearest training input (extrapolation).
 
 Every timed section records the wall time and the CPU time other processes took meanwhile
 (the machine is shared). Outputs: ``bench/results/synth.json`` (stages merged into an existing
@@ -32,11 +37,13 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import json
+import math
 import os
 import platform
 import shutil
 import statistics
 import subprocess
+import sys
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -59,7 +66,7 @@ REPO = BENCH.parent
 CACHE = BENCH / ".cache"
 RESULTS = BENCH / "results"
 DATA = Path(os.environ.get("DAMCAP_SHARED_DATA", REPO.parent / "shared" / "data"))
-STAGES = ("throughput", "noise", "small", "paper", "table1")
+STAGES = ("throughput", "noise", "small", "paper", "table1", "why")
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 #: seed offset of the second render in noise-floor measurements
 NOISE_SEED_OFFSET = 7919
@@ -283,6 +290,28 @@ def _capture_noise_floor(root: Path, every: int) -> dict[str, float]:
     return out
 
 
+def summarise_table1(per_capture: list[dict], fit_seeds: list[int]) -> dict:
+    """Table 1 cells (point / env x same / novel view): means over the captures of each light;
+    the DAM's spread is the std over fit seeds of the per-seed means."""
+    table = {}
+    for kind in ("point", "env"):
+        rows = [r for r in per_capture if r["light_kind"] == kind]
+        cell = {}
+        for col in ("same_view", "novel_view"):
+            per_seed = [statistics.fmean(next(f[col] for f in r["fits"] if f["seed"] == s) for r in rows) for s in fit_seeds]
+            c = {
+                "DAM": statistics.fmean(per_seed), "DAM_std_over_fits": statistics.stdev(per_seed) if len(per_seed) > 1 else 0.0,
+                "RM++": statistics.fmean(r["baselines"][col]["RM++"] for r in rows),
+                "RM": statistics.fmean(r["baselines"][col]["RM"] for r in rows),
+                "noise_floor": statistics.fmean(r["noise_floor"][col] for r in rows),
+            }
+            c["DAM/RM++"] = c["DAM"] / c["RM++"]
+            c["DAM/RM++_per_fit_seed"] = [x / c["RM++"] for x in per_seed]
+            cell[col] = c
+        table[kind] = cell
+    return table
+
+
 def stage_table1(fit_seeds: list[int], floor_every: int) -> dict:
     corpus = json.loads((small_corpus_dir() / "corpus.json").read_text())
     held = [c for c in corpus["captures"] if c["split"] == "heldout" and c["materials"] == 1]
@@ -317,24 +346,100 @@ def stage_table1(fit_seeds: list[int], floor_every: int) -> dict:
         log(f"table1 {c['name']}: DAM same {rec['dam']['same_view']:.4f} novel {rec['dam']['novel_view']:.4f} | "
             f"RM++ same {base['same_view']['RM++']:.4f} novel {base['novel_view']['RM++']:.4f} | "
             f"floor same {rec['noise_floor']['same_view']:.4f} novel {rec['noise_floor']['novel_view']:.4f}")
-    table = {}
-    for kind in ("point", "env"):
-        rows = [r for r in per_capture if r["light_kind"] == kind]
-        cell = {}
-        for col in ("same_view", "novel_view"):
-            dam = [f[col] for r in rows for f in r["fits"]]
-            cell[col] = {
-                "DAM": statistics.fmean(dam), "DAM_std_over_fits": statistics.stdev(dam) if len(dam) > 1 else 0.0,
-                "RM++": statistics.fmean(r["baselines"][col]["RM++"] for r in rows),
-                "RM": statistics.fmean(r["baselines"][col]["RM"] for r in rows),
-                "noise_floor": statistics.fmean(r["noise_floor"][col] for r in rows),
-            }
-            cell[col]["DAM/RM++"] = cell[col]["DAM"] / cell[col]["RM++"]
-            per_seed = [statistics.fmean(next(f[col] for f in r["fits"] if f["seed"] == s) for r in rows) for s in fit_seeds]
-            cell[col]["DAM/RM++_per_fit_seed"] = [x / cell[col]["RM++"] for x in per_seed]
-        table[kind] = cell
+    table = summarise_table1(per_capture, fit_seeds)
     return {"captures": [c["name"] for c in held], "fit_options": asdict(FitOptions()), "fit_seeds": fit_seeds, "floor_every": floor_every,
             "table": table, "per_capture": per_capture, "target_novel_ratio": 0.5}
+
+
+def _local_lighting(record: dict):
+    """The capture's light as distant lighting for closed_form.shade (no shadows)."""
+    from damcap.common.exr import read_exr
+    from damcap.reconstruct.closed_form import Lighting, directional_lighting
+
+    light = record["light"]
+    if light["kind"] == "point":
+        c = np.asarray(light["centre_world"], np.float64)
+        return directional_lighting(tuple(c / np.linalg.norm(c)), (math.pi,) * 3)
+    pixels = read_exr(DATA / "envmaps" / light["file"])[0][..., :3].astype(np.float64) * light["scale"]
+    h, w = 32, 64
+    bh, bw = pixels.shape[0] // h, pixels.shape[1] // w
+    grid = pixels[: h * bh, : w * bw].reshape(h, bh, w, bw, 3).mean((1, 3))
+    theta = (np.arange(h) + 0.5) * math.pi / h
+    phi = (np.arange(w) + 0.5) * 2 * math.pi / w
+    t, ph = np.meshgrid(theta, phi, indexing="ij")
+    # Mitsuba's envmap: u = atan2(x, -z) / 2 pi, v = acos(y) / pi, then rotated about +y
+    v = np.stack([np.sin(t) * np.sin(ph), np.cos(t), -np.sin(t) * np.cos(ph)], -1).reshape(-1, 3)
+    a = math.radians(light["rotation_deg"])
+    rot = np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+    solid = (np.sin(t) * (math.pi / h) * (2 * math.pi / w)).reshape(-1, 1)
+    return Lighting(torch.from_numpy(v @ rot.T).float(), torch.from_numpy(grid.reshape(-1, 3) * solid).float())
+
+
+def local_shading_copy(src: Path, dst: Path) -> None:
+    """A copy of a one-material capture whose radiance is re-shaded locally (no shadows, no
+    interreflection) with the capture's light and an equivalent Lambert + GGX material."""
+    from damcap.common.capture_folder import RADIANCE_CHANNELS
+    from damcap.common.exr import write_exr
+    from damcap.reconstruct.closed_form import Material, shade
+
+    cap = read_capture(src)
+    rec = cap.extra["damcap_source"]
+    m = rec["materials"][0]
+    w = m["specular_weight"]
+    mat = Material(tuple((1 - w) * x for x in m["diffuse_rgb"]), m["roughness_alpha"], tuple(w * x for x in m["specular_rgb"]))
+    lighting = _local_lighting(rec)
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.copytree(src, dst)
+    for f in cap.frames:
+        d = read_frame(cap, f, with_weights=False)
+        fg = d.coverage > 0
+        v = f.camera_centre_world - d.position_world[fg]
+        v /= np.linalg.norm(v, axis=-1, keepdims=True)
+        rad = np.zeros_like(d.radiance_lin)
+        rad[fg] = shade(torch.from_numpy(d.normal_world[fg]).float(), torch.from_numpy(v).float(), lighting, mat, chunk=2048).numpy()
+        write_exr(dst / f.file_path, rad, RADIANCE_CHANNELS, dtype="float")
+
+
+def input_extrapolation(train, test) -> float:
+    """Median over test pixels of the distance from their DAM input (normal, mirrored view;
+    the 'nr' encoding) to the nearest training pixel's input."""
+    from scipy.spatial import cKDTree
+
+    from damcap.appearance.dam import encode_inputs
+
+    def inputs(views):
+        s = samples_of(views)
+        return encode_inputs(s.view_dir_world, s.normal_world, "nr").numpy()
+
+    d, _ = cKDTree(inputs(train)).query(inputs(test), k=1)
+    return float(np.median(d))
+
+
+def stage_why(fit_seed: int = 0) -> dict:
+    corpus = json.loads((small_corpus_dir() / "corpus.json").read_text())
+    held = [c for c in corpus["captures"] if c["split"] == "heldout" and c["materials"] == 1]
+    rows = []
+    for c in held:
+        src = small_corpus_dir() / c["path"]
+        dst = CACHE / "synth_why" / c["name"]
+        local_shading_copy(src, dst)
+        row = {"name": c["name"], "light_kind": c["light_kind"]}
+        for label, root in (("rendered", src), ("local_shading", dst)):
+            cap = read_capture(root)
+            train, test = load_views(cap, "train"), load_views(cap, "test")
+            fit = fit_dam(samples_of(train), FitOptions(seed=fit_seed))
+            same = evaluate_split(train, train, {"DAM": fit.model})
+            novel = evaluate_split(train, test, {"DAM": fit.model})
+            row[label] = {"DAM_same": same["DAM"].mean, "DAM_novel": novel["DAM"].mean, "RM++_same": same["RM++"].mean,
+                          "RM++_novel": novel["RM++"].mean, "ratio_novel": novel["DAM"].mean / novel["RM++"].mean}
+            if label == "rendered":
+                row["input_extrapolation_median"] = input_extrapolation(train, test)
+        rows.append(row)
+        log(f"why {c['name']}: rendered DAM/RM++ novel {row['rendered']['ratio_novel']:.2f} "
+            f"(DAM same {row['rendered']['DAM_same']:.4f}); local shading only {row['local_shading']['ratio_novel']:.2f} "
+            f"(DAM same {row['local_shading']['DAM_same']:.4f}); input extrapolation {row['input_extrapolation_median']:.3f}")
+    return {"fit_seed": fit_seed, "rows": rows}
 
 
 # --------------------------------------------------------------------------------------------
@@ -348,7 +453,9 @@ def write_markdown(res: dict, path: Path) -> None:
          f"Machine: {m.get('cpu_model')} ({m.get('nproc')} cores, shared with other engineers; {m.get('mem_gib')} GiB), "
          f"Mitsuba {m.get('mitsuba')} `{m.get('variant')}` ({m.get('drjit_threads')} threads), torch {m.get('torch')} "
          f"({m.get('torch_threads')} threads), Python {m.get('python')}; {m.get('date_utc')}.", "",
-         "Command (from the repository root): `" + res.get("command", ".venv/bin/python bench/synth.py") + "`", "",
+         "Command (from the repository root): `" + res.get("command", ".venv/bin/python bench/synth.py") + "` (all stages; "
+         "`--stages a,b` reruns some, merging into the results). This file's results came from these runs: "
+         + "; ".join(f"`{r['command']}` ({r['started_utc']})" for r in res.get("runs", [])) + ".", "",
          "*others* = share of all cores that other processes used during the timed section (the machine is shared). "
          "*idle est.* = the larger of own CPU time / cores and wall time x (1 - others): an estimate for an otherwise "
          "idle machine.", ""]
@@ -394,7 +501,7 @@ def write_markdown(res: dict, path: Path) -> None:
               f"Captures: {', '.join(t['captures'])} (small preset, 128 px, 32 views: 10 train, 22 test). DAM: `fit_dam` with "
               f"default `FitOptions` ({t['fit_options']['width']}x{t['fit_options']['depth']}, encoding "
               f"`{t['fit_options']['encoding']}`, {t['fit_options']['steps']} steps), mean over fit seeds {t['fit_seeds']}. "
-              f"Noise floor: every {t.get('floor_every', 1)}. frame of each capture re-rendered with another seed vs the stored frame, "
+              f"Noise floor: every {t.get('floor_every', 1)}th frame of each capture re-rendered with another seed vs the stored frame, "
               "averaged per split.", "",
               "| method | point, same view | point, novel view | env, same view | env, novel view |", "|---|---:|---:|---:|---:|"]
         for meth in ("DAM", "RM++", "RM", "noise_floor"):
@@ -402,7 +509,7 @@ def write_markdown(res: dict, path: Path) -> None:
             for kind in ("point", "env"):
                 for col in ("same_view", "novel_view"):
                     c = tb[kind][col]
-                    extra = f" ± {c['DAM_std_over_fits']:.4f}" if meth == "DAM" else ""
+                    extra = f" ± {c['DAM_std_over_fits']:.4f}" if meth == "DAM" else ""  # std over fit seeds
                     cells.append(f"{c[meth]:.4f}{extra}")
             L.append(f"| {meth.replace('_', ' ')} | " + " | ".join(cells) + " |")
         cells = []
@@ -420,6 +527,20 @@ def write_markdown(res: dict, path: Path) -> None:
             L.append(f"| {r['name']} | {r['dam']['same_view']:.4f} | {r['dam']['novel_view']:.4f} | {r['baselines']['same_view']['RM++']:.4f} | "
                      f"{r['baselines']['novel_view']['RM++']:.4f} | {r['noise_floor']['same_view']:.4f} | {r['noise_floor']['novel_view']:.4f} |")
         L += [""]
+    if "why" in res:
+        L += ["## Why the DAM loses where it does (measured)", "",
+              "Same captures, DAM fit seed " + str(res["why"]["fit_seed"]) + ". *rendered*: the path-traced capture. *local shading "
+              "only*: the same views, geometry, light and material re-shaded without shadows and interreflection (a function "
+              "of (V, N), which a DAM can represent). *input extrapolation*: median distance from a test pixel's DAM input "
+              "(normal, mirrored view) to the nearest training input.", "",
+              "| capture | rendered: DAM same / novel | rendered: RM++ novel | rendered: DAM/RM++ novel | local only: DAM same / novel "
+              "| local only: RM++ novel | local only: DAM/RM++ novel | input extrapolation |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+        for r in res["why"]["rows"]:
+            a, b = r["rendered"], r["local_shading"]
+            L.append(f"| {r['name']} | {a['DAM_same']:.4f} / {a['DAM_novel']:.4f} | {a['RM++_novel']:.4f} | {a['ratio_novel']:.2f} | "
+                     f"{b['DAM_same']:.4f} / {b['DAM_novel']:.4f} | {b['RM++_novel']:.4f} | {b['ratio_novel']:.2f} | "
+                     f"{r['input_extrapolation_median']:.3f} |")
+        L += [""]
     if res.get("notes"):
         L += ["## Notes", ""] + [f"- {n}" for n in res["notes"]] + [""]
     path.write_text("\n".join(L), encoding="utf-8")
@@ -427,13 +548,13 @@ def write_markdown(res: dict, path: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--stages", default=",".join(STAGES), help="comma-separated subset of " + ", ".join(STAGES))
+    ap.add_argument("--stages", default=",".join(STAGES), help="comma-separated subset of " + ", ".join(STAGES) + ", or 'report'")
     ap.add_argument("--jobs", type=int, default=2, help="synth-set --jobs for the small preset")
     ap.add_argument("--keep-small", action="store_true", help="reuse a finished small corpus in bench/.cache (not timed from scratch)")
     ap.add_argument("--fit-seeds", default="0,1,2")
     ap.add_argument("--floor-every", type=int, default=3, help="re-render every n-th frame for the Table 1 noise floors")
     args = ap.parse_args()
-    stages = [s for s in args.stages.split(",") if s]
+    stages = [s for s in args.stages.split(",") if s and s != "report"]  # 'report': only rewrite synth.md
     unknown = set(stages) - set(STAGES)
     if unknown:
         raise SystemExit(f"unknown stage(s) {sorted(unknown)}; use {STAGES}")
@@ -442,8 +563,14 @@ def main() -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     out_json = RESULTS / "synth.json"
     res = json.loads(out_json.read_text()) if out_json.is_file() else {}
-    res["machine"] = machine_info()
-    res["command"] = ".venv/bin/python bench/synth.py" + ("" if args.stages == ",".join(STAGES) else f" --stages {args.stages}")
+    res["command"] = ".venv/bin/python bench/synth.py"
+    if stages:
+        res["machine"] = machine_info()
+        argv = " ".join(sys.argv[1:])
+        res.setdefault("runs", []).append({"command": f".venv/bin/python bench/synth.py {argv}".strip(), "stages": stages,
+                                           "started_utc": res["machine"]["date_utc"]})
+    if "table1" in res:  # derived cells always follow the stored per-capture results
+        res["table1"]["table"] = summarise_table1(res["table1"]["per_capture"], res["table1"]["fit_seeds"])
     t0 = time.perf_counter()
     for stage in stages:
         log(f"stage {stage}")
@@ -455,12 +582,16 @@ def main() -> None:
             res["small"] = stage_small(args.jobs, fresh=not args.keep_small)
         elif stage == "paper":
             res["paper"] = stage_paper()
+        elif stage == "why":
+            res["why"] = stage_why()
         elif stage == "table1":
             res["table1"] = stage_table1([int(s) for s in args.fit_seeds.split(",")], args.floor_every)
         res.setdefault("stage_wall_s", {})[stage] = round(time.perf_counter() - t0, 1)
         t0 = time.perf_counter()
         out_json.write_text(json.dumps(res, indent=2) + "\n")
         write_markdown(res, BENCH / "synth.md")
+    out_json.write_text(json.dumps(res, indent=2) + "\n")
+    write_markdown(res, BENCH / "synth.md")
     log(f"wrote {out_json} and {BENCH / 'synth.md'}")
 
 

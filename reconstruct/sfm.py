@@ -333,8 +333,8 @@ def write_colmap_masks(masks: dict[str, Path], out_dir: Path, erode_fraction: fl
             write_png(target, feature_mask(read_mask(path), erode_fraction))
 
 
-def _database_summary(db_path: Path, names: list[str]) -> tuple[dict[str, int], dict[str, int], list[np.ndarray]]:
-    """Per photo: kept features, best verified inliers with any photo; and the descriptors."""
+def _database_summary(db_path: Path, names: list[str]) -> tuple[dict[str, int], dict[str, int]]:
+    """Per photo: kept features, and the most verified inliers with any other photo."""
     pycolmap = import_pycolmap()
     db = pycolmap.Database.open(str(db_path))
     try:
@@ -349,7 +349,7 @@ def _database_summary(db_path: Path, names: list[str]) -> tuple[dict[str, int], 
                 n = id_to_name.get(i)
                 if n is not None:
                     best[n] = max(best[n], int(k))
-        return keypoints, best, []
+        return keypoints, best
     finally:
         db.close()
 
@@ -592,7 +592,7 @@ def register_photos(photo_dir: str | Path, names: list[str], work_dir: str | Pat
     recs = pycolmap.incremental_mapping(str(db_path), str(photo_dir), str(models_dir), options=mopts,
                                         next_image_callback=next_image)
     seconds["mapping"] = time.perf_counter() - t0
-    keypoints, best_inliers, _ = _database_summary(db_path, names)
+    keypoints, best_inliers = _database_summary(db_path, names)
     if not recs:
         reasons = unregistered_reasons(names, set(), keypoints, best_inliers, {}, opts.min_num_inliers)
         worst = sorted(reasons.items())[:3]

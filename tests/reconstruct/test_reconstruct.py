@@ -221,3 +221,16 @@ def test_output_inside_the_input_is_refused(scene):
 def test_bad_option_values_exit_2(scene, tmp_path):
     assert main(["reconstruct", str(scene["root"] / "images"), "-o", str(tmp_path / "o"), "--geometry", "dense"]) == 2
     assert main(["reconstruct", str(scene["root"] / "images"), "-o", str(tmp_path / "o"), "--pairing", "magic"]) == 2
+
+
+def test_cli_mirrors_the_options_one_to_one():
+    import dataclasses
+    import inspect
+
+    from damcap.cli.reconstruct_cmds import reconstruct
+
+    fields = {f.name: f.default for f in dataclasses.fields(ReconstructOptions)}
+    params = inspect.signature(reconstruct).parameters
+    assert set(params) - set(fields) == {"photos", "output", "masks", "poses"}
+    for name, default in fields.items():
+        assert params[name].default.default == default, name  # typer.Option(default, ...)

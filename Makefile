@@ -49,7 +49,7 @@ test: venv
 	$(PY) -m pytest -q
 
 # Slow studies (never in CI): results in bench/results/*.json and bench/*.md
-BENCHES ?= dam_core export
+BENCHES ?= dam_core export hyper
 bench: venv
 	@set -e; for b in $(BENCHES); do echo "== bench/$$b.py"; $(PY) bench/$$b.py; done
 

@@ -142,7 +142,7 @@ def fit_dam(
     frames_for_adversarial: list[TrainingFrame] | None = None,
     checkpoint_path: str | os.PathLike | None = None,
     progress: Callable[[int, int, dict[str, float]], None] | None = None,
-    init_weights: torch.Tensor | None = None,
+    init_model: DeepAppearanceMap | None = None,
 ) -> FitResult:
     """Fit one DAM to pixel samples.
 
@@ -153,7 +153,8 @@ def fit_dam(
         checkpoint_path: where to checkpoint; an existing checkpoint made with the same options is
             resumed (the result is the same as an uninterrupted run).
         progress: called as progress(step, steps, stats) after every step.
-        init_weights: optional (P,) initial weights (e.g. a predicted DAM) instead of random.
+        init_model: optional initial DAM (e.g. a predicted one) instead of random weights; its
+            architecture must be opts' and its radiance scale is kept.
 
     Returns:
         the fitted model (on CPU) and its training history.
@@ -165,9 +166,11 @@ def fit_dam(
         raise DamcapError("the adversarial cost needs whole training frames")
     device = resolve_device(opts.device)
     arch = opts.architecture
-    scale = radiance_scale_of(samples.radiance_lin, samples.weight)
+    if init_model is not None and init_model.arch != arch:
+        raise DamcapError(f"the initial model's architecture {init_model.arch} differs from the fit's {arch}")
+    scale = init_model.radiance_scale if init_model is not None else radiance_scale_of(samples.radiance_lin, samples.weight)
     gen = torch.Generator().manual_seed(opts.seed)
-    model = DeepAppearanceMap(arch, scale, init_weights, generator=gen).to(device)
+    model = DeepAppearanceMap(arch, scale, None if init_model is None else init_model.get_flat_weights(), generator=gen).to(device)
 
     n_frames = int(samples.frame_index.max()) + 1
     held = holdout_frames(n_frames, opts.holdout_views)
@@ -198,7 +201,7 @@ def fit_dam(
     elapsed_before = 0.0
     ckpt = Path(checkpoint_path) if checkpoint_path else None
     if ckpt and ckpt.is_file():
-        state = _load_checkpoint(ckpt)
+        state = load_checkpoint(ckpt)
         if state.get("options") == _state_json(opts) and int(state["n_samples"]) == len(samples):
             model.set_flat_weights(state["weights"].to(device))
             optim.load_state_dict(state["optim"])
@@ -243,7 +246,7 @@ def fit_dam(
         if progress:
             progress(done, opts.steps, stats)
         if ckpt and opts.checkpoint_every and done % opts.checkpoint_every == 0 and done < opts.steps:
-            _save_checkpoint(ckpt, {
+            save_checkpoint(ckpt, {
                 "options": _state_json(opts), "n_samples": len(samples), "step": done,
                 "weights": model.get_flat_weights().cpu(), "optim": optim.state_dict(),
                 "generator": gen.get_state(),
@@ -255,6 +258,33 @@ def fit_dam(
     if ckpt and ckpt.is_file():
         ckpt.unlink()
     return FitResult(final, history, best_step, elapsed_before + time.perf_counter() - t0, resumed_from)
+
+
+def training_l1(model: DeepAppearanceMap, samples: PixelSamples) -> float:
+    """The fit's data cost over all samples: weighted mean L1 of radiance / the model's scale."""
+    x = encode_inputs(samples.view_dir_world, samples.normal_world, model.arch.encoding)
+    return _evaluate_l1(model, x, samples.radiance_lin.float() / model.radiance_scale, samples.weight, model.arch)
+
+
+def refine_dam(model: DeepAppearanceMap, samples: PixelSamples, steps: int, learning_rate: float = 3e-3, seed: int = 0,
+               progress: Callable[[int, int, dict[str, float]], None] | None = None) -> tuple[DeepAppearanceMap, float, float]:
+    """K steps of the fit's cost starting from ``model`` (a learned initialisation).
+
+    All samples train (no hold-out); the result is whichever of the start and the refined
+    weights has the lower training cost, so refinement never makes it worse.
+
+    Returns:
+        (model, training L1 before, training L1 after).
+    """
+    before = training_l1(model, samples)
+    if steps <= 0:
+        return model, before, before
+    a = model.arch
+    opts = FitOptions(steps=steps, learning_rate=learning_rate, width=a.width, depth=a.depth, activation=a.activation,
+                      encoding=a.encoding, holdout_views=0, eval_every=steps, seed=seed, checkpoint_every=0)
+    refined = fit_dam(samples, opts, init_model=model, progress=progress).model
+    after = training_l1(refined, samples)
+    return (refined, before, after) if after <= before else (model, before, before)
 
 
 @torch.no_grad()
@@ -290,12 +320,14 @@ def _patches(model: DeepAppearanceMap, frames: list[TrainingFrame], arch: DamArc
     return torch.stack(reals), torch.stack(fakes)
 
 
-def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    """Write a training state (tensors and plain values) atomically."""
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
 
 
-def _load_checkpoint(path: Path) -> dict[str, Any]:
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    """Read a training state (tensors only, nothing executed); {} with a warning if unreadable."""
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # a damaged checkpoint is not fatal: start afresh

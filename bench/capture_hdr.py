@@ -45,6 +45,9 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import cpu_model  # noqa: E402
+
 from damcap.capture.exif import read_exposure
 from damcap.capture.hdr import HdrOptions, merge_bracket_files, read_ldr_codes
 from damcap.capture.metrics import abs_log_ratio_error
@@ -81,15 +84,7 @@ def machine() -> dict:
     import colour
     import colour_hdri
 
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
+    return {"cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
             "numpy": np.__version__, "opencv": cv2.__version__, "rawpy": rawpy.__version__, "OpenImageIO": oiio.__version__,
             "colour-science": colour.__version__, "colour-hdri": colour_hdri.__version__, "damcap": damcap_version()}
 

@@ -30,22 +30,21 @@ Run (from the repository root)::
 from __future__ import annotations
 
 import argparse
-import datetime as _dt
 import itertools
 import json
 import math
 import os
-import platform
 import shutil
 import statistics
-import subprocess
 import sys
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
 
-import numpy as np
 import torch
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import log, machine_info  # noqa: E402
+
 from damcap.appearance.evaluate import evaluate_split
 from damcap.appearance.fit import FitOptions, fit_dam, radiance_scale_of
 from damcap.appearance.render import render_frame
@@ -86,35 +85,6 @@ ALIASES = [("steps2000", "default"), ("enc_nr", "default"), ("holdout2_s2000", "
 # --------------------------------------------------------------------------------------------
 # helpers
 # --------------------------------------------------------------------------------------------
-
-
-def log(msg: str) -> None:
-    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
-
-
-def machine_info() -> dict:
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    try:
-        nproc = int(subprocess.run(["nproc"], capture_output=True, text=True, check=True).stdout.strip())
-    except Exception:  # noqa: BLE001
-        nproc = os.cpu_count() or 0
-    return {
-        "date_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC"),
-        "nproc": nproc,
-        "cpu_model": cpu,
-        "torch_threads": torch.get_num_threads(),
-        "torch": torch.__version__,
-        "numpy": np.__version__,
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-    }
 
 
 def ensure_capture(name: str, opts: ClosedFormOptions) -> Path:

@@ -150,7 +150,7 @@ def render(
 @app.command()
 def evaluate(
     capture: Path = typer.Argument(..., help="capture folder"),
-    model: Optional[Path] = typer.Option(None, "--model", help="model file (.dam); without it only the baselines"),
+    model: Optional[list[Path]] = typer.Option(None, "--model", help="model file (.dam), repeatable (e.g. a predicted and a fitted one); without it only the baselines"),
     json_path: Optional[Path] = typer.Option(None, "--json", help="write the results as JSON"),
     plot: Optional[Path] = typer.Option(None, "--plot", help="sorted per-frame DSSIM plot (PNG); default next to --json"),
     segmentation: Optional[Path] = typer.Option(None, "--segmentation", help="a folder written by damcap segment"),
@@ -168,12 +168,17 @@ def evaluate(
     from damcap.common.capture_folder import read_capture
     from damcap.common.version import damcap_version
 
-    models = {}
-    if model is not None:
-        models["DAM"] = load_dam(model)[0]
+    model_paths = list(model or [])
+    models, made_by = {}, {}
+    for path in model_paths:
+        dam, meta = load_dam(path)
+        label = "DAM" if len(model_paths) == 1 else f"{meta.get('made_by', 'DAM')}: {path.stem}"
+        if label in models:
+            raise DamcapError(f"{path}: two models would share the label {label!r}; give the files different names")
+        models[label], made_by[label] = dam, meta.get("made_by")
     for out in (json_path, plot):
         if out is not None:
-            refuse_input_overlap(out, capture, *( [model] if model else []))
+            refuse_input_overlap(out, capture, *model_paths)
     cap = read_capture(capture)
     train = load_views(cap, "train")
     test = load_views(cap, "test")
@@ -203,6 +208,10 @@ def evaluate(
         same = results["train"].get(method)
         table.add_row(method, f"{same.mean:.4f}" if same else "-", f"{results['test'][method].mean:.4f}")
     Console().print(table)
+    ratios = {f"{p} / {f}": {split: results[split][p].mean / max(results[split][f].mean, 1e-12) for split in ("train", "test")}
+              for p in models if made_by[p] == "predict" for f in models if made_by[f] == "fit"}
+    for name, r in ratios.items():
+        typer.echo(f"{name}: novel-view DSSIM x{r['test']:.3f}, same-view x{r['train']:.3f} (predicted vs SGD fit)")
     if plot is None and json_path is not None:
         plot = json_path.with_suffix(".png")
     if plot is not None:
@@ -211,7 +220,9 @@ def evaluate(
     if json_path is not None:
         write_json_atomic(json_path, {
             "damcap_version": damcap_version(), "capture": str(capture.resolve()),
-            "model": str(model.resolve()) if model else None, "metric": "DSSIM (capture-format.md)",
+            "model": str(model_paths[0].resolve()) if len(model_paths) == 1 else None,
+            "models": {label: {"path": str(p.resolve()), "made_by": made_by[label]} for label, p in zip(models, model_paths)},
+            "ratios": ratios, "metric": "DSSIM (capture-format.md)",
             "results": {split: {m: {"mean": s.mean, "per_frame": s.per_frame, **({"note": s.note} if s.note else {})}
                                 for m, s in res.items()} for split, res in results.items()},
         })

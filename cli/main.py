@@ -19,6 +19,7 @@ from . import synth_cmds  # noqa: F401
 from . import reconstruct_cmds  # noqa: F401
 from . import export_cmds  # noqa: F401  (registers export, view)
 from . import segment_cmds  # noqa: F401  (registers segment)
+from . import hyper_cmds  # noqa: F401  (registers train-hyper, predict)
 from .app import app
 
 

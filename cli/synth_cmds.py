@@ -51,7 +51,7 @@ def synth(
 @app.command("synth-set")
 def synth_set(
     out: Path = typer.Argument(..., help="corpus folder (rerun to resume)"),
-    preset: str = typer.Option("small", help="small (8 captures, 128 px) | paper (720 captures, 256 px)"),
+    preset: str = typer.Option("small", help="small (8 captures, 128 px) | paper (720 captures, 256 px) | hyper (224 predictor-training captures, 128 px)"),
     jobs: int = typer.Option(1, help="parallel processes (each gets cores / jobs render threads)"),
     data: Optional[Path] = typer.Option(None, help="shared data folder with meshes/ and envmaps/ (default: ../shared/data)"),
     dry_run: bool = typer.Option(False, "--dry-run", help="write corpus.json (the plan) and render nothing"),
@@ -59,10 +59,10 @@ def synth_set(
     """Render the synthetic corpus: resumable, parallel, with a held-out part listed in corpus.json."""
     from tqdm import tqdm
 
-    from damcap.reconstruct.synth_set import make_corpus
+    from damcap.reconstruct.synth_set import PRESETS, make_corpus
 
-    if preset not in ("small", "paper"):
-        raise DamcapError(f"--preset must be small or paper, got {preset!r}")
+    if preset not in PRESETS:
+        raise DamcapError(f"--preset must be one of {', '.join(PRESETS)}, got {preset!r}")
     data_dir = data or default_data_dir()
     if not (data_dir / "meshes").is_dir() or not (data_dir / "envmaps").is_dir():
         raise DamcapError(f"{data_dir}: no meshes/ and envmaps/ here; pass --data with the shared data folder")

@@ -322,3 +322,17 @@ def test_scalar_variant_renders_the_same_contract(tmp_path):
         assert read_capture(out).extra["damcap_source"]["renderer"]["variant"] == "scalar_rgb"
     finally:
         select_variant("auto")
+
+
+def test_an_exr_environment_map_renders_with_one_requested_thread(shared_data, tmp_path):
+    """Regression: Mitsuba with a one-thread pool never returned from loading an OpenEXR map
+    (synth-set --jobs 2 on 2 cores asks for 1 thread per worker)."""
+    import subprocess
+    import sys
+
+    code = ("from damcap.reconstruct.synth import SynthOptions, make_synthetic_capture; "
+            f"make_synthetic_capture({str(tmp_path / 'c')!r}, SynthOptions(object='sphere', "
+            f"light='env:{shared_data / 'envmaps' / 'museum.exr'}:0', views=3, train_views=2, resolution=16, spp=2), threads=1)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert (tmp_path / "c" / "transforms.json").is_file()

@@ -1,0 +1,150 @@
+"""Commands of learning-to-learn: train-hyper (the predictor) and predict (a DAM from one view)."""
+
+from __future__ import annotations
+
+import shlex
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from damcap.common.errors import DamcapError
+
+from .app import app, progress_bar, refuse_input_overlap
+
+
+@app.command("train-hyper")
+def train_hyper_cmd(
+    dataset: Path = typer.Argument(..., help="corpus folder written by `damcap synth-set` (its train split is used)"),
+    output: Path = typer.Option(..., "-o", "--output", help="predictor file to write (safetensors); its recipe goes to the .json beside it"),
+    steps: int = typer.Option(3000, help="optimiser steps"),
+    batch_size: int = typer.Option(8, help="(capture, view) pairs per step, all ranks together"),
+    pixels: int = typer.Option(4096, help="pixels scored per capture and step"),
+    learning_rate: float = typer.Option(5e-4, help="initial Adam learning rate (cosine decay)"),
+    input_size: int = typer.Option(256, help="side of the input image, pixels"),
+    channels: str = typer.Option("16,32,64,64,128,128,256,256", help="channels of the stride-2 convolutions, comma-separated"),
+    max_captures: int = typer.Option(0, help="use at most this many training captures (0 = all)"),
+    val_fraction: float = typer.Option(0.1, help="training captures kept for the validation curve"),
+    eval_every: int = typer.Option(100, help="steps between validations"),
+    augment: bool = typer.Option(True, "--augment/--no-augment", help="rotation about +y, mirror, tinted light"),
+    seed: int = typer.Option(0),
+    device: str = typer.Option("cpu", help="cpu | cuda | auto"),
+    resume: bool = typer.Option(True, "--resume/--no-resume", help="continue from OUTPUT.state if a run was interrupted"),
+) -> None:
+    """Train the predictor network (learning-to-learn). Data-parallel under
+    `torchrun --nproc-per-node N -m damcap.cli.main train-hyper ...`."""
+    import os
+
+    import hashlib
+    import json
+
+    from damcap.appearance.hyper_file import save_predictor
+    from damcap.appearance.hyper_train import HyperTrainOptions, corpus_training_captures, train_hyper
+    from damcap.common.atomic import write_json_atomic
+    from damcap.common.version import damcap_version
+
+    try:
+        chans = tuple(int(c) for c in channels.split(","))
+    except ValueError:
+        raise DamcapError(f"--channels must be comma-separated integers, got {channels!r}") from None
+    opts = HyperTrainOptions(channels=chans, steps=steps, batch_size=batch_size, pixels=pixels, learning_rate=learning_rate, input_size=input_size,
+                             max_captures=max_captures, val_fraction=val_fraction, eval_every=eval_every, augment=augment,
+                             seed=seed, device=device)
+    opts.validate()
+    opts.architecture  # validates channels against the input size
+    refuse_input_overlap(output, dataset)
+    paths = corpus_training_captures(dataset)
+    state = output.with_name(output.name + ".state")
+    rank = int(os.environ.get("RANK", "0"))
+    if not resume and state.exists() and rank == 0:
+        state.unlink()
+    log = lambda m: typer.echo(m, err=True)  # noqa: E731
+    result = train_hyper(paths, opts, checkpoint_path=state, progress=progress_bar(opts.steps, "train-hyper"), log=log)
+    if rank != 0:
+        return
+    from dataclasses import asdict
+
+    training = {
+        "damcap_version": damcap_version(),
+        "command": "damcap " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        "launcher": {"world_size": result.world_size, "torchrun": result.world_size > 1},
+        "corpus": str(dataset.resolve()), "train_captures": result.train_captures, "val_captures": result.val_captures,
+        "options": {**asdict(opts), "channels": list(opts.channels)}, "curve": result.curve, "best_step": result.best_step,
+        "seconds": result.seconds, "resumed_from": result.resumed_from, "rank_weight_sha256": result.rank_weight_sha256,
+    }
+    try:
+        preset = json.loads((dataset / "corpus.json").read_text()).get("preset", {}).get("name")
+    except (OSError, ValueError, AttributeError):
+        preset = None
+    if preset:
+        training["corpus_command"] = f"damcap synth-set {shlex.quote(str(dataset))} --preset {preset} --data DATA"
+    save_predictor(output, result.net, training)
+    sidecar = output.with_name(output.stem + ".json")
+    write_json_atomic(sidecar, {"predictor": output.name, "sha256": hashlib.sha256(output.read_bytes()).hexdigest(), **training})
+    last = result.curve[-1] if result.curve else {}
+    typer.echo(f"wrote {output} ({len(result.train_captures)} training captures, best step {result.best_step}, "
+               f"validation L1 {last.get('val_l1', float('nan')):.4f}, {result.seconds:.0f} s, {result.world_size} process(es))")
+
+
+@app.command()
+def predict(
+    capture: Path = typer.Argument(..., help="capture folder"),
+    output: Path = typer.Option(..., "-o", "--output", help="model file to write (.dam)"),
+    view: Optional[str] = typer.Option(None, "--view", help="input frame (a train-split file_path or its stem); default: the best covered lit one"),
+    refine_steps: int = typer.Option(0, "--refine-steps", min=0, help="K steps of the fit cost on all train views after predicting"),
+    predictor: Optional[Path] = typer.Option(None, "--predictor", help="predictor file (default: the one shipped with damcap)"),
+    device: str = typer.Option("cpu", help="cpu | cuda | auto"),
+) -> None:
+    """Predict a deep appearance map from one view in milliseconds (optionally refine it)."""
+    import torch
+
+    from damcap.appearance.dam_file import save_dam
+    from damcap.appearance.fit import radiance_scale_of, refine_dam
+    from damcap.appearance.hyper import choose_input_view, predict_dam, view_crop
+    from damcap.appearance.hyper_file import load_predictor, shipped_predictor_path
+    from damcap.appearance.pixels import FOREGROUND_COVERAGE, view_dir_world
+    from damcap.appearance.views import load_views, samples_of
+    from damcap.common.capture_folder import read_capture, read_frame
+    from damcap.common.device import resolve_device
+    from damcap.common.version import damcap_version
+
+    pred_path = predictor or shipped_predictor_path()
+    refuse_input_overlap(output, capture, pred_path)
+    net, meta = load_predictor(pred_path)
+    net.to(resolve_device(device))
+    cap = read_capture(capture)
+    train = cap.split("train")
+    covered, scales, pixels = [], [], []
+    for f in train:
+        fd = read_frame(cap, f, with_weights=False)
+        fg = fd.coverage > FOREGROUND_COVERAGE
+        covered.append(int(fg.sum()))
+        scales.append(radiance_scale_of(torch.from_numpy(fd.radiance_lin[fg])))
+        pixels.append(torch.from_numpy(fd.radiance_lin[fg]))
+    capture_scale = radiance_scale_of(torch.cat(pixels))  # the fit's radiance scale
+    if view is None:
+        frame = train[choose_input_view(covered, scales)]
+    else:
+        matches = [f for f in train if view in (f.file_path, Path(f.file_path).name, Path(f.file_path).stem)]
+        if not matches:
+            raise DamcapError(f"{capture}: --view {view!r} is not a train-split frame; choose one of "
+                              f"{', '.join(Path(f.file_path).stem for f in train[:12])}{' ...' if len(train) > 12 else ''}")
+        frame = matches[0]
+    d = read_frame(cap, frame, with_weights=False)
+    crop = view_crop(d.radiance_lin, d.normal_world, view_dir_world(d.position_world, frame.camera_centre_world), d.coverage)
+    t0 = time.perf_counter()
+    model = predict_dam(net, crop, capture_scale)
+    predict_s = time.perf_counter() - t0
+    record = {"damcap_version": damcap_version(), "capture": str(capture.resolve()), "predictor": str(Path(pred_path).resolve()),
+              "predictor_command": meta.get("training", {}).get("command"), "view": frame.file_path,
+              "predict_seconds": predict_s, "refine_steps": refine_steps}
+    if refine_steps:
+        samples = samples_of(load_views(cap, "train"))
+        t1 = time.perf_counter()
+        model, before, after = refine_dam(model, samples, refine_steps, progress=progress_bar(refine_steps, "refine"))
+        record.update(refine_seconds=time.perf_counter() - t1, train_l1_predicted=before, train_l1_refined=after)
+    save_dam(output, model, colorspace=cap.colorspace, made_by="predict", provenance=record)
+    extra = f", refined {refine_steps} steps: train L1 {record['train_l1_predicted']:.4f} -> {record['train_l1_refined']:.4f}" if refine_steps else ""
+    typer.echo(f"wrote {output} (predicted from {frame.file_path} in {1000 * predict_s:.0f} ms{extra})")

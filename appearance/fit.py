@@ -24,7 +24,7 @@ import torch
 
 from damcap.common.atomic import atomic_path
 from damcap.common.device import resolve_device
-from damcap.common.errors import DamcapError
+from damcap.common.errors import DamcapError, require_options
 
 from .adversarial import PatchDiscriminator, discriminator_loss, generator_loss
 from .dam import Activation, DamArchitecture, DeepAppearanceMap, Encoding, dam_forward, encode_inputs
@@ -65,13 +65,8 @@ class FitOptions:
     """steps between checkpoints (0 = never)"""
 
     def validate(self) -> None:
-        for name in ("steps", "batch_size", "width", "depth", "eval_every"):
-            if getattr(self, name) < 1:
-                raise DamcapError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
-        if self.holdout_views < 0 or self.checkpoint_every < 0:
-            raise DamcapError("--holdout-views and --checkpoint-every must be >= 0")
-        if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)):
-            raise DamcapError(f"--learning-rate must be positive, got {self.learning_rate}")
+        require_options(self, at_least_1=("steps", "batch_size", "width", "depth", "eval_every"),
+                        at_least_0=("holdout_views", "checkpoint_every"), positive_finite=("learning_rate",))
 
     @property
     def architecture(self) -> DamArchitecture:

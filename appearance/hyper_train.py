@@ -28,7 +28,7 @@ import torch.distributed as dist
 
 from damcap.common.capture_folder import read_capture, read_frame
 from damcap.common.device import resolve_device
-from damcap.common.errors import DamcapError
+from damcap.common.errors import DamcapError, require_options
 
 from .dam import DamArchitecture, Encoding
 from .fit import load_checkpoint, radiance_scale_of, save_checkpoint
@@ -75,13 +75,10 @@ class HyperTrainOptions:
     multiply through the DAM's layers, so one bad batch can otherwise throw it far off"""
 
     def validate(self) -> None:
-        for name in ("steps", "batch_size", "pixels", "eval_every", "pixels_per_capture", "input_size"):
-            if getattr(self, name) < 1:
-                raise DamcapError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
-        if not (0 <= self.val_fraction < 1) or self.max_captures < 0 or self.checkpoint_every < 0 or not self.grad_clip >= 0:
-            raise DamcapError("--val-fraction must lie in [0, 1); --max-captures, --checkpoint-every and --grad-clip must be >= 0")
-        if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)):
-            raise DamcapError(f"--learning-rate must be positive, got {self.learning_rate}")
+        require_options(self, at_least_1=("steps", "batch_size", "pixels", "eval_every", "pixels_per_capture", "input_size"),
+                        at_least_0=("max_captures", "checkpoint_every", "grad_clip"), positive_finite=("learning_rate",))
+        if not 0 <= self.val_fraction < 1:
+            raise DamcapError(f"--val-fraction must lie in [0, 1), got {self.val_fraction}")
 
     @property
     def architecture(self) -> HyperArchitecture:

@@ -214,3 +214,18 @@ def test_predict_and_evaluate_cli(tmp_path, small_capture):
     assert set(res["models"]) == {"predict: pred", "fit: fit"}
     r = res["ratios"]["predict: pred / fit: fit"]["test"]
     assert math.isclose(r, res["results"]["test"]["predict: pred"]["mean"] / res["results"]["test"]["fit: fit"]["mean"], rel_tol=1e-9)
+
+
+def test_train_hyper_cli_defaults_are_the_options_defaults():
+    import dataclasses
+    import inspect
+
+    from damcap.cli.hyper_cmds import train_hyper_cmd
+
+    params = inspect.signature(train_hyper_cmd).parameters
+    fields = {f.name: f.default for f in dataclasses.fields(HyperTrainOptions)}
+    shared = set(params) & set(fields) - {"channels"}
+    assert {"steps", "batch_size", "pixels", "learning_rate", "input_size", "max_captures", "augment", "seed"} <= shared
+    for name in shared:
+        assert params[name].default.default == fields[name], name  # typer.Option(default, ...)
+    assert tuple(int(c) for c in params["channels"].default.default.split(",")) == fields["channels"]

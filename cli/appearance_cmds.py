@@ -80,6 +80,7 @@ def fit(
     seed: int = typer.Option(None),
     device: str = typer.Option(None, help="cpu | cuda | auto"),
     resume: bool = typer.Option(True, "--resume/--no-resume", help="continue from OUTPUT.ckpt if a run was interrupted"),
+    target_dssim: Optional[float] = typer.Option(None, "--target-dssim", help="fit growing DAMs and keep the smallest whose DSSIM on the held-out train views is at most this"),
 ) -> None:
     """Fit a deep appearance map to a capture (L1 data cost, optional adversarial cost)."""
     from damcap.appearance.dam_file import save_dam
@@ -98,6 +99,9 @@ def fit(
     refuse_input_overlap(output, capture)
     cap = read_capture(capture)
     views = load_views(cap, split)  # type: ignore[arg-type]
+    if target_dssim is not None:
+        _fit_to_target(capture, cap, views, split, target_dssim, opts, output, width_or_depth_given=width is not None or depth is not None)
+        return
     samples = samples_of(views)
     frames = training_frames(views, opts.encoding, radiance_scale_of(samples.radiance_lin)) if opts.adversarial else None
     ckpt = output.with_name(output.name + ".ckpt")
@@ -115,6 +119,33 @@ def fit(
     })
     typer.echo(f"wrote {output} ({result.model.arch.num_weights} weights, {len(samples)} pixels, "
                f"best step {result.best_step}, {result.seconds:.1f} s)")
+
+
+def _fit_to_target(capture: Path, cap, views, split: str, target: float, opts, output: Path, width_or_depth_given: bool) -> None:
+    """``fit --target-dssim``: the smallest DAM of the size ladder that reaches the target."""
+    from dataclasses import asdict
+
+    from damcap.appearance.dam_file import save_dam
+    from damcap.appearance.model_size import fit_to_target
+    from damcap.common.version import damcap_version
+
+    if width_or_depth_given:
+        raise DamcapError("--target-dssim chooses the width and depth itself; leave out --width and --depth")
+    if opts.adversarial:
+        raise DamcapError("--target-dssim fits without the adversarial cost; leave out --adversarial")
+    choice = fit_to_target(views, target, opts, progress=lambda line: typer.echo(line, err=True))
+    save_dam(output, choice.model, colorspace=cap.colorspace, made_by="fit", provenance={
+        "damcap_version": damcap_version(), "options": asdict(opts), "capture": str(capture.resolve()), "split": split,
+        "frames": [v.name for v in views], "target_dssim": target, "target_reached": choice.reached, "sizes_tried": choice.tried,
+    })
+    n = choice.model.arch.num_weights
+    err = next(t["heldout_dssim"] for t in choice.tried if t["width"] == choice.width and t["depth"] == choice.depth)
+    if choice.reached:
+        typer.echo(f"wrote {output}: {choice.width}x{choice.depth} ({n} weights) is the smallest DAM that reaches "
+                   f"held-out DSSIM {err:.4f} <= {target}")
+    else:
+        typer.echo(f"wrote {output}: no size reached {target}; the most accurate was {choice.width}x{choice.depth} "
+                   f"({n} weights, held-out DSSIM {err:.4f}). More steps (--steps) or more train views may help.")
 
 
 @app.command()

@@ -83,3 +83,30 @@ def test_dssim_is_finite_and_bounded_for_black_clipped_and_extreme_frames(kind, 
         d = dssim(ref, pred, cov)
         assert d is not None and math.isfinite(d) and 0.0 <= d <= 1.0
     assert dssim(ref, ref, cov) == pytest.approx(0.0, abs=1e-4)  # float32 SSIM of identical images: ~6e-6
+
+
+@FAST
+@given(s=st.sampled_from([1e-6, 1e-3, 1.0, 1e3, 1e6]), seed=st.integers(0, 100))
+def test_view_directions_do_not_depend_on_the_scene_scale(s, seed):
+    """Tiny and huge scenes: scaling every position and camera centre by s leaves V unchanged."""
+    from damcap.appearance.pixels import view_dir_world
+
+    rng = np.random.default_rng(seed)
+    p = rng.normal(size=(64, 3))
+    c = rng.normal(size=3) * 4 + 6
+    np.testing.assert_allclose(view_dir_world(p * s, c * s), view_dir_world(p, c), atol=2e-6)
+
+
+def test_duplicate_cameras_are_harmless_for_the_baselines(small_capture):
+    """Two frames from the same camera: RM++ picks the duplicate (distance 0) and reproduces it."""
+    import dataclasses
+
+    from damcap.appearance.baselines import rm_plus_plus
+    from damcap.appearance.views import load_views
+    from damcap.common.capture_folder import read_capture
+
+    views = load_views(read_capture(small_capture), "train")
+    twin = dataclasses.replace(views[0], name=views[0].name + "-twin")
+    pred = rm_plus_plus([views[1], twin, views[2]], [views[0]])[0]
+    assert np.isfinite(pred).all()
+    assert dssim(views[0].data.radiance_lin, pred, views[0].data.coverage) < 1e-3

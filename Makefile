@@ -29,20 +29,26 @@ $(STAMP): constraints.txt pyproject.toml
 venv: system $(STAMP)
 
 DAMCAP := $(VENV)/bin/damcap
-SAMPLE := samples/torus_env
+PHOTOS := samples/photos_blob
 DEMO_OUT ?= demo_out
 
-# The main job on the bundled closed-form capture: validate, fit, render the novel views, evaluate.
+# The main job, photos to appearance, on the bundled photos (24 JPEGs with masks): register and
+# reconstruct a capture folder, validate it, fit a DAM, predict one with the shipped predictor
+# (+100 refinement steps), render the fitted one into the novel views, evaluate both.
 demo: venv
-	$(DAMCAP) inspect $(SAMPLE)
-	$(DAMCAP) fit $(SAMPLE) -o $(DEMO_OUT)/model.dam
-	$(DAMCAP) render $(DEMO_OUT)/model.dam $(SAMPLE) -o $(DEMO_OUT)/renders --split test
-	$(DAMCAP) evaluate $(SAMPLE) --model $(DEMO_OUT)/model.dam --json $(DEMO_OUT)/evaluation.json
+	$(DAMCAP) reconstruct $(PHOTOS)/images -o $(DEMO_OUT)/capture --masks $(PHOTOS)/masks
+	$(DAMCAP) inspect $(DEMO_OUT)/capture
+	$(DAMCAP) fit $(DEMO_OUT)/capture -o $(DEMO_OUT)/model.dam
+	$(DAMCAP) predict $(DEMO_OUT)/capture -o $(DEMO_OUT)/predicted.dam --refine-steps 100
+	$(DAMCAP) render $(DEMO_OUT)/model.dam $(DEMO_OUT)/capture -o $(DEMO_OUT)/renders --split test
+	$(DAMCAP) evaluate $(DEMO_OUT)/capture --model $(DEMO_OUT)/model.dam --model $(DEMO_OUT)/predicted.dam --json $(DEMO_OUT)/evaluation.json
 	@echo
 	@echo "demo results are in $(DEMO_OUT)/:"
+	@echo "  capture/           the capture folder reconstructed from $(PHOTOS)/images (cameras, geometry, linear radiance)"
 	@echo "  model.dam          the fitted deep appearance map (safetensors + JSON metadata)"
-	@echo "  renders/*.exr      the model rendered into the $(SAMPLE) test views (linear EXR)"
-	@echo "  evaluation.json    mean and per-frame DSSIM of DAM, RM++ and RM, same and novel view"
+	@echo "  predicted.dam      the DAM predicted from one view by the shipped predictor, refined 100 steps"
+	@echo "  renders/*.exr      the fitted model rendered into the test (novel) views (linear EXR)"
+	@echo "  evaluation.json    mean and per-frame DSSIM of both models, RM++ and RM, same and novel view"
 	@echo "  evaluation.png     per-frame DSSIM sorted, one curve per method"
 
 test: venv

@@ -28,9 +28,10 @@ from torch import nn
 
 from damcap.common.errors import DamcapError
 
+from .baselines import ViewData
 from .dam import DamArchitecture, DeepAppearanceMap, dam_forward, encode_inputs, init_weights
 from .fit import radiance_scale_of
-from .pixels import FOREGROUND_COVERAGE
+from .pixels import FOREGROUND_COVERAGE, view_dir_world
 
 IN_CHANNELS = 9
 """RGB (log1p of radiance / scale), normal_world, view_dir_world"""
@@ -149,6 +150,35 @@ def choose_input_view(covered_px: list[int], scales: list[float], min_brightness
     top = max(scales)
     lit = [k for k, s in enumerate(scales) if s >= min_brightness * top]
     return max(lit, key=lambda k: covered_px[k])
+
+
+def predictor_input(train: list[ViewData], name: str | None = None) -> tuple[int, torch.Tensor, float]:
+    """What ``damcap predict`` feeds the network, from a capture's train views.
+
+    Args:
+        train: the train split's views.
+        name: the input view's name (file stem); None = :func:`choose_input_view`.
+
+    Returns:
+        (index of the input view, its :func:`view_crop`, the capture's radiance scale over all
+        train views' foreground, the fit's).
+
+    Raises:
+        DamcapError: ``name`` is not a train view.
+    """
+    fgs = [v.data.coverage > FOREGROUND_COVERAGE for v in train]
+    pixels = [torch.from_numpy(v.data.radiance_lin[fg]) for v, fg in zip(train, fgs, strict=True)]
+    if name is None:
+        k = choose_input_view([int(fg.sum()) for fg in fgs], [radiance_scale_of(p) for p in pixels])
+    else:
+        names = [v.name for v in train]
+        if name not in names:
+            raise DamcapError(f"--view {name!r} is not a train-split frame; choose one of "
+                              f"{', '.join(names[:12])}{' ...' if len(names) > 12 else ''}")
+        k = names.index(name)
+    d = train[k].data
+    crop = view_crop(d.radiance_lin, d.normal_world, view_dir_world(d.position_world, train[k].centre_world), d.coverage)
+    return k, crop, radiance_scale_of(torch.cat(pixels))
 
 
 def rotation_y(angle_rad: float) -> torch.Tensor:

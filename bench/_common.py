@@ -42,19 +42,38 @@ def machine_info() -> dict:
     }
 
 
-def busy_fraction_since(start: tuple[float, float, float]) -> float:
-    """Share of all cores that OTHER processes used since ``start = cpu_snapshot()``."""
-    busy0, own0, t0 = start
-    busy1, own1, t1 = cpu_snapshot()
-    ncpu = len(os.sched_getaffinity(0))
-    return max(0.0, (busy1 - busy0) - (own1 - own0)) / max((t1 - t0) * ncpu, 1e-9)
+NCPU = len(os.sched_getaffinity(0))
 
 
-def cpu_snapshot() -> tuple[float, float, float]:
-    """(all processes' busy CPU seconds, this process's CPU seconds, wall clock)."""
-    ticks = os.sysconf("SC_CLK_TCK")
-    fields = Path("/proc/stat").read_text().splitlines()[0].split()[1:]
-    vals = [int(x) for x in fields]
-    busy = (sum(vals) - vals[3] - vals[4]) / ticks  # minus idle and iowait
+def system_busy_s() -> float:
+    """CPU seconds all processes have been busy since boot (/proc/stat: user, nice, system,
+    irq, softirq, steal; not idle or iowait)."""
+    f = Path("/proc/stat").read_text().splitlines()[0].split()[1:]
+    user, nice, system, _idle, _iowait, irq, softirq, steal = (int(x) for x in f[:8])
+    return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
+
+
+def own_cpu_s() -> float:
+    """CPU seconds of this process (all threads) and its finished children."""
     t = os.times()
-    return busy, t.user + t.system + t.children_user + t.children_system, time.monotonic()
+    return t.user + t.system + t.children_user + t.children_system
+
+
+class CpuMeter:
+    """Wall time of a section, this process's CPU time, and the CPU time and share of all cores
+    that OTHER processes used meanwhile (the machines are shared).
+
+    ``idle`` estimates the section's time on an otherwise idle machine: the larger of own CPU
+    time / cores (every core busy) and wall time x (1 - others' share).
+    """
+
+    def __enter__(self) -> "CpuMeter":
+        self.busy0, self.own0, self.t0 = system_busy_s(), own_cpu_s(), time.perf_counter()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.wall = time.perf_counter() - self.t0
+        self.own_cpu = own_cpu_s() - self.own0
+        self.foreign_cpu = max(0.0, (system_busy_s() - self.busy0) - self.own_cpu)
+        self.foreign_frac = self.foreign_cpu / max(self.wall * NCPU, 1e-9)
+        self.idle = max(self.own_cpu / NCPU, self.wall * (1 - min(self.foreign_frac, 1.0)))

@@ -48,7 +48,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import cpu_model  # noqa: E402
 
-from damcap.capture.exif import read_exposure
+from damcap.capture.exif import read_exposure, read_hdr_image_list
 from damcap.capture.hdr import HdrOptions, merge_bracket_files, read_ldr_codes
 from damcap.capture.metrics import abs_log_ratio_error
 from damcap.capture.simulate import bracket_times, simulate_raw_bracket
@@ -100,11 +100,7 @@ def memorial_bench(data: Path, slow: bool = True) -> dict:
     import colour_hdri
 
     folder = data / "brackets" / "memorial"
-    times = {}
-    for line in (folder / "memorial.hdr_image_list.txt").read_text().splitlines():
-        parts = line.split()
-        if parts and parts[0].endswith(".png"):
-            times[parts[0]] = 1.0 / float(parts[1])  # the list gives 1/shutter_speed
+    times = read_hdr_image_list(folder / "memorial.hdr_image_list.txt")
     files = sorted(folder / n for n in times)
     t = [times[f.name] for f in files]
     ref = read_exr(folder / "memorial_reference.hdr")[0][..., :3]

@@ -33,7 +33,6 @@ import argparse
 import itertools
 import json
 import math
-import os
 import shutil
 import statistics
 import sys
@@ -43,7 +42,7 @@ from pathlib import Path
 
 import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import log, machine_info  # noqa: E402
+from _common import NCPU, CpuMeter, log, machine_info, own_cpu_s, system_busy_s  # noqa: E402
 
 from damcap.appearance.evaluate import evaluate_split
 from damcap.appearance.fit import FitOptions, fit_dam, radiance_scale_of
@@ -139,40 +138,10 @@ def append_run_log(rec: dict) -> None:
 # CPU contention
 # --------------------------------------------------------------------------------------------
 
-CLK_TCK = os.sysconf("SC_CLK_TCK")
-NCPU = os.cpu_count() or 1
 QUIET_FRAC = 0.10
 """a timed stretch counts as clean when other processes used at most this fraction of all cores"""
 ABORT_FRAC = 0.25
 """a fit is aborted (and restarted later) when others take more than this early on"""
-
-
-def _system_busy_s() -> float:
-    f = Path("/proc/stat").read_text().splitlines()[0].split()[1:]
-    user, nice, system, _idle, _iowait, irq, softirq, steal = (int(x) for x in f[:8])
-    return (user + nice + system + irq + softirq + steal) / CLK_TCK
-
-
-def _self_cpu_s() -> float:
-    f = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(f[11]) + int(f[12])) / CLK_TCK  # utime, stime of all threads
-
-
-class CpuMeter:
-    """Wall time, this process's CPU time and other processes' CPU time over a section."""
-
-    def __enter__(self) -> CpuMeter:  # noqa: PYI034
-        self.s0, self.p0, self.t0 = _system_busy_s(), _self_cpu_s(), time.perf_counter()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.wall = time.perf_counter() - self.t0
-        self.self_cpu = _self_cpu_s() - self.p0
-        self.foreign_cpu = max(0.0, (_system_busy_s() - self.s0) - self.self_cpu)
-        self.foreign_frac = self.foreign_cpu / max(self.wall * NCPU, 1e-9)
-
-    def as_dict(self) -> dict:
-        return {"wall_s": self.wall, "self_cpu_s": self.self_cpu, "foreign_cpu_s": self.foreign_cpu, "foreign_frac": self.foreign_frac}
 
 
 WAITED_S = 0.0
@@ -219,11 +188,11 @@ class Timeline:
     def __init__(self, every: int = 25, abort_within_s: float = 0.0) -> None:
         self.every, self.abort_within_s = every, abort_within_s
         self.windows: list[dict] = []
-        self.s_start, self.p_start, self.t_start = _system_busy_s(), _self_cpu_s(), time.perf_counter()
+        self.s_start, self.p_start, self.t_start = system_busy_s(), own_cpu_s(), time.perf_counter()
         self.s, self.p, self.t, self.step = self.s_start, self.p_start, self.t_start, 0
 
     def _close(self, step: int) -> None:
-        s, p, t = _system_busy_s(), _self_cpu_s(), time.perf_counter()
+        s, p, t = system_busy_s(), own_cpu_s(), time.perf_counter()
         wall = t - self.t
         foreign = max(0.0, (s - self.s) - (p - self.p))
         self.windows.append({"steps": step - self.step, "wall_s": wall, "foreign_frac": foreign / max(wall * NCPU, 1e-9)})

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -16,17 +15,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import cpu_model  # noqa: E402
+
 
 ROOT = Path(__file__).resolve().parents[1]
 MESH = ROOT.parent / "shared" / "data" / "meshes" / "armadillo.obj"
 SAMPLE = ROOT / "samples" / "torus_env"
-
-
-def cpu_name() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor()
 
 
 def main() -> None:
@@ -69,7 +64,7 @@ def main() -> None:
             fps[size] = frame_rate(page, size, frames=20)
     result = {
         "command": "make bench  (.venv/bin/python bench/export.py)",
-        "machine": {"cpu": cpu_name(), "cores": torch.get_num_threads(), "python": sys.version.split()[0], "torch": torch.__version__,
+        "machine": {"cpu": cpu_model(), "cores": torch.get_num_threads(), "python": sys.version.split()[0], "torch": torch.__version__,
                     "load_average_1min": [load_before, os.getloadavg()[0]]},
         "mesh": {"file": str(MESH.name), "triangles": int(len(mesh.triangles)), "vertices": int(len(mesh.vertices))},
         "cpu_render_512": {

@@ -25,15 +25,14 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import busy_fraction_since, cpu_snapshot, log, machine_info  # noqa: E402
+from _common import CpuMeter, log, machine_info  # noqa: E402
 
 from damcap.appearance.evaluate import evaluate_split  # noqa: E402
-from damcap.appearance.fit import FitOptions, fit_dam, radiance_scale_of, refine_dam  # noqa: E402
-from damcap.appearance.hyper import choose_input_view, predict_dam, view_crop  # noqa: E402
+from damcap.appearance.fit import FitOptions, fit_dam, refine_dam  # noqa: E402
+from damcap.appearance.hyper import predict_dam, predictor_input  # noqa: E402
 from damcap.appearance.hyper_file import load_predictor, shipped_predictor_path  # noqa: E402
-from damcap.appearance.pixels import view_dir_world  # noqa: E402
 from damcap.appearance.views import load_views, samples_of  # noqa: E402
-from damcap.common.capture_folder import read_capture, read_frame  # noqa: E402
+from damcap.common.capture_folder import read_capture  # noqa: E402
 
 BENCH = Path(__file__).resolve().parent
 RESULTS = BENCH / "results"
@@ -42,16 +41,6 @@ RESULTS = BENCH / "results"
 def heldout_captures(corpus: Path) -> list[dict]:
     entries = json.loads((corpus / "corpus.json").read_text())["captures"]
     return [e for e in entries if e["split"] == "heldout" and e["materials"] == 1 and (corpus / e["path"] / "transforms.json").is_file()]
-
-
-def best_covered_crop(cap) -> tuple[str, float, torch.Tensor]:
-    """The input view ``damcap predict`` chooses by default, the capture's radiance scale and the crop."""
-    frames = cap.split("train")
-    data = [read_frame(cap, f, with_weights=False) for f in frames]
-    fgs = [d.coverage > 0.5 for d in data]
-    k = choose_input_view([int(fg.sum()) for fg in fgs], [radiance_scale_of(torch.from_numpy(d.radiance_lin[fg])) for d, fg in zip(data, fgs)])
-    f, d = frames[k], data[k]
-    return f.file_path, radiance_scale_of(torch.cat([torch.from_numpy(d.radiance_lin[fg]) for d, fg in zip(data, fgs)])), view_crop(d.radiance_lin, d.normal_world, view_dir_world(d.position_world, f.camera_centre_world), d.coverage)
 
 
 def novel_and_same(train, test, model) -> tuple[float, float]:
@@ -64,7 +53,8 @@ def bench_capture(path: Path, net, refine_steps: list[int], fit_seeds: list[int]
     train, test = load_views(cap, "train"), load_views(cap, "test")
     samples = samples_of(train)
     base = evaluate_split(train, test, {}, baselines=True)
-    view, scale, crop = best_covered_crop(cap)
+    k, crop, scale = predictor_input(train)
+    view = cap.split("train")[k].file_path
     times = []
     for _ in range(timing_runs):
         t = time.perf_counter()
@@ -85,9 +75,9 @@ def bench_capture(path: Path, net, refine_steps: list[int], fit_seeds: list[int]
     rec["refine"] = rows
     fits = []
     for seed in fit_seeds:
-        snap = cpu_snapshot()
-        res = fit_dam(samples, FitOptions(seed=seed, checkpoint_every=0))
-        others = busy_fraction_since(snap)
+        with CpuMeter() as meter:
+            res = fit_dam(samples, FitOptions(seed=seed, checkpoint_every=0))
+        others = meter.foreign_frac
         novel, same = novel_and_same(train, test, res.model)
         fits.append({"seed": seed, "seconds": res.seconds, "others": others, "novel": novel, "same": same})
         log(f"  {path.name}: SGD fit seed {seed} ({res.seconds:.1f} s, others {others:.0%}): novel {novel:.4f}, same {same:.4f}")
@@ -142,7 +132,7 @@ def size_curve(paths: list[Path], captures: list[dict], corpus: Path, refine: in
         for c in captures:
             cap = read_capture(corpus / c["path"])
             train, test = load_views(cap, "train"), load_views(cap, "test")
-            _, scale, crop = best_covered_crop(cap)
+            _, crop, scale = predictor_input(train)
             m = predict_dam(net, crop, scale)
             novel0 = novel_and_same(train, test, m)[0]
             mr = refine_dam(m, samples_of(train), refine)[0]

@@ -36,13 +36,15 @@ import json
 import os
 import platform
 import shutil
-import subprocess
 import sys
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import NCPU, cpu_model, log  # noqa: E402
+
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -53,21 +55,11 @@ FIGURE = BENCH / "reconstruct_novel_views.png"
 DATA = Path(os.environ.get("DAMCAP_SHARED_DATA", REPO.parent / "shared" / "data")) / "real"
 
 
-def log(msg: str) -> None:
-    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
-
-
 def machine_info() -> dict:
-    cpu = "unknown"
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            cpu = line.split(":", 1)[1].strip()
-            break
-    nproc = int(subprocess.run(["nproc"], capture_output=True, text=True, check=True).stdout.strip())
     import pycolmap
 
-    return {"date_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC"), "nproc": nproc,
-            "cpu_model": cpu, "python": platform.python_version(), "platform": platform.platform(),
+    return {"date_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC"), "nproc": NCPU,
+            "cpu_model": cpu_model(), "python": platform.python_version(), "platform": platform.platform(),
             "pycolmap": pycolmap.__version__, "numpy": np.__version__}
 
 

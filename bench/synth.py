@@ -51,6 +51,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import CpuMeter, cpu_model, log  # noqa: E402
+
 from damcap.appearance.evaluate import evaluate_split
 from damcap.appearance.fit import FitOptions, fit_dam
 from damcap.appearance.metrics import dssim
@@ -67,7 +70,6 @@ CACHE = BENCH / ".cache"
 RESULTS = BENCH / "results"
 DATA = Path(os.environ.get("DAMCAP_SHARED_DATA", REPO.parent / "shared" / "data"))
 STAGES = ("throughput", "noise", "small", "paper", "table1", "why")
-CLK_TCK = os.sysconf("SC_CLK_TCK")
 #: seed offset of the second render in noise-floor measurements
 NOISE_SEED_OFFSET = 7919
 
@@ -77,41 +79,8 @@ NOISE_SEED_OFFSET = 7919
 # --------------------------------------------------------------------------------------------
 
 
-def log(msg: str) -> None:
-    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
-
-
-def _busy_s() -> float:
-    f = Path("/proc/stat").read_text().splitlines()[0].split()[1:]
-    user, nice, system, idle, iowait, irq, softirq, steal = (int(x) for x in f[:8])
-    return (user + nice + system + irq + softirq + steal) / CLK_TCK
-
-
-def _own_cpu_s() -> float:
-    """CPU time of this process and its finished children."""
-    t = os.times()
-    return t.user + t.system + t.children_user + t.children_system
-
-
-class Timed:
-    """Wall time of a section, this process's CPU time (all threads, plus finished child
-    processes), and the share of all cores that other processes used meanwhile.
-
-    ``idle_s`` estimates what the section would take on an otherwise idle machine (the machine
-    is shared, so wall times are inflated by others): the larger of own CPU time / cores (every
-    core busy) and wall time x (1 - others' share of the cores).
-    """
-
-    def __enter__(self) -> "Timed":
-        self.b0, self.c0, self.t0 = _busy_s(), _own_cpu_s(), time.perf_counter()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.wall = time.perf_counter() - self.t0
-        self.own_cpu = _own_cpu_s() - self.c0
-        ncpu = os.cpu_count() or 1
-        self.foreign_frac = max(0.0, (_busy_s() - self.b0) - self.own_cpu) / max(self.wall * ncpu, 1e-9)
-        self.idle = max(self.own_cpu / ncpu, self.wall * (1 - min(self.foreign_frac, 1.0)))
+class Timed(CpuMeter):
+    """A :class:`CpuMeter` section with this benchmark's JSON record."""
 
     def as_dict(self) -> dict:
         return {"wall_s": round(self.wall, 3), "own_cpu_s": round(self.own_cpu, 3), "idle_s": round(self.idle, 3),
@@ -122,14 +91,9 @@ def machine_info() -> dict:
     import drjit as dr
     import mitsuba as mi
 
-    cpu = "unknown"
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            cpu = line.split(":", 1)[1].strip()
-            break
     return {
         "date_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC"),
-        "nproc": os.cpu_count(), "cpu_model": cpu, "mem_gib": round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1),
+        "nproc": os.cpu_count(), "cpu_model": cpu_model(), "mem_gib": round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1),
         "mitsuba": mi.__version__, "drjit": dr.__version__, "variant": select_variant("auto"), "drjit_threads": dr.thread_count(),
         "torch": torch.__version__, "torch_threads": torch.get_num_threads(), "python": platform.python_version(),
         "platform": platform.platform(),

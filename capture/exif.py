@@ -196,6 +196,31 @@ def parse_exposure_list(text: str) -> list[float]:
     return out
 
 
+def read_hdr_image_list(path: str | os.PathLike) -> dict[str, float]:
+    """Exposure times (seconds) by file name from an HDRShop-style image list (Debevec and
+    Malik's ``*.hdr_image_list.txt``: one ``NAME 1/SHUTTER ...`` line per image file).
+
+    Raises:
+        DamcapError: the list cannot be read or a shutter value is not a positive number.
+    """
+    try:
+        lines = Path(path).read_text().splitlines()
+    except OSError as e:
+        raise DamcapError(f"{path}: cannot read the image list ({e.strerror})") from None
+    times = {}
+    for line in lines:
+        parts = line.split()
+        if len(parts) >= 2 and Path(parts[0]).suffix.lower() in (".png", ".jpg", ".jpeg", ".tif", ".tiff"):
+            try:
+                inv = float(parts[1])  # the list gives 1 / shutter time
+            except ValueError:
+                inv = 0.0
+            if not (inv > 0 and math.isfinite(inv)):
+                raise DamcapError(f"{path}: {parts[1]!r} is not a positive 1/shutter value (line {line.strip()!r})")
+            times[parts[0]] = 1.0 / inv
+    return times
+
+
 def resolve_exposure_factors(
     paths: Sequence[str | os.PathLike],
     exposures: Sequence[Exposure],

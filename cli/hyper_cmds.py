@@ -98,15 +98,12 @@ def predict(
     device: str = typer.Option("cpu", help="cpu | cuda | auto"),
 ) -> None:
     """Predict a deep appearance map from one view in milliseconds (optionally refine it)."""
-    import torch
-
     from damcap.appearance.dam_file import save_dam
-    from damcap.appearance.fit import radiance_scale_of, refine_dam
-    from damcap.appearance.hyper import choose_input_view, predict_dam, view_crop
+    from damcap.appearance.fit import refine_dam
+    from damcap.appearance.hyper import predict_dam, predictor_input
     from damcap.appearance.hyper_file import load_predictor, shipped_predictor_path
-    from damcap.appearance.pixels import FOREGROUND_COVERAGE, view_dir_world
     from damcap.appearance.views import load_views, samples_of
-    from damcap.common.capture_folder import read_capture, read_frame
+    from damcap.common.capture_folder import read_capture
     from damcap.common.device import resolve_device
     from damcap.common.version import damcap_version
 
@@ -115,25 +112,12 @@ def predict(
     net, meta = load_predictor(pred_path)
     net.to(resolve_device(device))
     cap = read_capture(capture)
-    train = cap.split("train")
-    covered, scales, pixels = [], [], []
-    for f in train:
-        fd = read_frame(cap, f, with_weights=False)
-        fg = fd.coverage > FOREGROUND_COVERAGE
-        covered.append(int(fg.sum()))
-        scales.append(radiance_scale_of(torch.from_numpy(fd.radiance_lin[fg])))
-        pixels.append(torch.from_numpy(fd.radiance_lin[fg]))
-    capture_scale = radiance_scale_of(torch.cat(pixels))  # the fit's radiance scale
-    if view is None:
-        frame = train[choose_input_view(covered, scales)]
-    else:
-        matches = [f for f in train if view in (f.file_path, Path(f.file_path).name, Path(f.file_path).stem)]
-        if not matches:
-            raise DamcapError(f"{capture}: --view {view!r} is not a train-split frame; choose one of "
-                              f"{', '.join(Path(f.file_path).stem for f in train[:12])}{' ...' if len(train) > 12 else ''}")
-        frame = matches[0]
-    d = read_frame(cap, frame, with_weights=False)
-    crop = view_crop(d.radiance_lin, d.normal_world, view_dir_world(d.position_world, frame.camera_centre_world), d.coverage)
+    train_views = load_views(cap, "train")
+    try:
+        k, crop, capture_scale = predictor_input(train_views, None if view is None else Path(view).stem)
+    except DamcapError as e:
+        raise DamcapError(f"{capture}: {e}") from None
+    frame = cap.split("train")[k]
     t0 = time.perf_counter()
     model = predict_dam(net, crop, capture_scale)
     predict_s = time.perf_counter() - t0
@@ -141,7 +125,7 @@ def predict(
               "predictor_command": meta.get("training", {}).get("command"), "view": frame.file_path,
               "predict_seconds": predict_s, "refine_steps": refine_steps}
     if refine_steps:
-        samples = samples_of(load_views(cap, "train"))
+        samples = samples_of(train_views)
         t1 = time.perf_counter()
         model, before, after = refine_dam(model, samples, refine_steps, progress=progress_bar(refine_steps, "refine"))
         record.update(refine_seconds=time.perf_counter() - t1, train_l1_predicted=before, train_l1_refined=after)

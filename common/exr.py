@@ -94,33 +94,38 @@ def write_exr(
     spec.attribute("compression", "zip")
     for key, value in (attributes or {}).items():
         spec.attribute(key, value)
+    _write_atomic(path, spec, np.ascontiguousarray(pixels))
+
+
+def _write_atomic(path: str | os.PathLike, spec: "oiio.ImageSpec", pixels: np.ndarray) -> None:
+    """Write pixels with an OpenImageIO spec to a temporary file renamed onto ``path``; the
+    format follows ``path``'s extension."""
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:
             raise DamcapError(f"{path}: cannot create image writer ({oiio.geterror().strip()})")
         try:
-            ok = out.open(str(tmp), spec) and out.write_image(np.ascontiguousarray(pixels))
-            if not ok:
+            if not (out.open(str(tmp), spec) and out.write_image(pixels)):
                 raise DamcapError(f"{path}: cannot write image ({out.geterror().strip()})")
         finally:
             out.close()
 
 
-def write_png(path: str | os.PathLike, pixels_u8: np.ndarray) -> None:
-    """Write (H, W, 3) or (H, W, 4) uint8 display pixels as PNG (OpenImageIO), atomically."""
+def write_image_u8(path: str | os.PathLike, pixels_u8: np.ndarray, attributes: Mapping[str, str | int | float] | None = None) -> None:
+    """Write (H, W), (H, W, 3) or (H, W, 4) uint8 display pixels (PNG, JPEG, ... by extension)
+    with optional header attributes (e.g. ``Compression``, EXIF tags), atomically."""
     px = np.ascontiguousarray(pixels_u8, dtype=np.uint8)
     h, w = px.shape[:2]
     c = 1 if px.ndim == 2 else px.shape[2]
     spec = oiio.ImageSpec(w, h, c, "uint8")
-    with atomic_path(path) as tmp:
-        out = oiio.ImageOutput.create(str(tmp))
-        if out is None:
-            raise DamcapError(f"{path}: cannot create image writer ({oiio.geterror().strip()})")
-        try:
-            if not (out.open(str(tmp), spec) and out.write_image(px)):
-                raise DamcapError(f"{path}: cannot write image ({out.geterror().strip()})")
-        finally:
-            out.close()
+    for key, value in (attributes or {}).items():
+        spec.attribute(key, value)
+    _write_atomic(path, spec, px)
+
+
+def write_png(path: str | os.PathLike, pixels_u8: np.ndarray) -> None:
+    """Write (H, W, 3) or (H, W, 4) uint8 display pixels as PNG (OpenImageIO), atomically."""
+    write_image_u8(path, pixels_u8)
 
 
 def read_image_u8(path: str | os.PathLike) -> np.ndarray:

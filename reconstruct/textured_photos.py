@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from damcap.common.atomic import atomic_path, write_json_atomic
+from damcap.common.atomic import write_json_atomic
 from damcap.common.capture_folder import Intrinsics
-from damcap.common.errors import DamcapError
+from damcap.common.exr import write_image_u8
 
 from .cameras import focal_px_from_fov, look_at_world_from_cam
 from .raycast import Mesh, MeshRaycaster, vertex_normals_area_weighted
@@ -164,26 +164,11 @@ def orbit_cameras(n_views: int, distance: float, elevations_deg: tuple[float, ..
 
 def write_jpeg(path: str | os.PathLike, photo_u8: np.ndarray, exposure: PhotoExposure | None, quality: int = 92) -> None:
     """An 8-bit sRGB JPEG with EXIF exposure tags (OpenImageIO), written atomically."""
-    import OpenImageIO as oiio
-
-    px = np.ascontiguousarray(photo_u8, dtype=np.uint8)
-    spec = oiio.ImageSpec(px.shape[1], px.shape[0], px.shape[2], "uint8")
-    spec.attribute("Compression", f"jpeg:{quality}")
-    spec.attribute("Make", "damcap")
-    spec.attribute("Model", "textured_photos")
+    attributes: dict[str, str | int | float] = {"Compression": f"jpeg:{quality}", "Make": "damcap", "Model": "textured_photos"}
     if exposure is not None:
-        spec.attribute("ExposureTime", float(exposure.time_s))
-        spec.attribute("FNumber", float(exposure.f_number))
-        spec.attribute("Exif:PhotographicSensitivity", int(round(exposure.iso)))
-    with atomic_path(path) as tmp:
-        out = oiio.ImageOutput.create(str(tmp))
-        if out is None:
-            raise DamcapError(f"{path}: cannot create a JPEG writer ({oiio.geterror().strip()})")
-        try:
-            if not (out.open(str(tmp), spec) and out.write_image(px)):
-                raise DamcapError(f"{path}: cannot write JPEG ({out.geterror().strip()})")
-        finally:
-            out.close()
+        attributes.update({"ExposureTime": float(exposure.time_s), "FNumber": float(exposure.f_number),
+                           "Exif:PhotographicSensitivity": int(round(exposure.iso))})
+    write_image_u8(path, photo_u8, attributes)
 
 
 def exposure_series(n: int, seed: int = 0, target_factor: float = 0.25) -> list[PhotoExposure]:

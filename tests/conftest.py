@@ -64,3 +64,25 @@ def tree_digest(root: Path) -> str:
             h.update(str(p.relative_to(root)).encode())
             h.update(p.read_bytes())
     return h.hexdigest()
+
+
+def run_cli(args, capsys) -> tuple[int, str, str]:
+    """Run ``damcap ARGS`` in-process: (exit code, stdout, stderr)."""
+    from damcap.cli.main import main
+
+    code = main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_one_line_error(code: int, err: str, *needles: str, exit_code: int | None = 2) -> None:
+    """A user mistake: exit ``exit_code`` (None = any non-zero), the last stderr line is
+    ``error: ...`` containing every needle, and no traceback."""
+    if exit_code is None:
+        assert code != 0
+    else:
+        assert code == exit_code
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert lines and lines[-1].startswith("error:") and "Traceback" not in err, err
+    for n in needles:
+        assert n in lines[-1], (n, lines[-1])

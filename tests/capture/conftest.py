@@ -7,16 +7,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from damcap.capture.exif import read_hdr_image_list
+
 
 @pytest.fixture(scope="session")
 def memorial(shared_data) -> tuple[list[Path], list[float], Path]:
     """Memorial Church: 16 PNG paths, their exposure times (s), the reference radiance map."""
     folder = shared_data / "brackets" / "memorial"
-    times = {}
-    for line in (folder / "memorial.hdr_image_list.txt").read_text().splitlines():
-        parts = line.split()
-        if parts and parts[0].endswith(".png"):
-            times[parts[0]] = 1.0 / float(parts[1])  # the list gives 1/shutter_speed
+    times = read_hdr_image_list(folder / "memorial.hdr_image_list.txt")
     files = sorted(folder / name for name in times)
     return files, [times[f.name] for f in files], folder / "memorial_reference.hdr"
 

@@ -6,24 +6,10 @@ import json
 import shutil
 
 import numpy as np
-
-from damcap.cli.main import main
 from damcap.common.exr import read_exr
-from tests.conftest import tree_digest
 
-
-def run(args, capsys):
-    code = main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def assert_one_line_error(code, err, *needles):
-    assert code == 2
-    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
-    assert lines and lines[-1].startswith("error:") and "Traceback" not in err, err
-    for n in needles:
-        assert n in lines[-1], (n, lines[-1])
+from tests.conftest import assert_one_line_error, tree_digest
+from tests.conftest import run_cli as run
 
 
 def test_hdr_raw_bracket(sim_bracket, tmp_path, capsys):

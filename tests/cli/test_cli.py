@@ -8,24 +8,15 @@ import subprocess
 import sys
 
 import pytest
-
 from damcap.cli.main import main
+
+from tests.conftest import assert_one_line_error as _assert_one_line_error
+from tests.conftest import run_cli as run
 from tests.conftest import tree_digest
 
 
-def run(args, capsys):
-    code = main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
 def assert_one_line_error(code, err, *needles):
-    assert code != 0
-    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
-    assert lines and lines[-1].startswith("error:"), err
-    assert "Traceback" not in err
-    for n in needles:
-        assert n in lines[-1], (n, lines[-1])
+    _assert_one_line_error(code, err, *needles, exit_code=None)
 
 
 @pytest.fixture(scope="module")

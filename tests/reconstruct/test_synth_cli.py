@@ -4,22 +4,10 @@ from __future__ import annotations
 
 import json
 
-from damcap.cli.main import main
 from damcap.common.capture_folder import read_capture
 
-
-def run(args, capsys):
-    code = main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def assert_one_line_error(code, err, *needles):
-    assert code == 2
-    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
-    assert lines and lines[-1].startswith("error:") and "Traceback" not in err, err
-    for n in needles:
-        assert n in lines[-1], (n, lines[-1])
+from tests.conftest import assert_one_line_error
+from tests.conftest import run_cli as run
 
 
 def test_synth_command_writes_a_capture(tmp_path, capsys):

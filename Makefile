@@ -6,7 +6,7 @@ PIP := $(PY) -m pip
 STAMP := $(VENV)/.installed
 APT_PACKAGES := libusb-1.0-0 libllvm19 libgomp1 chromium
 
-.PHONY: demo test bench system venv clean
+.PHONY: demo test bench tables system venv clean
 
 # System packages the stack needs (open3d: libusb; mitsuba llvm_ad_rgb: libLLVM 19; the viewer's
 # browser test: chromium).
@@ -55,9 +55,20 @@ test: venv
 	$(PY) -m pytest -q
 
 # Slow studies (never in CI): results in bench/results/*.json and bench/*.md
-BENCHES ?= dam_core export hyper
+BENCHES ?= dam_core export hyper segment
 bench: venv
 	@set -e; for b in $(BENCHES); do echo "== bench/$$b.py"; $(PY) bench/$$b.py; done
+
+# The paper's Tables 1 and 2 (renders the held-out corpora first when missing; resumable)
+SMALL := bench/.cache/synth_small
+SEGMENT := bench/.cache/synth_segment
+CAPE := bench/.cache/reconstruct/realworld/cape-8-256
+tables: venv
+	$(VENV)/bin/damcap synth-set $(SMALL) --preset small
+	$(VENV)/bin/damcap synth-set $(SEGMENT) --preset segment
+	$(VENV)/bin/damcap evaluate --table1 $(SMALL) --table1 $(SEGMENT) --out bench/tables
+	@test -f $(CAPE)/transforms.json || $(PY) bench/reconstruct.py --part realworld
+	$(VENV)/bin/damcap evaluate --table2 $(CAPE) --out bench/tables
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT)

@@ -8,17 +8,23 @@ learning rates do not depend on the units.
 Stopping rule: a few training views are held out; the weights with the lowest held-out L1 are
 kept (training on a 3360-weight network can overfit the training views and get worse on novel
 ones). ``holdout_views = 0`` trains on all views and keeps the last weights.
+
+Precision: ``FitOptions.precision = "bfloat16"`` runs the training step's DAM forward pass and
+data cost under ``torch.autocast`` (bfloat16 matrix products; :func:`.dam.dam_forward` returns
+float32 radiance). The master weights, Adam's state, the held-out evaluation, checkpoints and
+the fitted model stay float32; the adversarial cost's patches and discriminator stay float32.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, ContextManager, Literal
 
 import torch
 
@@ -29,6 +35,9 @@ from damcap.common.errors import DamcapError, require_options
 from .adversarial import PatchDiscriminator, discriminator_loss, generator_loss
 from .dam import Activation, DamArchitecture, DeepAppearanceMap, Encoding, dam_forward, encode_inputs
 from .pixels import PixelSamples
+
+Precision = Literal["float32", "bfloat16"]
+PRECISIONS: tuple[str, ...] = ("float32", "bfloat16")
 
 
 @dataclass(frozen=True)
@@ -63,10 +72,15 @@ class FitOptions:
     """'cpu', 'cuda' or 'auto'"""
     checkpoint_every: int = 250
     """steps between checkpoints (0 = never)"""
+    precision: Precision = "float32"
+    """compute dtype of the training step's DAM forward pass and data cost: 'float32' or
+    'bfloat16' (autocast; weights, optimiser, evaluation and the saved model stay float32)"""
 
     def validate(self) -> None:
         require_options(self, at_least_1=("steps", "batch_size", "width", "depth", "eval_every"),
                         at_least_0=("holdout_views", "checkpoint_every"), positive_finite=("learning_rate",))
+        if self.precision not in PRECISIONS:
+            raise DamcapError(f"--precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")
 
     @property
     def architecture(self) -> DamArchitecture:
@@ -128,6 +142,14 @@ def _weighted_l1(pred: torch.Tensor, target: torch.Tensor, w: torch.Tensor) -> t
 
 def _state_json(opts: FitOptions) -> str:
     return json.dumps(asdict(opts), sort_keys=True)
+
+
+def compute_precision(device: torch.device, precision: Precision) -> ContextManager:
+    """The context a training step's forward pass and cost run in: ``torch.autocast`` to
+    bfloat16 on ``device``'s type for 'bfloat16', a no-op for 'float32'."""
+    if precision == "bfloat16":
+        return torch.autocast(device_type=device.type, dtype=torch.bfloat16)
+    return contextlib.nullcontext()
 
 
 def fit_dam(
@@ -216,8 +238,9 @@ def fit_dam(
         for g in optim.param_groups:
             g["lr"] = lr_at(step)
         idx = torch.randint(0, n_tr, (min(opts.batch_size, n_tr),), generator=gen).to(device)
-        pred = dam_forward(model.weights_flat, x_tr[idx], arch)
-        loss = _weighted_l1(pred, y_tr[idx], w_tr[idx])
+        with compute_precision(device, opts.precision):
+            pred = dam_forward(model.weights_flat, x_tr[idx], arch)
+            loss = _weighted_l1(pred, y_tr[idx], w_tr[idx])
         stats = {"loss": float(loss.detach())}
         if disc is not None:
             real, fake = _patches(model, adv_frames, arch, gen, device)  # type: ignore[arg-type]

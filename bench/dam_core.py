@@ -8,12 +8,23 @@ views, 22 test), on a 2-core CPU:
 * rendering one 256x256 frame takes <= 20 ms (median).
 
 Every fit runs over several seeds (mean, std, min, max reported); a speed/accuracy sweep varies
-steps, input encoding, hold-out stopping, width and the adversarial cost.
+steps, input encoding, hold-out stopping, width and the adversarial cost, and studies:
+
+* DAM depth (``w32d2``, ``w32d6``; ``w32d4`` is the default);
+* pixels sampled per step (``batch1024``, ``batch16384``; 4096 is the default);
+* input resolution (``input64``, ``input32``: the *training* frames' arrays subsampled to every
+  2nd / 4th pixel in both axes, a transformation done here, not in the library; test views, and
+  the train views the same-view DSSIM is measured on, stay at 128x128);
+* compute precision (``bfloat16``: ``FitOptions.precision``; ``float32`` is the default);
+* the shipped learning-to-learn predictor plus K refinement steps (``predict_k0`` ...
+  ``predict_k1000``), as ``damcap predict --refine-steps K`` does it (``predictor_input``,
+  ``predict_dam``, ``refine_dam``); its time includes the prediction (not loading the file).
 
 Outputs: ``bench/results/dam_core.json``, ``bench/results/dam_core_pareto.png`` and
 ``bench/dam_core.md``. Captures are cached under ``bench/.cache/`` (git-ignored) and reused when
 their ``transforms.json`` exists. Every finished fit is also appended to
-``bench/.cache/dam_core_runs.jsonl``; ``--resume`` reuses those records instead of refitting.
+``bench/.cache/dam_core_runs.jsonl``; ``--resume`` reuses those records instead of refitting
+(a run's key is its capture and options; new settings get new keys).
 
 Timing on a shared machine: other processes on the same cores slow a 2-thread torch fit by up
 to ~30x (its two worker threads wait on each other whenever one is descheduled). So every timed
@@ -25,14 +36,27 @@ and a clean-window estimate (disturbed windows re-timed at the clean windows' sp
 Run (from the repository root)::
 
     .venv/bin/python bench/dam_core.py
+
+Options (``--help``): ``--only NAME ...`` runs only these settings, ``--seeds 0 1 2`` the fit
+seeds, ``--captures sphere_env torus_env``, ``--resume``, ``--render-runs N`` (0 = no render
+timing), ``--budget-minutes``, ``--max-aborts``, ``--quiet-wait S`` (0 = do not wait for a quiet
+machine) and ``--out DIR``: write the JSON, plot, markdown and run log into DIR instead of the
+committed ``bench/results/``, ``bench/dam_core.md`` and ``bench/.cache/`` (for smoke runs), e.g.::
+
+    .venv/bin/python bench/dam_core.py --only predict_k100 input32 --seeds 0 --captures sphere_env \
+        --render-runs 0 --quiet-wait 0 --out /tmp/dam_core_smoke
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import hashlib
+import inspect
 import itertools
 import json
 import math
+import os
 import shutil
 import statistics
 import sys
@@ -40,12 +64,16 @@ import time
 from dataclasses import asdict, replace
 from pathlib import Path
 
+import numpy as np
 import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import NCPU, CpuMeter, log, machine_info, own_cpu_s, system_busy_s  # noqa: E402
 
+from damcap.appearance.baselines import ViewData
 from damcap.appearance.evaluate import evaluate_split
-from damcap.appearance.fit import FitOptions, fit_dam, radiance_scale_of
+from damcap.appearance.fit import FitOptions, fit_dam, radiance_scale_of, refine_dam
+from damcap.appearance.hyper import predict_dam, predictor_input
+from damcap.appearance.hyper_file import load_predictor, shipped_predictor_path
 from damcap.appearance.render import render_frame
 from damcap.appearance.views import load_views, samples_of, training_frames
 from damcap.common.capture_folder import read_capture
@@ -77,9 +105,33 @@ SETTINGS: list[tuple[str, dict]] = [
     ("w64d4_s4000", {"width": 64, "depth": 4, "steps": 4000}),
     ("adversarial_s2000", {"adversarial": True}),
     ("holdout0_s8000", {"holdout_views": 0, "steps": 8000}),
+    # studies (module docstring); keys in BENCH_KEYS are handled here, not by FitOptions
+    ("w32d2", {"depth": 2}),
+    ("w32d6", {"depth": 6}),
+    ("batch1024", {"batch_size": 1024}),
+    ("batch16384", {"batch_size": 16384}),
+    ("input64", {"input_subsample": 2}),
+    ("input32", {"input_subsample": 4}),
+    ("bfloat16", {"precision": "bfloat16"}),
+    ("predict_k0", {"predict_refine_steps": 0}),
+    ("predict_k100", {"predict_refine_steps": 100}),
+    ("predict_k300", {"predict_refine_steps": 300}),
+    ("predict_k1000", {"predict_refine_steps": 1000}),
 ]
 #: table rows that are the same options as another setting: (name, same options as)
-ALIASES = [("steps2000", "default"), ("enc_nr", "default"), ("holdout2_s2000", "default"), ("holdout2_s8000", "steps8000")]
+ALIASES = [("steps2000", "default"), ("enc_nr", "default"), ("holdout2_s2000", "default"), ("holdout2_s8000", "steps8000"),
+           ("w32d4", "default"), ("batch4096", "default"), ("input128", "default"), ("float32", "default")]
+BENCH_KEYS = ("input_subsample", "predict_refine_steps")
+"""setting keys that are not FitOptions fields: input_subsample = keep every n-th training pixel in
+both axes; predict_refine_steps = K, predict with the shipped predictor, then K refine_dam steps"""
+#: the families of the study rows (summary lines in the markdown, markers in the plot)
+STUDIES: dict[str, list[str]] = {
+    "depth (width 32)": ["w32d2", "default", "w32d6"],
+    "pixels per step": ["batch1024", "default", "batch16384"],
+    "training input resolution": ["input32", "input64", "default"],
+    "precision": ["default", "bfloat16"],
+    "predictor + K refine steps": ["predict_k0", "predict_k100", "predict_k300", "predict_k1000"],
+}
 
 # --------------------------------------------------------------------------------------------
 # helpers
@@ -113,14 +165,52 @@ def stats_of(xs: list[float]) -> dict:
     }
 
 
-def run_key(capture: str, opts: FitOptions) -> str:
-    return capture + "|" + json.dumps(asdict(opts), sort_keys=True)
+def split_overrides(overrides: dict) -> tuple[dict, dict]:
+    """A setting's (FitOptions overrides, bench-level keys of BENCH_KEYS)."""
+    return ({k: v for k, v in overrides.items() if k not in BENCH_KEYS},
+            {k: v for k, v in overrides.items() if k in BENCH_KEYS})
 
 
-def load_run_log() -> dict[str, dict]:
+def run_key(capture: str, opts: FitOptions, bench: dict | None = None) -> str:
+    """The run log's key: capture, FitOptions and bench-level keys (predictor runs: with the
+    predictor file's hash). ``precision`` is left out at its default so that runs logged before
+    the option existed keep their keys."""
+    d = asdict(opts)
+    if d.get("precision") == "float32":
+        del d["precision"]
+    return capture + "|" + json.dumps(d, sort_keys=True) + ("|" + json.dumps(bench, sort_keys=True) if bench else "")
+
+
+def subsample_view(view: ViewData, step: int) -> ViewData:
+    """A view whose per-pixel arrays keep every ``step``-th pixel in both axes ((H, W) ->
+    (ceil(H / step), ceil(W / step)), no filtering); its camera pose is unchanged (DAM samples
+    need world positions and normals, not intrinsics)."""
+    d = view.data
+    sub = {f.name: None if getattr(d, f.name) is None else np.ascontiguousarray(getattr(d, f.name)[::step, ::step])
+           for f in dataclasses.fields(d)}
+    return ViewData(view.name, dataclasses.replace(d, **sub), view.world_from_cam)
+
+
+def setting_data(data: dict, bench: dict) -> dict:
+    """The capture's data as a setting trains on it: subsampled training views (cached in
+    ``data``) with full-resolution test views and same-view targets."""
+    step = int(bench.get("input_subsample", 1))
+    if step == 1:
+        return data
+    variants = data.setdefault("subsampled", {})
+    if step not in variants:
+        train = [subsample_view(v, step) for v in data["train"]]
+        variants[step] = {**data, "train": train, "samples": samples_of(train), "train_eval": data["train"],
+                          "input_resolution": list(train[0].data.coverage.shape)}
+        log(f"  training views subsampled every {step} px: {variants[step]['input_resolution']} px, "
+            f"{len(variants[step]['samples'])} training pixels")
+    return variants[step]
+
+
+def load_run_log(path: Path = RUNS_LOG) -> dict[str, dict]:
     out: dict[str, dict] = {}
-    if RUNS_LOG.is_file():
-        for line in RUNS_LOG.read_text().splitlines():
+    if path.is_file():
+        for line in path.read_text().splitlines():
             try:
                 rec = json.loads(line)
             except json.JSONDecodeError:
@@ -129,8 +219,8 @@ def load_run_log() -> dict[str, dict]:
     return out
 
 
-def append_run_log(rec: dict) -> None:
-    with RUNS_LOG.open("a") as f:
+def append_run_log(rec: dict, path: Path = RUNS_LOG) -> None:
+    with path.open("a") as f:
         f.write(json.dumps(rec) + "\n")
 
 
@@ -149,8 +239,13 @@ WAITED_S = 0.0
 
 
 def wait_for_quiet(max_wait_s: float, window_s: float = 1.0) -> tuple[float, bool]:
-    """Wait (at most max_wait_s) until two consecutive windows see others use < QUIET_FRAC."""
+    """Wait (at most max_wait_s) until two consecutive windows see others use < QUIET_FRAC.
+
+    ``max_wait_s <= 0`` does not wait (a smoke run): the machine counts as quiet, and the timed
+    run's own CPU meter still reports how much others used."""
     global WAITED_S
+    if max_wait_s <= 0:
+        return 0.0, True
     t0 = time.perf_counter()
     ok, quiet, last_log = 0, False, t0
     while time.perf_counter() - t0 < max_wait_s:
@@ -230,14 +325,9 @@ class Timeline:
 # --------------------------------------------------------------------------------------------
 
 
-def fit_once(data: dict, opts: FitOptions, *, max_aborts: int, quiet_wait_s: float, budget_left) -> dict:
-    """One fit: wall seconds of fit_dam (incl. its setup), novel- and same-view DSSIM."""
-    frames = None
-    t_prep = 0.0
-    if opts.adversarial:
-        t = time.perf_counter()
-        frames = training_frames(data["train"], opts.encoding, radiance_scale_of(data["samples"].radiance_lin))
-        t_prep = time.perf_counter() - t
+def timed(run, *, max_aborts: int, quiet_wait_s: float, budget_left) -> tuple:
+    """``run(progress)`` under the contention protocol (wait for a quiet machine; abort and
+    restart when disturbed early): (its result, CpuMeter, Timeline, aborts, seconds waited)."""
     aborts, waited_total = 0, 0.0
     while True:
         waited, quiet = wait_for_quiet(quiet_wait_s)
@@ -248,36 +338,95 @@ def fit_once(data: dict, opts: FitOptions, *, max_aborts: int, quiet_wait_s: flo
         tl = Timeline(abort_within_s=3.0 if may_abort else 0.0)
         try:
             with CpuMeter() as m:
-                res = fit_dam(data["samples"], opts, frames_for_adversarial=frames, progress=tl)
-            break
+                out = run(tl)
+            return out, m, tl, aborts, waited_total
         except _Disturbed as e:
             aborts += 1
             log(f"  aborted at step {e.step}: other processes used {e.frac:.0%} of the CPUs; waiting for a quiet machine")
+
+
+def timing_record(m: CpuMeter, tl: Timeline, aborts: int, waited: float) -> dict:
+    """The timing fields of a run's record (raw wall, or the clean-window estimate if disturbed)."""
     est = tl.clean_estimate(m.wall)
     clean = m.foreign_frac <= QUIET_FRAC
     seconds = m.wall if clean or not math.isfinite(est["estimate_s"]) else est["estimate_s"]
-    test = evaluate_split(data["train"], data["test"], {"DAM": res.model}, baselines=False)["DAM"].mean
-    train = evaluate_split(data["train"], data["train"], {"DAM": res.model}, baselines=False)["DAM"].mean
     return {
-        "seed": opts.seed,
         "seconds": seconds,
         "seconds_raw_wall": m.wall,
-        "seconds_fit_internal": res.seconds,
-        "seconds_adversarial_frames": t_prep,
         "foreign_cpu_frac": m.foreign_frac,
         "clean_timing": clean,
         "timing_source": "wall" if clean else ("clean-window estimate" if seconds != m.wall else "disturbed wall (no clean window)"),
         "clean_window_estimate": est,
         "aborted_attempts": aborts,
-        "waited_for_quiet_s": waited_total,
-        "dssim_test": test,
-        "dssim_train": train,
-        "ratio_test_to_rmpp": test / data["rmpp_test"],
+        "waited_for_quiet_s": waited,
+    }
+
+
+def accuracy_record(data: dict, model) -> dict:
+    """Novel-view (test) and same-view (full-resolution train) DSSIM of a model."""
+    test = evaluate_split(data["train"], data["test"], {"DAM": model}, baselines=False)["DAM"].mean
+    same = data.get("train_eval", data["train"])
+    train = evaluate_split(same, same, {"DAM": model}, baselines=False)["DAM"].mean
+    return {"dssim_test": test, "dssim_train": train, "ratio_test_to_rmpp": test / data["rmpp_test"],
+            "finite_weights": bool(torch.isfinite(model.weights_flat).all())}
+
+
+def fit_once(data: dict, opts: FitOptions, *, max_aborts: int, quiet_wait_s: float, budget_left) -> dict:
+    """One fit: wall seconds of fit_dam (incl. its setup), novel- and same-view DSSIM."""
+    frames = None
+    t_prep = 0.0
+    if opts.adversarial:
+        t = time.perf_counter()
+        frames = training_frames(data["train"], opts.encoding, radiance_scale_of(data["samples"].radiance_lin))
+        t_prep = time.perf_counter() - t
+    res, m, tl, aborts, waited = timed(lambda tl: fit_dam(data["samples"], opts, frames_for_adversarial=frames, progress=tl),
+                                       max_aborts=max_aborts, quiet_wait_s=quiet_wait_s, budget_left=budget_left)
+    timing = timing_record(m, tl, aborts, waited)
+    return {
+        "seed": opts.seed,
+        **timing,
+        "seconds_fit_internal": res.seconds,
+        "seconds_adversarial_frames": t_prep,
+        **accuracy_record(data, res.model),
+        "training_pixels": len(data["samples"]),
         "best_step": res.best_step,
         "final_train_l1": res.history[-1]["train_l1"] if res.history else float("nan"),
         "final_holdout_l1": res.history[-1]["holdout_l1"] if res.history else float("nan"),
-        "finite_weights": bool(torch.isfinite(res.model.weights_flat).all()),
         "history": res.history,
+    }
+
+
+def predict_once(data: dict, predictor, refine_steps: int, seed: int, *, max_aborts: int, quiet_wait_s: float, budget_left) -> dict:
+    """Predict a DAM with the shipped predictor, then ``refine_steps`` steps of refine_dam (as
+    ``damcap predict --refine-steps K``); the time covers choosing and cropping the input view,
+    the prediction and the refinement."""
+    def run(tl: Timeline) -> dict:
+        t0 = time.perf_counter()
+        k, crop, scale = predictor_input(data["train"])
+        model = predict_dam(predictor, crop, scale)
+        t1 = time.perf_counter()
+        refined, before, after = refine_dam(model, data["samples"], refine_steps, seed=seed, progress=tl)
+        return {"model": refined, "input_view": data["train"][k].name, "predict_s": t1 - t0,
+                "refine_s": time.perf_counter() - t1, "before": before, "after": after, "accepted": refined is not model}
+
+    out, m, tl, aborts, waited = timed(run, max_aborts=max_aborts, quiet_wait_s=quiet_wait_s, budget_left=budget_left)
+    timing = timing_record(m, tl, aborts, waited)
+    return {
+        "seed": seed,
+        **timing,
+        "seconds_fit_internal": out["predict_s"] + out["refine_s"],
+        "seconds_predict": out["predict_s"],
+        "seconds_refine": out["refine_s"],
+        **accuracy_record(data, out["model"]),
+        "training_pixels": len(data["samples"]),
+        "input_view": out["input_view"],
+        "refine_steps": refine_steps,
+        "refinement_kept": out["accepted"],
+        "best_step": refine_steps if out["accepted"] else 0,
+        "final_train_l1": out["after"],
+        "predicted_train_l1": out["before"],
+        "final_holdout_l1": float("nan"),
+        "history": [],
     }
 
 
@@ -370,9 +519,29 @@ def compute_targets(result: dict) -> dict:
             if n in rows:
                 ho[n] = rows[n]["ratio_test_to_rmpp"]["mean"]
         tt["holdout_compare"] = ho
+        studies = {}
+        for study, names in STUDIES.items():
+            pts = {n: {"seconds": rows[n]["seconds"]["mean"], "ratio": rows[n]["ratio_test_to_rmpp"]["mean"]} for n in names if n in rows}
+            if len(pts) > 1 or (pts and "default" not in pts):
+                studies[study] = pts
+        tt["studies"] = studies
         targets["per_capture"][cap_name] = tt
     targets["render"] = result.get("render")
     return targets
+
+
+STUDY_MARKERS = {"fit settings": "o", "input resolution": "^", "bfloat16": "D", "predictor + K refine steps": "s"}
+
+
+def marker_of(name: str) -> str:
+    """The plot marker of a setting: predictor runs, subsampled inputs and bf16 stand out."""
+    if name.startswith("predict_k"):
+        return STUDY_MARKERS["predictor + K refine steps"]
+    if name.startswith("input"):
+        return STUDY_MARKERS["input resolution"]
+    if name == "bfloat16":
+        return STUDY_MARKERS["bfloat16"]
+    return STUDY_MARKERS["fit settings"]
 
 
 def pareto_plot(result: dict, path: Path) -> None:
@@ -390,7 +559,8 @@ def pareto_plot(result: dict, path: Path) -> None:
             if row.get("alias_of"):
                 continue
             x, y = row["seconds"]["mean"], row["ratio_test_to_rmpp"]["mean"]
-            ax.errorbar(x, y, xerr=row["seconds"]["std"], yerr=row["ratio_test_to_rmpp"]["std"], fmt="o", color=c, ms=5, capsize=2, alpha=0.85)
+            ax.errorbar(x, y, xerr=row["seconds"]["std"], yerr=row["ratio_test_to_rmpp"]["std"], fmt=marker_of(row["name"]), color=c,
+                        ms=5, capsize=2, alpha=0.85)
             ax.annotate(row["name"], (x, y), fontsize=7, xytext=(4, 3), textcoords="offset points", color=c)
             pts.append((x, y))
         pts.sort()
@@ -401,12 +571,15 @@ def pareto_plot(result: dict, path: Path) -> None:
                 best = y
         if front:
             ax.plot(*zip(*front), "-", color=c, alpha=0.5, label=f"{cap_name} (Pareto front)")
+    for study, m in STUDY_MARKERS.items():
+        ax.plot([], [], m, color="grey", label=f"marker: {study}")
     ax.axhline(0.5, color="grey", ls="--", lw=0.8, label="0.5x RM++ / 10 s (default target)")
     ax.axvline(10, color="grey", ls="--", lw=0.8)
     ax.axhline(0.35, color="grey", ls=":", lw=0.8, label="0.35x RM++ / 60 s (best-setting target)")
     ax.axvline(60, color="grey", ls=":", lw=0.8)
     ax.set_xscale("log")
-    ax.set_xlabel(f"fit_dam wall seconds ({result['machine']['nproc']}-core CPU, {THREADS} torch threads); mean ± std over seeds")
+    ax.set_xlabel(f"fit_dam wall seconds (predict_k*: prediction + refinement; {result['machine']['nproc']}-core CPU, "
+                  f"{THREADS} torch threads); mean ± std over seeds")
     ax.set_ylabel("novel-view DSSIM / RM++ novel-view DSSIM (lower is better)")
     ax.set_title("DAM fit: speed vs novel-view accuracy\nclosed-form captures, 32 views at 128x128, 10 train / 22 test")
     ax.grid(alpha=0.3, which="both")
@@ -414,6 +587,14 @@ def pareto_plot(result: dict, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def _shown(path: Path) -> str:
+    """A path as the report shows it: relative to the repository root when inside it."""
+    try:
+        return str(path.resolve().relative_to(BENCH.parent))
+    except ValueError:
+        return str(path)
 
 
 def fmt(s: dict, digits: int = 4) -> str:
@@ -429,7 +610,7 @@ def disturbed(t: dict) -> str:
     return "" if n == total else " — *timings of some seeds disturbed by other processes, so the time is an estimate*"
 
 
-def write_markdown(result: dict, path: Path) -> None:
+def write_markdown(result: dict, path: Path, plot_path: Path) -> None:
     m = result["machine"]
     L: list[str] = []
     L.append("# DAM core benchmark: fit speed/accuracy and render time (CPU)\n")
@@ -440,12 +621,22 @@ def write_markdown(result: dict, path: Path) -> None:
     L.append(f"- machine: `nproc` = {m['nproc']}; CPU model (/proc/cpuinfo): {m['cpu_model']}")
     L.append(f"- torch {m['torch']} with `torch.set_num_threads({THREADS})`, numpy {m['numpy']}, Python {m['python']}, {m['platform']}")
     L.append(f"- seeds: {result['seeds']} (`FitOptions.seed`; the captures themselves use seed 0)")
-    L.append("- raw numbers (per seed, with training histories): `bench/results/dam_core.json`; plot: `bench/results/dam_core_pareto.png`\n")
+    L.append(f"- raw numbers (per seed, with training histories): `{_shown(plot_path.with_name('dam_core.json'))}`; plot: `{_shown(plot_path)}`\n")
     L.append("Captures: `ClosedFormOptions(shape=..., light='env', views=32, resolution=128, train_views=10, seed=0)`: "
              "10 consecutive train views, 22 test views. **Novel-view** = the 22 test views; **same-view** = the 10 train views "
              "(RM/RM++ leave the frame itself out; the DAM saw them). Time = wall seconds of the `fit_dam` call (adversarial: "
              "building its whole-frame inputs, ~0.1 s, is not included; it is in the JSON). Ratio = DAM novel-view DSSIM / RM++ "
              "novel-view DSSIM per seed, then mean ± sample std over seeds. DSSIM does not depend on timing: fits are deterministic per seed.\n")
+    L.append("Studies (rows after `holdout0_s8000`): `w32d2`/`w32d6` vary the DAM depth at width 32; `batch1024`/`batch16384` the pixels "
+             "sampled per step; `input64`/`input32` train on every 2nd/4th pixel of each 128×128 training frame in both axes "
+             "(64×64 / 32×32 inputs, subsampled in the benchmark, no filtering), while novel-view DSSIM is still measured on the "
+             "full-resolution test views and same-view DSSIM on the full-resolution train views; `bfloat16` runs the training step "
+             "under bfloat16 autocast (`FitOptions.precision`; weights stay float32); `predict_kK` predicts the DAM with the "
+             "shipped learning-to-learn predictor from one train view and refines it K steps on all train views "
+             "(`refine_dam`, as `damcap predict --refine-steps K`): its time is choosing and cropping the input view, the "
+             "prediction and the refinement"
+             + (f" (loading the predictor file, {result['predictor']['load_seconds']:.2f} s once, is not included)" if result.get("predictor") else "")
+             + ", and its 'best step' is K when the refinement was kept (0: the prediction itself).\n")
     L.append(f"**Timing on a shared machine.** Other people's experiments, test runs and installs ran on the same 2 cores during this "
              f"benchmark; a 2-thread torch fit slows down by up to ~30x when it does not get both cores. Before each fit the script "
              f"waits (at most {result['quiet_wait_s']:.0f} s) for two quiet seconds; a fit during whose first 3 s other processes "
@@ -490,6 +681,8 @@ def write_markdown(result: dict, path: Path) -> None:
                    else ". Novel views improved monotonically with steps on this curve."))
         if len(tt["holdout_compare"]) > 1:
             L.append("- Hold-out stopping (ratio): " + ", ".join(f"`{k}` {v:.3f}" for k, v in tt["holdout_compare"].items()) + ".")
+        for study, pts in tt.get("studies", {}).items():
+            L.append(f"- Study, {study}: " + "; ".join(f"`{n}` {v['seconds']:.2f} s → {v['ratio']:.3f}× RM++" for n, v in pts.items()) + ".")
         L.append("")
     r = t["render"]
     if r:
@@ -520,7 +713,7 @@ def write_markdown(result: dict, path: Path) -> None:
                      f"| {rs['mean']:.3f} ± {rs['std']:.3f} ({rs['min']:.3f}–{rs['max']:.3f}) | {fmt(row['dssim_train'])} "
                      f"| {'/'.join(str(x['best_step']) for x in row['per_seed'])} | {row['clean_timings']}/{len(row['seeds'])} |")
         L.append("")
-    L.append("![Pareto plot: fit seconds vs novel-view DSSIM ratio to RM++](results/dam_core_pareto.png)\n")
+    L.append(f"![Pareto plot: fit seconds vs novel-view DSSIM ratio to RM++]({os.path.relpath(plot_path, path.parent)})\n")
     path.write_text("\n".join(L) + "\n")
 
 
@@ -529,26 +722,63 @@ def write_markdown(result: dict, path: Path) -> None:
 # --------------------------------------------------------------------------------------------
 
 
-def measure_setting(result: dict, data: dict, args, name: str, overrides: dict, cached_runs: dict, budget_left) -> None:
+def load_shipped_predictor(data: dict[str, dict]) -> dict:
+    """The shipped predictor (loaded once; loading is not part of a setting's time), its file's
+    hash (part of the run keys) and one untimed warm-up prediction + refinement per capture
+    (first-call allocations; fits get theirs from earlier fits in the same process)."""
+    path = shipped_predictor_path()
+    t = time.perf_counter()
+    net, meta = load_predictor(path)
+    load_s = time.perf_counter() - t
+    for d in data.values():
+        _, crop, scale = predictor_input(d["train"])
+        refine_dam(predict_dam(net, crop, scale), d["samples"], 5)
+    log(f"predictor {path.name}: loaded in {load_s:.2f} s")
+    return {"net": net, "name": path.name, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), "load_seconds": load_s,
+            "command": meta.get("training", {}).get("command"), "dam_architecture": net.arch.dam.to_json()}
+
+
+def predictor_options(predictor: dict, refine_steps: int) -> dict:
+    """What a predictor setting runs (its row's options)."""
+    return {"method": "predict_dam + refine_dam (damcap predict --refine-steps K)", "predictor": predictor["name"],
+            "predictor_sha256": predictor["sha256"], "refine_steps": refine_steps,
+            "refine_learning_rate": inspect.signature(refine_dam).parameters["learning_rate"].default,
+            "refine_holdout_views": 0, "batch_size": FitOptions().batch_size}
+
+
+def measure_setting(result: dict, data: dict, args, name: str, overrides: dict, cached_runs: dict, budget_left,
+                    predictor: dict | None = None) -> None:
+    fit_ov, bench_ov = split_overrides(overrides)
+    k_refine = bench_ov.get("predict_refine_steps")
     for cap_name in args.captures:
+        cap_data = setting_data(data[cap_name], bench_ov)
         per_seed = []
         for seed in args.seeds:
-            opts = replace(FitOptions(), seed=seed, **overrides)
-            key = run_key(cap_name, opts)
+            opts = replace(FitOptions(), seed=seed, **fit_ov)
+            key_extra = dict(bench_ov, **({"predictor_sha256": predictor["sha256"]} if k_refine is not None else {}))
+            key = run_key(cap_name, opts, key_extra)
             if key in cached_runs:
                 rec = cached_runs[key]["result"]
                 log(f"{cap_name} {name} seed {seed}: reused ({rec['seconds']:.2f} s, novel DSSIM {rec['dssim_test']:.4f})")
             else:
-                rec = fit_once(data[cap_name], opts, max_aborts=args.max_aborts, quiet_wait_s=args.quiet_wait, budget_left=budget_left)
-                append_run_log({"key": key, "result": rec})
+                if k_refine is not None:
+                    rec = predict_once(cap_data, predictor["net"], int(k_refine), seed, max_aborts=args.max_aborts,
+                                       quiet_wait_s=args.quiet_wait, budget_left=budget_left)
+                else:
+                    rec = fit_once(cap_data, opts, max_aborts=args.max_aborts, quiet_wait_s=args.quiet_wait, budget_left=budget_left)
+                append_run_log({"key": key, "result": rec}, args.runs_log)
                 log(f"{cap_name} {name} seed {seed}: {rec['seconds']:.2f} s ({rec['timing_source']}; raw {rec['seconds_raw_wall']:.2f} s, "
                     f"others {rec['foreign_cpu_frac']:.0%}), novel DSSIM {rec['dssim_test']:.4f} (x{rec['ratio_test_to_rmpp']:.3f} RM++), "
                     f"same-view {rec['dssim_train']:.4f}, best step {rec['best_step']}")
             per_seed.append(rec)
+        options = (predictor_options(predictor, int(k_refine)) if k_refine is not None
+                   else asdict(replace(FitOptions(), **fit_ov)) | bench_ov) | {"seed": "per seed"}
+        if "input_resolution" in cap_data:
+            options["training_input_resolution"] = cap_data["input_resolution"]
         row = {
             "name": name,
             "overrides": overrides,
-            "options": asdict(replace(FitOptions(), **overrides)) | {"seed": "per seed"},
+            "options": options,
             "seeds": args.seeds,
             "per_seed": per_seed,
             "seconds": stats_of([r["seconds"] for r in per_seed]),
@@ -556,6 +786,7 @@ def measure_setting(result: dict, data: dict, args, name: str, overrides: dict, 
             "dssim_test": stats_of([r["dssim_test"] for r in per_seed]),
             "dssim_train": stats_of([r["dssim_train"] for r in per_seed]),
             "ratio_test_to_rmpp": stats_of([r["ratio_test_to_rmpp"] for r in per_seed]),
+            "training_pixels": per_seed[0].get("training_pixels", len(cap_data["samples"])) if per_seed else len(cap_data["samples"]),
             "clean_timings": sum(bool(r["clean_timing"]) for r in per_seed),
             "diverged_seeds": [r["seed"] for r in per_seed if not (r["finite_weights"] and math.isfinite(r["dssim_test"]))],
         }
@@ -571,7 +802,7 @@ def measure_setting(result: dict, data: dict, args, name: str, overrides: dict, 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    ap.add_argument("--only", nargs="*", default=None, help="setting names to run (default: all)")
+    ap.add_argument("--only", nargs="*", default=None, help="setting names to run (default: all); see SETTINGS")
     ap.add_argument("--captures", nargs="*", default=list(CAPTURES))
     ap.add_argument("--resume", action="store_true", help="reuse fits recorded in bench/.cache/dam_core_runs.jsonl")
     ap.add_argument("--render-runs", type=int, default=20)
@@ -579,17 +810,30 @@ def main() -> int:
                     help="start no new setting after this many minutes, not counting waits for a quiet machine (priority order)")
     ap.add_argument("--max-aborts", type=int, default=8, help="restarts of a fit disturbed by other processes")
     ap.add_argument("--quiet-wait", type=float, default=1800.0,
-                    help="seconds to wait for a quiet machine before each fit; if it never comes, the rest is skipped")
+                    help="seconds to wait for a quiet machine before each fit; if it never comes, the rest is skipped "
+                         "(0 = do not wait; timings are still flagged when others used the CPUs)")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="write dam_core.json, dam_core_pareto.png, dam_core.md and the run log here instead of "
+                         "bench/results/, bench/ and bench/.cache/ (smoke runs)")
     args = ap.parse_args()
+    unknown = sorted(set(args.only or []) - {n for n, _ in SETTINGS})
+    if unknown:
+        ap.error(f"--only: unknown setting(s) {unknown}; choose from {[n for n, _ in SETTINGS]}")
+    unknown = sorted(set(args.captures) - set(CAPTURES))
+    if unknown:
+        ap.error(f"--captures: unknown capture(s) {unknown}; choose from {list(CAPTURES)}")
+    results_dir = RESULTS if args.out is None else args.out
+    md_path = BENCH / "dam_core.md" if args.out is None else args.out / "dam_core.md"
+    args.runs_log = RUNS_LOG if args.out is None else args.out / "dam_core_runs.jsonl"
 
     torch.set_num_threads(THREADS)
     CACHE.mkdir(parents=True, exist_ok=True)
-    RESULTS.mkdir(parents=True, exist_ok=True)
+    results_dir.mkdir(parents=True, exist_ok=True)
     t_start = time.time()
     command = "cd /work/main && .venv/bin/python bench/dam_core.py" + "".join(" " + a for a in sys.argv[1:])
     result: dict = {"command": command, "machine": machine_info(), "seeds": args.seeds, "captures": {}, "notes": [],
                     "quiet_wait_s": args.quiet_wait, "max_aborts": args.max_aborts, "budget_minutes": args.budget_minutes}
-    cached_runs = load_run_log() if args.resume else {}
+    cached_runs = load_run_log(args.runs_log) if args.resume else {}
     budget_left = lambda: 60 * args.budget_minutes - (time.time() - t_start - WAITED_S)
 
     data: dict[str, dict] = {}
@@ -618,13 +862,17 @@ def main() -> int:
                                         "n_training_pixels": len(samples), "baselines": baselines, "settings": []}
 
     settings = [s for s in SETTINGS if args.only is None or s[0] in args.only]
+    predictor = None
+    if any("predict_refine_steps" in ov for _, ov in settings):
+        predictor = load_shipped_predictor(data)
+        result["predictor"] = {k: v for k, v in predictor.items() if k != "net"}
     skipped, busy = [], None
     for si, (name, overrides) in enumerate(settings):
         if busy or (si > 0 and budget_left() < 0):
             skipped.append(name)
             continue
         try:
-            measure_setting(result, data, args, name, overrides, cached_runs, budget_left)
+            measure_setting(result, data, args, name, overrides, cached_runs, budget_left, predictor)
         except MachineBusy as e:
             busy = f"stopped at setting `{name}`: {e}"
             log(busy)
@@ -641,10 +889,10 @@ def main() -> int:
     result["total_seconds"] = time.time() - t_start
     result["waited_for_quiet_seconds"] = WAITED_S
 
-    (RESULTS / "dam_core.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
-    pareto_plot(result, RESULTS / "dam_core_pareto.png")
-    write_markdown(result, BENCH / "dam_core.md")
-    log(f"done in {result['total_seconds'] / 60:.1f} min: {RESULTS / 'dam_core.json'}, {BENCH / 'dam_core.md'}")
+    (results_dir / "dam_core.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
+    pareto_plot(result, results_dir / "dam_core_pareto.png")
+    write_markdown(result, md_path, results_dir / "dam_core_pareto.png")
+    log(f"done in {result['total_seconds'] / 60:.1f} min: {results_dir / 'dam_core.json'}, {md_path}")
     return 0
 
 

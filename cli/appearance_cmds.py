@@ -79,6 +79,7 @@ def fit(
     holdout_views: int = typer.Option(None, help="training views held out for the stopping rule (0 = none)"),
     seed: int = typer.Option(None),
     device: str = typer.Option(None, help="cpu | cuda | auto"),
+    precision: str = typer.Option(None, help="training-step compute: float32 | bfloat16 (autocast; weights and the saved model stay float32)"),
     resume: bool = typer.Option(True, "--resume/--no-resume", help="continue from OUTPUT.ckpt if a run was interrupted"),
     target_dssim: Optional[float] = typer.Option(None, "--target-dssim", help="fit growing DAMs and keep the smallest whose DSSIM on the held-out train views is at most this"),
 ) -> None:
@@ -91,8 +92,9 @@ def fit(
 
     given = dict(steps=steps, batch_size=batch_size, learning_rate=learning_rate, width=width, depth=depth,
                  encoding=encoding, activation=activation, adversarial=adversarial, holdout_views=holdout_views,
-                 seed=seed, device=device)
+                 seed=seed, device=device, precision=precision)
     opts = FitOptions(**{k: v for k, v in given.items() if v is not None})
+    opts.validate()  # numeric options and --precision, before reading the capture
     opts.architecture  # validates width/depth/encoding/activation
     if split not in ("train", "all"):
         raise DamcapError(f"--split must be train or all, got {split!r}")
@@ -100,7 +102,8 @@ def fit(
     cap = read_capture(capture)
     views = load_views(cap, split)  # type: ignore[arg-type]
     if target_dssim is not None:
-        _fit_to_target(capture, cap, views, split, target_dssim, opts, output, width_or_depth_given=width is not None or depth is not None)
+        _fit_to_target(capture, cap, views, split, target_dssim, opts, output, width_or_depth_given=width is not None or depth is not None,
+                       resume=resume)
         return
     samples = samples_of(views)
     frames = training_frames(views, opts.encoding, radiance_scale_of(samples.radiance_lin)) if opts.adversarial else None
@@ -121,19 +124,30 @@ def fit(
                f"best step {result.best_step}, {result.seconds:.1f} s)")
 
 
-def _fit_to_target(capture: Path, cap, views, split: str, target: float, opts, output: Path, width_or_depth_given: bool) -> None:
-    """``fit --target-dssim``: the smallest DAM of the size ladder that reaches the target."""
+def _fit_to_target(capture: Path, cap, views, split: str, target: float, opts, output: Path, width_or_depth_given: bool,
+                   resume: bool = True) -> None:
+    """``fit --target-dssim``: the smallest DAM of the size ladder that reaches the target.
+
+    Checkpoints beside the output (OUTPUT.ckpt.sizes, OUTPUT.ckpt.wWdD); a rerun resumes them
+    unless ``resume`` is False.
+    """
     from dataclasses import asdict
 
     from damcap.appearance.dam_file import save_dam
-    from damcap.appearance.model_size import fit_to_target
+    from damcap.appearance.model_size import fit_to_target, remove_target_checkpoints, target_checkpoint_files
     from damcap.common.version import damcap_version
 
     if width_or_depth_given:
         raise DamcapError("--target-dssim chooses the width and depth itself; leave out --width and --depth")
     if opts.adversarial:
         raise DamcapError("--target-dssim fits without the adversarial cost; leave out --adversarial")
-    choice = fit_to_target(views, target, opts, progress=lambda line: typer.echo(line, err=True))
+    ckpt = output.with_name(output.name + ".ckpt")
+    if not resume:
+        remove_target_checkpoints(ckpt)
+    existing = target_checkpoint_files(ckpt)
+    if existing:
+        typer.echo(f"resuming from {', '.join(p.name for p in existing)} in {output.parent}", err=True)
+    choice = fit_to_target(views, target, opts, progress=lambda line: typer.echo(line, err=True), checkpoint_path=ckpt)
     save_dam(output, choice.model, colorspace=cap.colorspace, made_by="fit", provenance={
         "damcap_version": damcap_version(), "options": asdict(opts), "capture": str(capture.resolve()), "split": split,
         "frames": [v.name for v in views], "target_dssim": target, "target_reached": choice.reached, "sizes_tried": choice.tried,
@@ -180,15 +194,38 @@ def render(
 
 @app.command()
 def evaluate(
-    capture: Path = typer.Argument(..., help="capture folder"),
+    capture: Optional[Path] = typer.Argument(None, help="capture folder (not with --table1 / --table2)"),
     model: Optional[list[Path]] = typer.Option(None, "--model", help="model file (.dam), repeatable (e.g. a predicted and a fitted one); without it only the baselines"),
     json_path: Optional[Path] = typer.Option(None, "--json", help="write the results as JSON"),
     plot: Optional[Path] = typer.Option(None, "--plot", help="sorted per-frame DSSIM plot (PNG); default next to --json"),
     segmentation: Optional[Path] = typer.Option(None, "--segmentation", help="a folder written by damcap segment"),
     kmeans: Optional[int] = typer.Option(None, "--kmeans", help="also the k-means baseline with this many materials"),
+    table1: Optional[list[Path]] = typer.Option(None, "--table1", help="the paper's Table 1 on the held-out captures of this synth-set corpus (repeatable: corpora are pooled)"),
+    table2: Optional[Path] = typer.Option(None, "--table2", help="the paper's Table 2 (all three tasks) on this real capture"),
+    out: Optional[Path] = typer.Option(None, "--out", help="folder for the --table1 / --table2 markdown, JSON and plots"),
+    predictor: Optional[Path] = typer.Option(None, "--predictor", help="--table1/--table2: predictor file (default: the shipped one)"),
+    table_materials: str = typer.Option("auto", "--table-materials", help="--table2: materials of the segmentation, a number or 'auto'"),
+    fresh: bool = typer.Option(False, "--fresh", help="--table1: recompute every capture instead of resuming"),
 ) -> None:
     """Mean DSSIM, same view (train) and novel view (test), for the model, RM and RM++
-    (and segmentations: ours and the k-means baseline)."""
+    (and segmentations: ours and the k-means baseline); or the paper's Table 1 / Table 2."""
+    if table1 or table2:
+        from .tables_cmds import run_table1, run_table2
+
+        if capture is not None or model or segmentation or kmeans is not None or json_path or plot:
+            raise DamcapError("--table1 / --table2 run every method themselves: give no CAPTURE, --model, --segmentation, --kmeans, --json or --plot")
+        if table1 and table2:
+            raise DamcapError("give --table1 or --table2, not both (they write different tables)")
+        if out is None:
+            raise DamcapError("--table1 / --table2 need --out FOLDER for the markdown, JSON and plots")
+        refuse_input_overlap(out, *(table1 or [table2]))
+        if table1:
+            run_table1(list(table1), out, predictor, fresh)
+        else:
+            run_table2(table2, out, predictor, table_materials)
+        return
+    if capture is None:
+        raise DamcapError("evaluate needs a CAPTURE folder (or --table1 CORPUS / --table2 CAPTURE)")
     from rich.console import Console
     from rich.table import Table
 

@@ -522,7 +522,9 @@ def silhouette_iou(mesh: Mesh, inputs: GeometryInputs, max_views: int = 8) -> fl
 def _transform_mesh(mesh: Mesh, norm_from_world: np.ndarray) -> Mesh:
     v = transform_points(norm_from_world, mesh.vertices)
     lin = norm_from_world[:3, :3]
-    n = mesh.vertex_normals.astype(np.float64) @ np.linalg.inv(lin)  # normals: inverse transpose
+    # normals: the inverse transpose, divided by its scale so that unit normals stay unit whatever
+    # the input's units (the floor below is then only for zero normals, not for s = 1e12)
+    n = mesh.vertex_normals.astype(np.float64) @ (np.linalg.inv(lin) * np.cbrt(abs(np.linalg.det(lin))))
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     tris = mesh.triangles if np.linalg.det(lin) > 0 else mesh.triangles[:, ::-1].copy()
     return Mesh(v.astype(np.float32), tris, n.astype(np.float32), mesh.triangle_groups)

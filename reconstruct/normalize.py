@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from damcap.common.errors import DamcapError
+
 
 def similarity(scale: float, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     """(4, 4) float64 ``[s R | t]``.
@@ -152,6 +154,9 @@ def normalization_transform(world_from_cams: np.ndarray, points_world: np.ndarra
 
     Returns:
         (4, 4) float64 norm_from_world.
+
+    Raises:
+        DamcapError: the radius is 0 (no absolute floor: the scale must not depend on the units).
     """
     m = np.asarray(world_from_cams, dtype=np.float64)
     focus, cond = optical_axes_focus(m) if len(m) >= 2 else (m[0, :3, 3] - m[0, :3, 2], 0.0)
@@ -167,7 +172,10 @@ def normalization_transform(world_from_cams: np.ndarray, points_world: np.ndarra
     ry = np.array([[np.cos(-az), 0, np.sin(-az)], [0, 1, 0], [-np.sin(-az), 0, np.cos(-az)]])
     rot = ry @ rot
     radius = object_radius(focus, m, points_world)
-    s = target_radius / max(radius, 1e-12)
+    if not (np.isfinite(radius) and radius > 0):  # no absolute floor: 1e-12 is a valid radius in other units
+        raise DamcapError(f"cannot normalise the scene: the object's radius is {radius} (the cameras sit at the point "
+                          "they look at)")
+    s = target_radius / radius
     return similarity(s, rot, -s * rot @ focus)
 
 

@@ -32,6 +32,9 @@ from .undistort import PhotoCamera, camera_from_colmap
 
 #: OpenGL camera axes from COLMAP's (and back): flip y and z. Its own inverse.
 GL_FROM_CV_CAM = np.diag([1.0, -1.0, -1.0, 1.0])
+#: camera centres whose spread is at most this fraction of their largest distance from the world
+#: origin count as one position (relative, so that any unit works; float64 resolves about 1e-16)
+COINCIDENT_CENTRES_REL = 1e-9
 
 
 @dataclass
@@ -134,6 +137,28 @@ def orthonormalize_rotation(world_from_cam: np.ndarray) -> np.ndarray:
     return m
 
 
+def coincident_centres(world_from_cams: np.ndarray, rel: float = COINCIDENT_CENTRES_REL) -> str | None:
+    """Why cameras cannot see an object from different sides, or None: all their centres at one
+    point (translations scaled by 0, one matrix repeated, a panorama turned about its centre).
+
+    Args:
+        world_from_cams: (N, 4, 4) camera-to-world.
+        rel: spread (largest distance from the centres' mean) at or below ``rel`` times the
+            largest centre's distance from the origin counts as one position.
+
+    >>> coincident_centres(np.stack([np.eye(4)] * 3))
+    'all 3 cameras are at the same position [0.0, 0.0, 0.0] (spread 0)'
+    """
+    c = np.asarray(world_from_cams, dtype=np.float64)[:, :3, 3]
+    if len(c) < 2:
+        return None
+    spread = float(np.linalg.norm(c - c.mean(0), axis=1).max())
+    if spread > rel * float(np.linalg.norm(c, axis=1).max()):
+        return None
+    where = [float(f"{x:.6g}") + 0.0 for x in c[0]]  # + 0.0: no '-0.0'
+    return f"all {len(c)} cameras are at the same position {where} (spread {spread:.3g})"
+
+
 # --------------------------------------------------------------------------------------------
 # Matching pose entries to photos
 # --------------------------------------------------------------------------------------------
@@ -151,6 +176,10 @@ def _finish(source: str, path: Path, found: dict[str, RegisteredPhoto], photo_na
         )
     unregistered = {n: missing_reason for n in photo_names if n not in found}
     photos = [found[n] for n in sorted(found)]
+    same = coincident_centres(np.stack([p.world_from_cam for p in photos]))
+    if same:
+        raise DamcapError(f"{path}: {same}; the photos must be taken from different positions around the object "
+                          "(translations scaled by 0, or one matrix repeated?)")
     return Registration(photos=photos, unregistered=unregistered, source=source,
                         stats={"registered": len(photos), "photos": len(photo_names), **extra})
 

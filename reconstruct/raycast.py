@@ -79,6 +79,10 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
 def vertex_normals_area_weighted(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(V, 3) unit vertex normals: the sum of adjacent face normals weighted by face area.
 
+    Scale-free: the sum has units of area (square scene units, as small as 1e-24 for a mesh of
+    size 1e-11), so it is divided by its own length without an absolute floor; a vertex without
+    area (unreferenced, or only degenerate triangles) gets a zero normal.
+
     Args:
         vertices: (V, 3).
         triangles: (T, 3) counter-clockwise (outward) vertex indices.
@@ -88,7 +92,8 @@ def vertex_normals_area_weighted(vertices: np.ndarray, triangles: np.ndarray) ->
     n = np.zeros_like(v)
     for k in range(3):
         np.add.at(n, triangles[:, k], fn)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return n / np.where(length > 0, length, 1.0)
 
 
 def normalise_to_unit_sphere(mesh: Mesh) -> Mesh:

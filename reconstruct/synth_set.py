@@ -35,8 +35,8 @@ from damcap.common.errors import DamcapError
 
 from .synth import SynthOptions, make_synthetic_capture
 
-Preset = Literal["small", "paper", "hyper"]
-PRESETS = ("small", "paper", "hyper")
+Preset = Literal["small", "paper", "hyper", "segment"]
+PRESETS = ("small", "paper", "hyper", "segment")
 
 #: every object of the paper preset: mesh files in shared/data/meshes, and the analytic sphere
 OBJECTS = ("stanford-bunny.obj", "spot.obj", "igea.ply", "cow.obj", "beetle.obj", "armadillo.obj",
@@ -114,7 +114,7 @@ class CorpusPreset:
 
 
 def preset(name: Preset) -> CorpusPreset:
-    """The ``small`` or ``paper`` preset.
+    """A corpus preset (``small``, ``paper``, ``hyper`` or ``segment``).
 
     Samples per pixel keep the path-tracing noise floor (bench/synth.md) under 0.02 DSSIM:
     at 128 px, 512 under environment maps and 256 under the point light; twice that at 256 px.
@@ -124,6 +124,9 @@ def preset(name: Preset) -> CorpusPreset:
     part has both held-out objects under the held-out environment map and held-out point lights,
     one material (the paper's Table 1 setting); the train part has the bunny and the sphere with
     1 and 3 materials under both light kinds.
+    ``segment``: the held-out part of ``small`` with three materials (4 captures, 128 px): the
+    test set of the segmentation rows of Table 1 (both held-out objects, the held-out environment
+    map and held-out point lights).
     ``hyper``: the training data of the predictor (``damcap train-hyper``): every training object
     x every training illumination, one material, 128 px, 12 views, 128 / 64 spp (224 captures,
     nothing held out is in it). Captures are in a hashed order, so an interrupted corpus is
@@ -143,6 +146,11 @@ def preset(name: Preset) -> CorpusPreset:
             ("sphere", "env-forest-r180", 1), ("sphere", "point-08", 3),
         )
         return CorpusPreset("small", tuple(sorted({c[0] for c in combos})), tuple(sorted({c[1] for c in combos})), (1, 3),
+                            128, 32, spp_env=512, spp_point=256, combos=combos)
+    if name == "segment":
+        combos = (("spot.obj", "env-sunset-r090", 3), ("spot.obj", "point-16", 3),
+                  ("dragon_10k.obj", "env-sunset-r270", 3), ("dragon_10k.obj", "point-18", 3))
+        return CorpusPreset("segment", tuple(sorted({c[0] for c in combos})), tuple(sorted({c[1] for c in combos})), (3,),
                             128, 32, spp_env=512, spp_point=256, combos=combos)
     if name == "hyper":
         train_objects = tuple(o for o in OBJECTS if o not in HELDOUT_OBJECTS)

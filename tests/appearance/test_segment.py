@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from damcap.appearance.segment import (
-    SegmentOptions, kmeans, kmeans_baseline, match_materials, segment_materials, segmentation_scores,
+    SegmentOptions, choose_materials, kmeans, kmeans_baseline, match_materials, segment_materials, segmentation_scores,
 )
 from damcap.appearance.views import load_views
 from damcap.cli.main import main
@@ -16,16 +16,23 @@ from damcap.common.capture_folder import read_capture
 from damcap.common.exr import read_exr
 from damcap.reconstruct.closed_form import ClosedFormOptions, make_closed_form_capture
 
+from ..conftest import assert_one_line_error, run_cli
+
 FAST = dict(steps=300, init_steps=150, batch_pixels=2048)
+
+
+def _torus_capture(tmp_path_factory, materials: int):
+    """A 40 px closed-form torus under the sky, 12 views (5 train): (folder, train views, test views)."""
+    out = tmp_path_factory.mktemp("seg") / f"torus{materials}"
+    make_closed_form_capture(out, ClosedFormOptions(shape="torus", light="env", env_grid=12, materials=materials, views=12,
+                                                    resolution=40, train_views=5, seed=2, dtype="float"))
+    cap = read_capture(out)
+    return out, load_views(cap, "train"), load_views(cap, "test")
 
 
 @pytest.fixture(scope="module")
 def two_materials(tmp_path_factory):
-    out = tmp_path_factory.mktemp("seg") / "torus2"
-    make_closed_form_capture(out, ClosedFormOptions(shape="torus", light="env", env_grid=12, materials=2, views=12,
-                                                    resolution=40, train_views=5, seed=2, dtype="float"))
-    cap = read_capture(out)
-    return out, load_views(cap, "train"), load_views(cap, "test")
+    return _torus_capture(tmp_path_factory, 2)
 
 
 @pytest.fixture(scope="module")
@@ -101,3 +108,72 @@ def test_segment_command_writes_everything(two_materials, tmp_path, capsys):
     assert {"segment (estimated weights)", "segment (true weights)"} <= set(res)
     assert main(["segment", str(path), "-o", str(tmp_path / "x"), "--materials", "two"]) == 2
     assert main(["evaluate", str(path), "--segmentation", str(tmp_path / "nothing")]) == 2
+
+
+@pytest.fixture(scope="module")
+def one_material(tmp_path_factory):
+    return _torus_capture(tmp_path_factory, 1)[1:]
+
+
+def test_auto_picks_one_material_for_a_single_material_capture(one_material):
+    train, test = one_material
+    choice = choose_materials(train, test, SegmentOptions(**FAST), max_materials=2)
+    assert choice.materials == 1, choice.curve
+    assert [c["materials"] for c in choice.curve] == [1, 2] and len(choice.curve[0]["restarts"]) == 2
+
+
+def test_auto_picks_two_materials_for_a_two_material_capture(two_materials):
+    _, train, test = two_materials
+    choice = choose_materials(train, test, SegmentOptions(**FAST), max_materials=3)
+    assert choice.materials == 2, choice.curve
+    assert choice.model.materials == 2 and "n = 3" in choice.reason
+    # the fewest materials that reach an accuracy asked for: 1 material cannot reach what 2 do
+    two = choice.curve[1]["heldout_dssim"]
+    target = choose_materials(train, test, SegmentOptions(**FAST), max_materials=3, target_dssim=1.001 * two)
+    assert target.materials == 2 and "fewest" in target.reason
+
+
+def _torus_obj(path, scale=1.0, shift=(0.0, 0.0, 0.0)):
+    """The closed-form torus (axis y, radii 0.9 and 0.4) as an OBJ, optionally scaled and moved."""
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh.create_torus(torus_radius=0.9, tube_radius=0.4, radial_resolution=60, tubular_resolution=24)
+    v = np.asarray(m.vertices)[:, [0, 2, 1]] * [1, 1, -1]  # Open3D's torus turns about z; the capture's about y
+    m.vertices = o3d.utility.Vector3dVector(v * scale + np.asarray(shift))
+    o3d.io.write_triangle_mesh(str(path), m)
+    return v
+
+
+def test_segmentation_carries_onto_meshes(two_materials, segmented, tmp_path, capsys):
+    from scipy.spatial import cKDTree
+
+    from damcap.appearance.segment_file import save_segmentation
+    from damcap.reconstruct.closed_form import two_material_weights
+    from damcap.reconstruct.raycast import load_mesh
+
+    seg = tmp_path / "seg"
+    save_segmentation(seg, segmented, colorspace="lin_rec709", provenance={})
+    same = tmp_path / "torus.obj"
+    _torus_obj(same)
+    verts = load_mesh(same).vertices  # the vertices as damcap reads them (labels follow this order)
+    code, out, err = run_cli(["segment-labels", seg, "--mesh", same, "-o", tmp_path / "l.npy", "--align", "none"], capsys)
+    assert code == 0, err
+    labels = np.load(tmp_path / "l.npy")
+    assert labels.shape == (len(verts),) and "damcap export" in out
+    # on the surface the training views saw, the labels are the true materials (labels matched)
+    seen = cKDTree(segmented.points_world).query(verts)[0] < 0.02 * segmented.scene_radius
+    assert seen.mean() > 0.3
+    iou = match_materials(np.eye(2)[labels[seen]], two_material_weights(verts[seen]))[1]
+    assert iou > 0.85, iou
+    # a new shape elsewhere and 100x larger: 'sphere' alignment puts the materials back in place
+    moved = tmp_path / "moved.ply"
+    _torus_obj(moved, scale=100.0, shift=(5.0, -3.0, 40.0))
+    code, _, err = run_cli(["segment-labels", seg, "--mesh", moved, "-o", tmp_path / "m.txt", "--weights", tmp_path / "w.npy"], capsys)
+    assert code == 0, err
+    moved_labels = np.loadtxt(tmp_path / "m.txt", dtype=np.int64)
+    assert len(moved_labels) == len(verts) and np.load(tmp_path / "w.npy").shape == (len(verts), 2)
+    assert (moved_labels[seen] == labels[seen]).mean() > 0.9
+    code, _, err = run_cli(["segment-labels", seg, "--mesh", same, "-o", tmp_path / "l.csv"], capsys)
+    assert_one_line_error(code, err, "l.csv", ".npy")
+    code, _, err = run_cli(["segment-labels", seg, "--mesh", same, "-o", tmp_path / "l2.npy", "--align", "box"], capsys)
+    assert_one_line_error(code, err, "'box'")

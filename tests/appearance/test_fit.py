@@ -63,8 +63,7 @@ def test_interrupted_fit_resumes_to_the_same_model(small_samples, tmp_path):
     torch.testing.assert_close(resumed.model.get_flat_weights(), ref.model.get_flat_weights(), rtol=0, atol=0)
     assert not ckpt.exists()  # removed after a finished fit
     # a checkpoint of other options is not resumed
-    with pytest.raises(KeyboardInterrupt):
-        fit_dam(small_samples, opts, checkpoint_path=ckpt, progress=stop_at_150)
+    interrupt_fit_at(small_samples, opts, ckpt, 150)
     other = fit_dam(small_samples, FitOptions(steps=200, checkpoint_every=50, eval_every=25, seed=3), checkpoint_path=ckpt)
     assert other.resumed_from == 0
 
@@ -155,8 +154,7 @@ def test_bfloat16_fit_resumes_and_checkpoints_float32(small_samples, tmp_path):
     assert all(v.dtype == torch.float32 for st in state["optim"]["state"].values() for k, v in st.items() if k != "step")
     # a float32 run does not resume a bfloat16 checkpoint (the options differ)
     assert fit_dam(small_samples, FitOptions(steps=200, checkpoint_every=50, eval_every=25, seed=2), checkpoint_path=ckpt).resumed_from == 0
-    with pytest.raises(KeyboardInterrupt):
-        fit_dam(small_samples, opts, checkpoint_path=ckpt, progress=stop_at_150)
+    interrupt_fit_at(small_samples, opts, ckpt, 150)
     resumed = fit_dam(small_samples, opts, checkpoint_path=ckpt)
     assert resumed.resumed_from == 100
     torch.testing.assert_close(resumed.model.get_flat_weights(), ref.model.get_flat_weights(), rtol=0, atol=0)

@@ -62,18 +62,9 @@ def load_dam(path: str | os.PathLike) -> tuple[DeepAppearanceMap, dict[str, Any]
             architecture, non-finite weights.
     """
     path = Path(path)
-    if not path.is_file():
-        raise DamcapError(f"{path}: model file not found")
-    data = path.read_bytes()
+    tensors, meta_text = read_damcap_safetensors(path, "model", ".dam model")
     try:
-        tensors = st_load(data)
-        meta_raw = _read_metadata(data)
-    except (SafetensorError, ValueError, OverflowError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise DamcapError(f"{path}: not a damcap .dam model file (not valid safetensors: {str(e).splitlines()[0][:120]})") from None
-    if METADATA_KEY not in meta_raw:
-        raise DamcapError(f"{path}: a safetensors file without damcap metadata; not a .dam model")
-    try:
-        meta = json.loads(meta_raw[METADATA_KEY])
+        meta = json.loads(meta_text)
         version = meta["format_version"]
         arch_json = meta["architecture"]
         scale = float(meta["radiance_scale"])
@@ -95,7 +86,32 @@ def load_dam(path: str | os.PathLike) -> tuple[DeepAppearanceMap, dict[str, Any]
     return DeepAppearanceMap(arch, scale, w), meta
 
 
-def _read_metadata(data: bytes) -> dict[str, str]:
+def read_damcap_safetensors(path: Path, noun: str, kind: str) -> tuple[dict[str, torch.Tensor], str]:
+    """The tensors and the damcap metadata text (``METADATA_KEY``) of a damcap safetensors file.
+
+    Args:
+        path: the file.
+        noun: what the file is called in 'NOUN file not found' (e.g. 'model').
+        kind: what it is called in 'not a damcap KIND file' (e.g. '.dam model').
+
+    Raises:
+        DamcapError: a missing file, not safetensors (random bytes, a pickle, truncated), or no
+            damcap metadata.
+    """
+    if not path.is_file():
+        raise DamcapError(f"{path}: {noun} file not found")
+    data = path.read_bytes()
+    try:
+        tensors = st_load(data)
+        meta_raw = read_safetensors_metadata(data)
+    except (SafetensorError, ValueError, OverflowError, UnicodeDecodeError) as e:
+        raise DamcapError(f"{path}: not a damcap {kind} file (not valid safetensors: {str(e).splitlines()[0][:120]})") from None
+    if METADATA_KEY not in meta_raw:
+        raise DamcapError(f"{path}: a safetensors file without damcap metadata; not a {kind}")
+    return tensors, meta_raw[METADATA_KEY]
+
+
+def read_safetensors_metadata(data: bytes) -> dict[str, str]:
     """The ``__metadata__`` block of a safetensors blob (already validated by ``st_load``)."""
     n = int.from_bytes(data[:8], "little")
     header = json.loads(data[8:8 + n].decode("utf-8"))

@@ -15,14 +15,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors import SafetensorError
-from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 
 from damcap.common.atomic import atomic_path
 from damcap.common.errors import DamcapError
 
-from .dam_file import METADATA_KEY, _read_metadata
+from .dam_file import METADATA_KEY, read_damcap_safetensors
 from .hyper import HyperArchitecture, HyperNet
 
 PREDICTOR_FORMAT_VERSION = 1
@@ -54,17 +52,11 @@ def load_predictor(path: str | os.PathLike) -> tuple[HyperNet, dict[str, Any]]:
             non-finite tensors.
     """
     path = Path(path)
-    if not path.is_file():
-        raise DamcapError(f"{path}: predictor file not found")
-    data = path.read_bytes()
+    tensors, meta_text = read_damcap_safetensors(path, "predictor", "predictor")
     try:
-        tensors = st_load(data)
-        meta_raw = _read_metadata(data)
-        meta = json.loads(meta_raw[METADATA_KEY])
-    except (SafetensorError, ValueError, OverflowError, UnicodeDecodeError) as e:
+        meta = json.loads(meta_text)
+    except ValueError as e:
         raise DamcapError(f"{path}: not a damcap predictor file (not valid safetensors: {str(e).splitlines()[0][:120]})") from None
-    except KeyError:
-        raise DamcapError(f"{path}: a safetensors file without damcap metadata; not a predictor") from None
     if not isinstance(meta, dict) or meta.get("kind") != KIND:
         raise DamcapError(f"{path}: damcap file of kind {meta.get('kind') if isinstance(meta, dict) else None!r}, not a predictor "
                           f"(a .dam model? use it with render/evaluate instead)")

@@ -21,7 +21,7 @@ from safetensors.torch import save as st_save
 from damcap.common.atomic import atomic_path
 from damcap.common.errors import DamcapError
 
-from .dam_file import load_dam, save_dam
+from .dam_file import load_dam, read_safetensors_metadata, save_dam
 from .segment import SegmentationModel, SegmentationNet
 
 SEGMENTER_FILE = "segmenter.safetensors"
@@ -61,8 +61,7 @@ def load_segmentation(folder: str | os.PathLike) -> SegmentationModel:
     data = path.read_bytes()
     try:
         tensors = st_load(data)
-        n_hdr = int.from_bytes(data[:8], "little")
-        meta = json.loads(json.loads(data[8:8 + n_hdr])["__metadata__"]["damcap_segmenter"])
+        meta = json.loads(read_safetensors_metadata(data)["damcap_segmenter"])
         n = int(meta["materials"])
         version = int(meta["format_version"])
     except (SafetensorError, ValueError, KeyError, TypeError, json.JSONDecodeError) as e:

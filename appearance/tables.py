@@ -35,7 +35,9 @@ from .baselines import ViewData
 from .evaluate import MethodScores, evaluate_split
 from .fit import FitOptions, fit_dam, refine_dam
 from .pixels import FOREGROUND_COVERAGE
-from .segment import SegmentOptions, kmeans_baseline, match_materials, segment_materials, segmentation_scores
+from .segment import (
+    SegmentOptions, chromaticity_features, kmeans_baseline, match_materials, segment_materials, segmentation_scores,
+)
 from .views import samples_of
 
 #: the paper's published figures, for the side-by-side columns (Table 1 ratios and Table 2)
@@ -118,22 +120,20 @@ def mean_iou(model, views: list[ViewData], carried: bool, lit_only: bool = False
     ``lit_only``: only pixels bright enough to show their colour (:func:`.segment.chromaticity_features`);
     unlit pixels carry no evidence of their material.
     """
-    from .segment import chromaticity_features
-
     if not views or any(v.data.weights is None for v in views):
         return None
     fgs = [v.data.coverage > FOREGROUND_COVERAGE for v in views]
     if lit_only:
-        fgs = [fg & _lit(v, model.radiance_scale, chromaticity_features) for v, fg in zip(views, fgs)]
+        fgs = [fg & _lit(v, model.radiance_scale) for v, fg in zip(views, fgs)]
     pw = np.concatenate([(model.weights_at(v.data.position_world) if carried else model.weights_of(v))[fg] for v, fg in zip(views, fgs)])
     tw = np.concatenate([v.data.weights[fg] for v, fg in zip(views, fgs)])
     return match_materials(pw, tw)[1]
 
 
-def _lit(view: ViewData, scale: float, chroma_fn) -> np.ndarray:
+def _lit(view: ViewData, scale: float) -> np.ndarray:
     """(H, W) bool: pixels bright enough to show their colour."""
     rad = view.data.radiance_lin
-    return chroma_fn(rad.reshape(-1, 3), scale)[1].reshape(rad.shape[:-1])
+    return chromaticity_features(rad.reshape(-1, 3), scale)[1].reshape(rad.shape[:-1])
 
 
 def segmentation_rows(train: list[ViewData], test: list[ViewData], opts: TableOptions, materials: int | None = None) -> tuple[dict, dict, dict]:

@@ -36,7 +36,7 @@ def _options_record(opts, predictor: Optional[Path]) -> dict:
 
 
 def run_table1(corpora: list[Path], out: Path, predictor_path: Optional[Path], fresh: bool) -> None:
-    from damcap.appearance.tables import TableOptions, plot_table1, table1_markdown, table1_rows
+    from damcap.appearance.tables import TableOptions, plot_table1, summarise, table1_markdown, table1_rows
     from damcap.common.atomic import write_json_atomic, write_text_atomic
     from damcap.common.version import damcap_version
 
@@ -67,8 +67,6 @@ def run_table1(corpora: list[Path], out: Path, predictor_path: Optional[Path], f
 
     all_rows = table1_rows(corpora, opts, _predictor(predictor_path), log=lambda m: typer.echo(m, err=True),
                            done=done, on_capture=save)
-    from damcap.appearance.tables import summarise
-
     write_json_atomic(json_path, {**header, "table": summarise(all_rows), "captures": [r.as_json() for r in all_rows]})
     md = table1_markdown(all_rows, header["command"])
     plots = plot_table1(all_rows, out)

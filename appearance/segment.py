@@ -64,6 +64,11 @@ class SegmentOptions:
     """Adam learning rate of the DAMs (Psi uses a fifth of it)"""
     sparsity_beta: float = 0.05
     """weight beta of the sparsity cost c_s"""
+    prior_weight: float = 1.0
+    """weight of the initial labels' cross-entropy during the joint phase (0 = the paper's cost
+    alone). The labels are the chromaticity k-means of the same frames, so the fit stays
+    unsupervised; keeping them as a soft prior stops the DAMs from trading a material boundary
+    for a shading one (measured: bench/segment.md)"""
     psi_resolution: int = 64
     """Psi runs on frames area-downsampled to at most this many pixels per side; its weights are
     upsampled bilinearly (speed: Psi's cost grows with the square of this)"""
@@ -86,8 +91,8 @@ class SegmentOptions:
         for name in ("steps", "batch_pixels", "frames_per_step"):
             if getattr(self, name) < 1:
                 raise DamcapError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
-        if self.init_steps < 0 or self.sparsity_beta < 0:
-            raise DamcapError("--init-steps and --sparsity-beta must be >= 0")
+        if self.init_steps < 0 or self.sparsity_beta < 0 or self.prior_weight < 0:
+            raise DamcapError("--init-steps, --sparsity-beta and --prior-weight must be >= 0")
 
     @property
     def architecture(self) -> DamArchitecture:
@@ -396,20 +401,20 @@ def segment_materials(views: list[ViewData], opts: SegmentOptions, progress: Cal
         y = torch.cat(y_list).to(device)
         pred = dam_forward(dam_w, x.expand(n, *x.shape), arch)  # (n, P, 3)
         l1 = (pred - y[None]).abs().mean(-1).T  # (P, n)
+        lab = torch.cat(lab_list).to(device)
+        known = lab >= 0
+        ce = F.cross_entropy(logit_px[known], lab[known]) if known.any() else logit_px.sum() * 0
         if not joint:  # teach Psi the k-means labels; fit each DAM to its cluster
-            lab = torch.cat(lab_list).to(device)
-            known = lab >= 0
             onehot = F.one_hot(lab.clamp_min(0), n).float() * known[:, None]
             data = (onehot * l1).sum(1).sum() / known.sum().clamp_min(1)
-            ce = F.cross_entropy(logit_px[known], lab[known]) if known.any() else logit_px.sum() * 0
             loss = data + ce
             stats = {"l1": float(data.detach()), "ce": float(ce.detach())}
         else:
             w = torch.softmax(logit_px, 1)
             data = (w * l1).sum(1).mean()
             sparsity = (1 - (w * w).sum(1)).mean()
-            loss = data + opts.sparsity_beta * sparsity
-            stats = {"l1": float(data.detach()), "sparsity": float(sparsity.detach())}
+            loss = data + opts.sparsity_beta * sparsity + opts.prior_weight * ce
+            stats = {"l1": float(data.detach()), "sparsity": float(sparsity.detach()), "prior_ce": float(ce.detach())}
         opt.zero_grad()
         loss.backward()
         opt.step()

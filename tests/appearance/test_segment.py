@@ -74,6 +74,29 @@ def test_each_dam_reproduces_its_material(two_materials, segmented):
     assert np.mean(list(novel["true weights"].values())) < 0.9 * np.mean(list(km_novel["true weights"].values()))
 
 
+def test_prior_weight_keeps_the_initial_labels(two_materials):
+    """The joint phase's prior term pulls Psi toward the chromaticity k-means labels it started from."""
+    import torch
+
+    from damcap.appearance.fit import radiance_scale_of
+    from damcap.appearance.segment import chromaticity_features
+
+    _, train, _ = two_materials
+    fgs = [v.data.coverage > 0.5 for v in train]
+    rad = np.concatenate([v.data.radiance_lin[fg] for v, fg in zip(train, fgs)])
+    chroma, bright = chromaticity_features(rad, radiance_scale_of(torch.from_numpy(rad)))
+    init = kmeans(chroma[bright], 2, seed=0)
+    agreement = {}
+    for prior in (0.0, 50.0):  # a short initialisation: without the prior, the joint phase drifts away
+        model = segment_materials(train, SegmentOptions(materials=2, steps=150, init_steps=20, batch_pixels=2048, prior_weight=prior))
+        assert "prior_ce" in model.history[-1]
+        pw = np.concatenate([model.weights_of(v)[fg] for v, fg in zip(train, fgs)])[bright]
+        agreement[prior] = match_materials(pw, np.eye(2)[init])[1]
+    assert agreement[50.0] > 0.85 and agreement[50.0] > agreement[0.0] + 0.1, agreement
+    with pytest.raises(Exception, match="prior-weight"):
+        segment_materials(train, SegmentOptions(materials=2, prior_weight=-1.0))
+
+
 def test_kmeans_on_separable_clusters():
     rng = np.random.default_rng(0)
     a = rng.normal(0, 0.1, (200, 6))
@@ -107,6 +130,9 @@ def test_segment_command_writes_everything(two_materials, tmp_path, capsys):
     res = json.loads((tmp_path / "e.json").read_text())["results"]["test"]
     assert {"segment (estimated weights)", "segment (true weights)"} <= set(res)
     assert main(["segment", str(path), "-o", str(tmp_path / "x"), "--materials", "two"]) == 2
+    capsys.readouterr()
+    assert main(["segment", str(path), "-o", str(tmp_path / "x"), "--materials", "2", "--prior-weight", "-1"]) == 2
+    assert "--prior-weight" in capsys.readouterr().err
     assert main(["evaluate", str(path), "--segmentation", str(tmp_path / "nothing")]) == 2
 
 

@@ -35,6 +35,7 @@ from torch import nn
 
 from damcap.common.device import resolve_device
 from damcap.common.errors import DamcapError
+from damcap.reconstruct.normalize import bounding_sphere
 
 from .baselines import ViewData
 from .dam import DamArchitecture, DeepAppearanceMap, Encoding, dam_forward, encode_inputs, init_weights
@@ -332,8 +333,8 @@ def _prepare(views: list[ViewData], encoding: Encoding, scale: float, centre: np
 def scene_bounds(views: list[ViewData]) -> tuple[np.ndarray, float]:
     """Centre and radius of the training foreground's world positions."""
     pts = np.concatenate([v.data.position_world[v.data.coverage > FOREGROUND_COVERAGE] for v in views])
-    centre = (pts.min(0) + pts.max(0)) / 2
-    return centre.astype(np.float32), float(max(np.linalg.norm(pts - centre, axis=1).max(), 1e-6))
+    centre, radius = bounding_sphere(pts)
+    return centre.astype(np.float32), max(radius, 1e-6)
 
 
 def segment_materials(views: list[ViewData], opts: SegmentOptions, progress: Callable[[int, int, dict[str, float]], None] | None = None) -> SegmentationModel:
@@ -459,9 +460,8 @@ def mesh_material_weights(model: SegmentationModel, vertices: np.ndarray, align:
         raise DamcapError(f"--align must be 'none' or 'sphere', got {align!r}")
     v = np.asarray(vertices, np.float64)
     if align == "sphere":
-        centre = (v.min(0) + v.max(0)) / 2
-        radius = max(float(np.linalg.norm(v - centre, axis=1).max()), 1e-30)
-        v = (v - centre) / radius * model.scene_radius + model.scene_centre
+        centre, radius = bounding_sphere(v)
+        v = (v - centre) / max(radius, 1e-30) * model.scene_radius + model.scene_centre
     return model.weights_at(v.astype(np.float32)).astype(np.float32)
 
 

@@ -94,7 +94,7 @@ def segment_labels(
 
     from damcap.appearance.segment import mesh_material_weights
     from damcap.appearance.segment_file import load_segmentation
-    from damcap.common.atomic import atomic_path, write_text_atomic
+    from damcap.common.atomic import write_npy_atomic, write_text_atomic
     from damcap.reconstruct.raycast import load_mesh
 
     refuse_input_overlap(output, segmentation, mesh)
@@ -105,14 +105,12 @@ def segment_labels(
     w = mesh_material_weights(model, shape.vertices, align)
     labels = w.argmax(1).astype(np.int64)
     if output.suffix == ".npy":
-        with atomic_path(output) as tmp, open(tmp, "wb") as f:
-            np.save(f, labels)
+        write_npy_atomic(output, labels)
     else:
         write_text_atomic(output, "\n".join(map(str, labels.tolist())) + "\n")
     if weights is not None:
         refuse_input_overlap(weights, segmentation, mesh)
-        with atomic_path(weights) as tmp, open(tmp, "wb") as f:
-            np.save(f, w)
+        write_npy_atomic(weights, w)
     counts = np.bincount(labels, minlength=model.materials)
     typer.echo(f"wrote {output}: {len(labels)} vertices, per material {counts.tolist()}; render with "
                f"damcap export {segmentation}/material_*.dam --mesh {mesh} --labels {output}")

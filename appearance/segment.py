@@ -70,9 +70,15 @@ class SegmentOptions:
     alone). The labels are the chromaticity k-means of the same frames, so the fit stays
     unsupervised; keeping them as a soft prior stops the DAMs from trading a material boundary
     for a shading one (measured: bench/segment.md)"""
-    psi_resolution: int = 64
+    illumination_degree: int = 2
+    """the initial clustering models the illumination's colour as a polynomial of this degree in
+    the world normal (0, 1 or 2; 0 = plain chromaticity k-means): under a tinted environment map
+    one material is redder where it faces the sun and bluer where it faces the sky, and plain
+    k-means splits it by orientation (measured on the segment-dev captures: bench/segment.md)"""
+    psi_resolution: int = 128
     """Psi runs on frames area-downsampled to at most this many pixels per side; its weights are
-    upsampled bilinearly (speed: Psi's cost grows with the square of this)"""
+    upsampled bilinearly. Speed vs accuracy, measured on the segment-dev captures (128 px): 64
+    takes about 0.6x the time of 128 and loses about 0.02 mean IoU (bench/segment.md)"""
     psi_channels: int = 8
     """Psi's base channel count (doubles at each of its two levels)"""
     width: int = 32
@@ -94,6 +100,8 @@ class SegmentOptions:
                 raise DamcapError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
         if self.init_steps < 0 or self.sparsity_beta < 0 or self.prior_weight < 0:
             raise DamcapError("--init-steps, --sparsity-beta and --prior-weight must be >= 0")
+        if self.illumination_degree not in (0, 1, 2):
+            raise DamcapError(f"--illumination-degree must be 0, 1 or 2, got {self.illumination_degree}")
 
     @property
     def architecture(self) -> DamArchitecture:
@@ -183,6 +191,76 @@ def kmeans(features: np.ndarray, k: int, seed: int, iterations: int = 50, restar
             best, best_cost = centres, cost
     labels = torch.cat([torch.cdist(x[s:s + 65536], best).argmin(1) for s in range(0, x.shape[0], 65536)])
     return labels.numpy().astype(np.int64)
+
+
+def normal_polynomial(normal_world: np.ndarray, degree: int) -> np.ndarray:
+    """Polynomial basis of a unit normal without the constant term (the real spherical harmonics'
+    shapes: degree 1 adds x, y, z; degree 2 adds xy, xz, yz, x^2 - y^2, 3z^2 - 1).
+
+    Args:
+        normal_world: (P, 3) unit normals.
+        degree: 0, 1 or 2.
+
+    Returns:
+        (P, D) float64, D = 0, 3 or 8.
+
+    >>> normal_polynomial(np.array([[0.0, 0.0, 1.0]]), 2).tolist()
+    [[0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 2.0]]
+    """
+    n = np.asarray(normal_world, dtype=np.float64)
+    if degree == 0:
+        return np.zeros((len(n), 0))
+    x, y, z = n[:, 0], n[:, 1], n[:, 2]
+    cols = [x, y, z]
+    if degree >= 2:
+        cols += [x * y, x * z, y * z, x * x - y * y, 3 * z * z - 1]
+    return np.stack(cols, axis=1)
+
+
+def illumination_aware_kmeans(chroma: np.ndarray, normal_world: np.ndarray, k: int, seed: int, degree: int = 2,
+                              iterations: int = 30, ridge: float = 1e-2, eps: float = 1e-6) -> np.ndarray:
+    """Cluster colours into materials while a smooth illumination colour varies with the normal.
+
+    Model: ``log chroma_i = a_{label_i} + B(n_i) theta + s_i``: a log-chromaticity per material
+    ``a``, an illumination tint that is a polynomial ``B`` of the world normal shared by all
+    materials (the diffuse irradiance of a distant environment is smooth in the normal), and a
+    per-pixel grey level ``s`` (removed by centring over the channels). Alternates labels (nearest
+    ``a``), the materials' ``a`` (means) and ``theta`` (ridge least squares), starting from plain
+    k-means on the log chromaticity. Degree 0 is that k-means alone.
+
+    Args:
+        chroma: (P, 3) chromaticities (see :func:`chromaticity_features`) of lit pixels.
+        normal_world: (P, 3) their unit normals.
+        k: clusters.
+        seed: k-means seed.
+        degree: polynomial degree, 0..2.
+        iterations: alternation rounds at most (stops when the labels settle).
+        ridge: ridge on theta, relative to the number of pixels.
+        eps: floor of a chromaticity before the log.
+
+    Returns:
+        (P,) int64 labels in [0, k).
+    """
+    f = np.log(np.maximum(np.asarray(chroma, dtype=np.float64), eps))
+    f -= f.mean(axis=1, keepdims=True)
+    labels = kmeans(f.astype(np.float32), k, seed)
+    basis = normal_polynomial(normal_world, degree)
+    if basis.shape[1] == 0:
+        return labels
+    basis -= basis.mean(axis=0)
+    normal_eq = basis.T @ basis + ridge * len(basis) * np.eye(basis.shape[1])
+    tint = np.zeros_like(f)
+    for _ in range(iterations):
+        untinted = f - tint
+        centres = np.stack([untinted[labels == j].mean(0) if (labels == j).any() else np.zeros(3) for j in range(k)])
+        theta = np.linalg.solve(normal_eq, basis.T @ (f - centres[labels]))
+        tint = basis @ theta
+        d2 = (((f - tint)[:, None, :] - centres[None]) ** 2).sum(-1)
+        new = d2.argmin(1)
+        if np.array_equal(new, labels):
+            break
+        labels = new
+    return labels.astype(np.int64)
 
 
 # --------------------------------------------------------------------------------------------
@@ -358,14 +436,18 @@ def segment_materials(views: list[ViewData], opts: SegmentOptions, progress: Cal
     centre, radius = scene_bounds(views)
     frames = _prepare(views, arch.encoding, scale, centre, radius)
 
-    # initial labels: k-means on chromaticity of the lit pixels (-1 = too dark to tell, ignored)
+    # initial labels: k-means on chromaticity of the lit pixels, with the illumination's tint
+    # modelled as a function of the normal (-1 = too dark to tell, ignored)
     fg_rad = [v.data.radiance_lin[v.data.coverage > FOREGROUND_COVERAGE] for v in views]
     chroma, bright = chromaticity_features(np.concatenate(fg_rad), scale)
     labels_flat = np.full(len(chroma), -1, np.int64)
-    if bright.sum() >= n:
+    if bright.sum() < n:  # nothing lit enough to tell colours apart
+        labels_flat[:] = np.arange(len(chroma)) % n
+    elif opts.illumination_degree == 0:
         labels_flat[bright] = kmeans(chroma[bright], n, opts.seed)
     else:
-        labels_flat[:] = np.arange(len(chroma)) % n
+        fg_nrm = np.concatenate([v.data.normal_world[v.data.coverage > FOREGROUND_COVERAGE] for v in views])
+        labels_flat[bright] = illumination_aware_kmeans(chroma[bright], fg_nrm[bright], n, opts.seed, opts.illumination_degree)
     splits = np.cumsum([len(r) for r in fg_rad])[:-1]
     init_labels = [torch.from_numpy(lab) for lab in np.split(labels_flat, splits)]
 

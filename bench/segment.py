@@ -12,11 +12,14 @@ Per capture:
   frames (Psi's weights) and on the test frames (weights carried from the geometry). Target >= 0.85;
 * ``--materials auto``: the n it chooses and the held-out curve behind it (how often it finds 3);
 * time per capture on this CPU;
-* with ``--closed-form``: ``--materials auto`` on closed-form captures whose n is known (1 or 2).
+* with ``--closed-form``: ``--materials auto`` on closed-form captures whose n is known (1 or 2);
+* with ``--dev``: the development set where the defaults are chosen (``segment-dev`` preset:
+  training objects under training illuminations, never the held-out captures above): mean IoU of
+  the default options next to each ablation (one knob back to its alternative).
 
 Run (from the repository root; renders the corpus first when it is missing, ~5 min)::
 
-    .venv/bin/python bench/segment.py --closed-form
+    .venv/bin/python bench/segment.py --closed-form --dev --seed-study
 
 Results: ``bench/results/segment.json`` and ``bench/segment.md``. Finished captures are kept in
 the JSON and skipped on a rerun (``--fresh`` recomputes).
@@ -38,8 +41,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import CpuMeter, log, machine_info  # noqa: E402
 
-from damcap.appearance.segment import SegmentOptions, choose_materials  # noqa: E402
-from damcap.appearance.tables import PAPER, TableOptions, heldout_entries, segmentation_rows  # noqa: E402
+from damcap.appearance.segment import SegmentOptions, choose_materials, segment_materials  # noqa: E402
+from damcap.appearance.tables import PAPER, TableOptions, heldout_entries, mean_iou, segmentation_rows  # noqa: E402
 from damcap.appearance.views import load_views  # noqa: E402
 from damcap.common.atomic import write_json_atomic, write_text_atomic  # noqa: E402
 from damcap.common.capture_folder import read_capture  # noqa: E402
@@ -99,6 +102,60 @@ def stage_closed_form(restarts: int) -> list[dict]:
     return out
 
 
+#: the development-set ablations: name -> the options that differ from the default
+DEV_VARIANTS = {"default": {}, "illumination_degree=0 (plain chromaticity k-means)": {"illumination_degree": 0},
+                "prior_weight=0 (the paper's cost alone)": {"prior_weight": 0.0},
+                "psi_resolution=64 (faster)": {"psi_resolution": 64}}
+
+
+def ensure_corpus(folder: Path, preset: str) -> None:
+    """Render a synth-set preset into folder unless every capture is there (resumable)."""
+    corpus = folder / "corpus.json"
+    if corpus.is_file() and all(e.get("status") == "done" for e in json.loads(corpus.read_text())["captures"]):
+        return
+    from damcap.cli.synth_cmds import default_data_dir
+    from damcap.reconstruct.synth_set import make_corpus
+
+    log(f"rendering the {preset} preset into {folder} (resumable)")
+    make_corpus(folder, preset, default_data_dir())
+
+
+#: the held-out seed study: this session's defaults next to the previous ones, over fit seeds
+SEED_VARIANTS = {"default": {}, "previous default (illumination_degree=0, psi_resolution=64)": {"illumination_degree": 0, "psi_resolution": 64}}
+
+
+def iou_study(captures: list[tuple[Path, dict]], variants: dict[str, dict], seeds: tuple[int, ...], label: str) -> dict:
+    """Mean IoU on the training frames per capture and options variant, averaged over seeds."""
+    rows = []
+    for path, e in captures:
+        train = load_views(read_capture(path), "train")
+        row: dict = {"name": e["name"], "light_kind": e["light_kind"], "seeds": list(seeds), "iou_train": {}, "iou_train_lit": {},
+                     "iou_train_per_seed": {}, "wall_s": {}}
+        for name, change in variants.items():
+            ious, lits, walls = [], [], []
+            for seed in seeds:
+                opts = SegmentOptions(**{**asdict(SegmentOptions()), "materials": e["materials"], "seed": seed, **change})
+                t = time.perf_counter()
+                model = segment_materials(train, opts)
+                walls.append(time.perf_counter() - t)
+                ious.append(mean_iou(model, train, carried=False))
+                lits.append(mean_iou(model, train, carried=False, lit_only=True))
+            row["iou_train"][name], row["iou_train_lit"][name] = statistics.fmean(ious), statistics.fmean(lits)
+            row["iou_train_per_seed"][name], row["wall_s"][name] = ious, statistics.fmean(walls)
+        log(f"{label} {e['name']}: " + ", ".join(f"{k.split(' ')[0]} {v:.3f}" for k, v in row["iou_train"].items()))
+        rows.append(row)
+    mean = {k: statistics.fmean(r["iou_train"][k] for r in rows) for k in variants}
+    mean_lit = {k: statistics.fmean(r["iou_train_lit"][k] for r in rows) for k in variants}
+    return {"variants": variants, "seeds": list(seeds), "per_capture": rows, "mean_iou_train": mean, "mean_iou_train_lit": mean_lit}
+
+
+def stage_dev(corpus: Path) -> dict:
+    """Mean IoU on the training frames of the segment-dev captures, default vs each ablation."""
+    ensure_corpus(corpus, "segment-dev")
+    entries = json.loads((corpus / "corpus.json").read_text())["captures"]
+    return {"corpus": str(corpus), **iou_study([(corpus / e["path"], e) for e in entries], DEV_VARIANTS, (0,), "dev")}
+
+
 def summarise(per_capture: list[dict]) -> dict:
     out = {}
     for kind in ("point", "env"):
@@ -120,10 +177,22 @@ def summarise(per_capture: list[dict]) -> dict:
     return out
 
 
+def study_table(d: dict) -> list[str]:
+    """Markdown rows of an :func:`iou_study` result."""
+    names = list(d["variants"])
+    L = ["| capture | light | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
+    for r in d["per_capture"]:
+        L.append(f"| {r['name']} | {r['light_kind']} | " + " | ".join(f"{r['iou_train'][k]:.3f} / {r['iou_train_lit'][k]:.3f}" for k in names) + " |")
+    L.append("| **mean** | | " + " | ".join(f"**{d['mean_iou_train'][k]:.3f}** / {d['mean_iou_train_lit'][k]:.3f}" for k in names) + " |")
+    L.append("| time per run (mean, s) | | " + " | ".join(f"{statistics.fmean(r['wall_s'][k] for r in d['per_capture']):.0f}" for k in names) + " |")
+    return L + [""]
+
+
 def write_markdown(res: dict, path: Path) -> None:
     s = res["summary"]
     L = ["# Joint material estimation and segmentation (issue 8)", "",
-         f"Command: `{res['command']}`", "", f"Machine: {res['machine']['cpu_model']}, {res['machine']['nproc']} cores, "
+         "Commands whose results this report holds (a later one reuses the earlier ones' parts it does not redo): "
+         + "; ".join(f"`{c}`" for c in res.get("commands", [res["command"]])), "", f"Machine: {res['machine']['cpu_model']}, {res['machine']['nproc']} cores, "
          f"torch {res['machine']['torch']} ({res['machine']['torch_threads']} threads), {res['machine']['date_utc']}.", "",
          "Held-out synthetic captures with three materials (`damcap synth-set --preset segment`), 128 px, 10 train / 22 test views.", "",
          "## The paper's Table 1 segmentation rows (novel-view DSSIM, lower is better)", "",
@@ -159,6 +228,17 @@ def write_markdown(res: dict, path: Path) -> None:
             curve = ", ".join(f"{c['materials']}: {c['heldout_dssim']:.4f}" for c in r["curve"])
             L.append(f"| {r['name']} | {r['true_n']} | {r['chosen']} | {curve} | {r['reason']} |")
         L.append("")
+    if res.get("dev"):
+        L += ["## Development set: where the defaults were chosen", "",
+              "`damcap synth-set --preset segment-dev`: six three-material captures of training objects under training "
+              "illuminations (none of the held-out captures above). Mean IoU on the training frames (Psi's weights), "
+              "all covered pixels / lit pixels; each column turns one default back to its alternative (seed 0).", ""]
+        L += study_table(res["dev"])
+    if res.get("seed_study"):
+        L += ["## Held-out captures over fit seeds (a measurement, not used to choose anything)", "",
+              f"Mean IoU on the training frames, all covered pixels / lit pixels, averaged over seeds {res['seed_study']['seeds']} "
+              "(per-seed values in the JSON). The held-out table above is seed 0 of the default.", ""]
+        L += study_table(res["seed_study"])
     if s.get("auto_found_true_n"):
         L += [f"`--materials auto` found the true n = 3 on {s['auto_found_true_n']} captures "
               f"(margin {res['auto_margin']:.0%}, {res['auto_restarts']} restarts per n).", ""]
@@ -172,24 +252,25 @@ def main() -> None:
     ap.add_argument("--restarts", type=int, default=2, help="--materials auto: runs per n")
     ap.add_argument("--fresh", action="store_true")
     ap.add_argument("--closed-form", action="store_true", help="also --materials auto on closed-form captures of known n")
+    ap.add_argument("--dev", action="store_true", help="also the development set (segment-dev preset): default options vs ablations")
+    ap.add_argument("--dev-corpus", type=Path, default=BENCH / ".cache" / "synth_segment_dev")
+    ap.add_argument("--seed-study", action="store_true", help="also the held-out captures' IoU over 3 fit seeds, default vs the previous default")
     args = ap.parse_args()
     torch.set_num_threads(2)
     out_json = RESULTS / "segment.json"
-    old, old_closed_form = {}, None
-    if out_json.is_file() and not args.fresh:
-        previous = json.loads(out_json.read_text())
-        old = {r["name"]: r for r in previous.get("per_capture", [])}
-        old_closed_form = previous.get("closed_form")
+    old, old_closed_form, old_dev, old_seed_study = {}, None, None, None
+    previous_doc = json.loads(out_json.read_text()) if out_json.is_file() else None
+    if previous_doc and not args.fresh:
+        old = {r["name"]: r for r in previous_doc.get("per_capture", [])}
+        old_closed_form = previous_doc.get("closed_form")
+        old_dev = previous_doc.get("dev")
+        old_seed_study = previous_doc.get("seed_study")
     opts = TableOptions()
     res = {"command": "python bench/segment.py " + " ".join(shlex.quote(a) for a in sys.argv[1:]), "machine": machine_info(),
            "segment_options": asdict(opts.segment), "kmeans_steps": opts.kmeans_steps, "auto_margin": 0.1, "auto_restarts": args.restarts,
            "per_capture": []}
-    if not (args.corpus / "corpus.json").is_file() or any(e.get("status") != "done" for e in json.loads((args.corpus / "corpus.json").read_text())["captures"]):
-        from damcap.cli.synth_cmds import default_data_dir
-        from damcap.reconstruct.synth_set import make_corpus
-
-        log(f"rendering the segment preset into {args.corpus} (resumable)")
-        make_corpus(args.corpus, "segment", default_data_dir())
+    res["commands"] = ([] if args.fresh or not previous_doc else previous_doc.get("commands", [previous_doc["command"]])) + [res["command"]]
+    ensure_corpus(args.corpus, "segment")
     for path, entry in heldout_entries([args.corpus]):
         if entry["materials"] < 2:
             continue
@@ -206,6 +287,14 @@ def main() -> None:
         res["closed_form"] = stage_closed_form(args.restarts)
     elif old_closed_form:
         res["closed_form"] = old_closed_form
+    if args.dev:
+        res["dev"] = stage_dev(args.dev_corpus)
+    elif old_dev:
+        res["dev"] = old_dev
+    if args.seed_study:
+        res["seed_study"] = iou_study([(p, e) for p, e in heldout_entries([args.corpus]) if e["materials"] >= 2], SEED_VARIANTS, (0, 1, 2), "seeds")
+    elif old_seed_study:
+        res["seed_study"] = old_seed_study
     write_json_atomic(out_json, res)
     write_markdown(res, BENCH / "segment.md")
     log(f"wrote {out_json} and {BENCH / 'segment.md'}")

@@ -27,6 +27,7 @@ def segment(
     init_steps: int = typer.Option(None, help="initialisation steps (Psi learns the chromaticity k-means labels)"),
     sparsity_beta: float = typer.Option(None, help="weight of the sparsity cost"),
     prior_weight: float = typer.Option(None, help="weight of the initial (chromaticity k-means) labels during the joint phase; 0 = the paper's cost alone"),
+    illumination_degree: int = typer.Option(None, help="initial clustering: degree (0-2) of the illumination tint modelled as a polynomial of the normal; 0 = plain chromaticity k-means"),
     seed: int = typer.Option(None),
     device: str = typer.Option(None, help="cpu | cuda | auto"),
 ) -> None:
@@ -39,7 +40,8 @@ def segment(
     from damcap.common.exr import write_exr, write_png
     from damcap.common.version import damcap_version
 
-    given = dict(steps=steps, init_steps=init_steps, sparsity_beta=sparsity_beta, prior_weight=prior_weight, seed=seed, device=device)
+    given = dict(steps=steps, init_steps=init_steps, sparsity_beta=sparsity_beta, prior_weight=prior_weight,
+                 illumination_degree=illumination_degree, seed=seed, device=device)
     base = SegmentOptions(**{k: v for k, v in given.items() if v is not None})
     if materials != "auto":
         try:

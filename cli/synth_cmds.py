@@ -51,7 +51,7 @@ def synth(
 @app.command("synth-set")
 def synth_set(
     out: Path = typer.Argument(..., help="corpus folder (rerun to resume)"),
-    preset: str = typer.Option("small", help="small (8 captures, 128 px) | paper (720 captures, 256 px) | hyper (224 predictor-training captures, 128 px) | segment (the held-out part with 3 materials, 4 captures, 128 px)"),
+    preset: str = typer.Option("small", help="small (8 captures, 128 px) | paper (720 captures, 256 px) | hyper (224 predictor-training captures, 128 px) | segment (the held-out part with 3 materials, 4 captures, 128 px) | segment-dev (6 training-part 3-material captures, 128 px: where segmentation defaults are chosen)"),
     jobs: int = typer.Option(1, help="parallel processes (each gets cores / jobs render threads)"),
     data: Optional[Path] = typer.Option(None, help="shared data folder with meshes/ and envmaps/ (default: ../shared/data)"),
     dry_run: bool = typer.Option(False, "--dry-run", help="write corpus.json (the plan) and render nothing"),

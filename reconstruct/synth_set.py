@@ -35,8 +35,8 @@ from damcap.common.errors import DamcapError
 
 from .synth import SynthOptions, make_synthetic_capture
 
-Preset = Literal["small", "paper", "hyper", "segment"]
-PRESETS = ("small", "paper", "hyper", "segment")
+Preset = Literal["small", "paper", "hyper", "segment", "segment-dev"]
+PRESETS = ("small", "paper", "hyper", "segment", "segment-dev")
 
 #: every object of the paper preset: mesh files in shared/data/meshes, and the analytic sphere
 OBJECTS = ("stanford-bunny.obj", "spot.obj", "igea.ply", "cow.obj", "beetle.obj", "armadillo.obj",
@@ -114,7 +114,7 @@ class CorpusPreset:
 
 
 def preset(name: Preset) -> CorpusPreset:
-    """A corpus preset (``small``, ``paper``, ``hyper`` or ``segment``).
+    """A corpus preset (``small``, ``paper``, ``hyper``, ``segment`` or ``segment-dev``).
 
     Samples per pixel keep the path-tracing noise floor (bench/synth.md) under 0.02 DSSIM:
     at 128 px, 512 under environment maps and 256 under the point light; twice that at 256 px.
@@ -127,6 +127,9 @@ def preset(name: Preset) -> CorpusPreset:
     ``segment``: the held-out part of ``small`` with three materials (4 captures, 128 px): the
     test set of the segmentation rows of Table 1 (both held-out objects, the held-out environment
     map and held-out point lights).
+    ``segment-dev``: the development set of the segmentation's defaults: six three-material
+    captures of training objects under training illuminations (four environment maps, two point
+    lights), 128 px, so a default is never chosen on the test set.
     ``hyper``: the training data of the predictor (``damcap train-hyper``): every training object
     x every training illumination, one material, 128 px, 12 views, 128 / 64 spp (224 captures,
     nothing held out is in it). Captures are in a hashed order, so an interrupted corpus is
@@ -151,6 +154,12 @@ def preset(name: Preset) -> CorpusPreset:
         combos = (("spot.obj", "env-sunset-r090", 3), ("spot.obj", "point-16", 3),
                   ("dragon_10k.obj", "env-sunset-r270", 3), ("dragon_10k.obj", "point-18", 3))
         return CorpusPreset("segment", tuple(sorted({c[0] for c in combos})), tuple(sorted({c[1] for c in combos})), (3,),
+                            128, 32, spp_env=512, spp_point=256, combos=combos)
+    if name == "segment-dev":
+        combos = (("cow.obj", "env-apartment-r000", 3), ("igea.ply", "env-city-r180", 3),
+                  ("armadillo.obj", "env-forest-r000", 3), ("beetle.obj", "env-museum-r180", 3),
+                  ("blub_triangulated.obj", "point-05", 3), ("cow.obj", "point-11", 3))
+        return CorpusPreset("segment-dev", tuple(sorted({c[0] for c in combos})), tuple(sorted({c[1] for c in combos})), (3,),
                             128, 32, spp_env=512, spp_point=256, combos=combos)
     if name == "hyper":
         train_objects = tuple(o for o in OBJECTS if o not in HELDOUT_OBJECTS)

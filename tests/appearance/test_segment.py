@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from damcap.appearance.segment import (
-    SegmentOptions, choose_materials, kmeans, kmeans_baseline, match_materials, segment_materials, segmentation_scores,
+    SegmentOptions, choose_materials, illumination_aware_kmeans, kmeans, kmeans_baseline, match_materials, segment_materials,
+    segmentation_scores,
 )
 from damcap.appearance.views import load_views
 from damcap.cli.main import main
@@ -105,6 +106,29 @@ def test_kmeans_on_separable_clusters():
     assert len(set(lab[:200])) == 1 and len(set(lab[200:])) == 1 and lab[0] != lab[-1]
 
 
+def test_illumination_aware_kmeans_separates_materials_under_a_tinted_light():
+    """Two materials under a light that is redder on one side and bluer on the other, by more than
+    the materials differ: plain k-means splits by orientation, the tint model by material."""
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(4000, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    truth = rng.integers(0, 2, len(n))  # materials independent of orientation
+    material_log = np.array([[0.15, 0.0, -0.15], [-0.15, 0.0, 0.15]])
+    tint_log = 0.8 * n[:, :1] * np.array([[1.0, 0.0, -1.0]]) + 0.3 * (n[:, 1:2] * n[:, 2:3]) * np.array([[0.0, 1.0, -1.0]])
+    rgb = np.exp(material_log[truth] + tint_log + rng.normal(0, 0.02, (len(n), 3))) * rng.uniform(0.2, 3.0, (len(n), 1))
+    chroma = rgb / rgb.sum(1, keepdims=True)
+
+    def iou(lab):
+        return match_materials(np.eye(2)[lab], np.eye(2)[truth])[1]
+
+    plain = kmeans(chroma.astype(np.float32), 2, seed=0)
+    aware = illumination_aware_kmeans(chroma, n, 2, seed=0, degree=2)
+    assert iou(plain) < 0.7
+    assert iou(aware) > 0.95
+    log_chroma = np.log(chroma) - np.log(chroma).mean(1, keepdims=True)
+    assert np.array_equal(illumination_aware_kmeans(chroma, n, 2, seed=0, degree=0), kmeans(log_chroma.astype(np.float32), 2, seed=0))
+
+
 def test_match_materials_hungarian():
     t = np.eye(3)[[0, 0, 1, 1, 2, 2]]
     p = np.eye(3)[[2, 2, 0, 0, 1, 1]]
@@ -133,6 +157,8 @@ def test_segment_command_writes_everything(two_materials, tmp_path, capsys):
     capsys.readouterr()
     assert main(["segment", str(path), "-o", str(tmp_path / "x"), "--materials", "2", "--prior-weight", "-1"]) == 2
     assert "--prior-weight" in capsys.readouterr().err
+    assert main(["segment", str(path), "-o", str(tmp_path / "x"), "--materials", "2", "--illumination-degree", "3"]) == 2
+    assert "--illumination-degree must be 0, 1 or 2, got 3" in capsys.readouterr().err
     assert main(["evaluate", str(path), "--segmentation", str(tmp_path / "nothing")]) == 2
 
 

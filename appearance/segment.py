@@ -431,22 +431,23 @@ def segment_materials(views: list[ViewData], opts: SegmentOptions, progress: Cal
     arch = opts.architecture
     n = opts.materials
     gen = torch.Generator().manual_seed(opts.seed)
-    all_rad = np.concatenate([v.data.radiance_lin[v.data.coverage > FOREGROUND_COVERAGE] for v in views])
+    fgs = [v.data.coverage > FOREGROUND_COVERAGE for v in views]
+    fg_rad = [v.data.radiance_lin[fg] for v, fg in zip(views, fgs)]
+    all_rad = np.concatenate(fg_rad)
     scale = radiance_scale_of(torch.from_numpy(all_rad))
     centre, radius = scene_bounds(views)
     frames = _prepare(views, arch.encoding, scale, centre, radius)
 
     # initial labels: k-means on chromaticity of the lit pixels, with the illumination's tint
     # modelled as a function of the normal (-1 = too dark to tell, ignored)
-    fg_rad = [v.data.radiance_lin[v.data.coverage > FOREGROUND_COVERAGE] for v in views]
-    chroma, bright = chromaticity_features(np.concatenate(fg_rad), scale)
+    chroma, bright = chromaticity_features(all_rad, scale)
     labels_flat = np.full(len(chroma), -1, np.int64)
     if bright.sum() < n:  # nothing lit enough to tell colours apart
         labels_flat[:] = np.arange(len(chroma)) % n
     elif opts.illumination_degree == 0:
         labels_flat[bright] = kmeans(chroma[bright], n, opts.seed)
     else:
-        fg_nrm = np.concatenate([v.data.normal_world[v.data.coverage > FOREGROUND_COVERAGE] for v in views])
+        fg_nrm = np.concatenate([v.data.normal_world[fg] for v, fg in zip(views, fgs)])
         labels_flat[bright] = illumination_aware_kmeans(chroma[bright], fg_nrm[bright], n, opts.seed, opts.illumination_degree)
     splits = np.cumsum([len(r) for r in fg_rad])[:-1]
     init_labels = [torch.from_numpy(lab) for lab in np.split(labels_flat, splits)]

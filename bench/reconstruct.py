@@ -280,6 +280,11 @@ def display(img: np.ndarray, scale: float) -> np.ndarray:
     return (linear_to_srgb(img / scale) * 255).round().astype(np.uint8)
 
 
+def realworld_tag(capture_size: int, geometry: str) -> str:
+    """Suffix of a real-world variant's results key and figure ('' for the default 256 px, auto)."""
+    return ("" if capture_size == 256 else f"_{capture_size}px") + ("" if geometry == "auto" else f"_{geometry}")
+
+
 def part_realworld(train_views: int, steps: int, fresh: bool, capture_size: int = 256, geometry: str = "auto") -> dict:
     import torch
 
@@ -324,7 +329,7 @@ def part_realworld(train_views: int, steps: int, fresh: bool, capture_size: int 
         scale = float(np.percentile(v.data.radiance_lin[fg], 99)) if fg.any() else 1.0
         dam = render_frame(fit.model, v.data, v.centre_world)
         rows.append(np.concatenate([display(x, scale) for x in (v.data.radiance_lin, dam, a, b)], axis=1))
-    figure = FIGURE.with_name(FIGURE.stem + ("" if capture_size == 256 else f"_{capture_size}px") + suffix.replace("-", "_", 1) + ".png")
+    figure = FIGURE.with_name(FIGURE.stem + realworld_tag(capture_size, geometry) + ".png")
     write_png(figure, np.concatenate(rows, axis=0))
     return {"capture": {"frames": rep.frames, "train": len(train), "test": len(test), "split": "spread",
                         "capture_size": opts.capture_size, "geometry": rep.geometry_mode, "geometry_reason": rep.geometry_reason,
@@ -475,7 +480,7 @@ def main(argv: list[str] | None = None) -> int:
         elif part == "geometry":
             res["geometry"] = part_geometry(args.fresh)
         else:
-            key = "realworld" + ("" if args.capture_size == 256 else f"_{args.capture_size}px") + ("" if args.geometry == "auto" else f"_{args.geometry}")
+            key = "realworld" + realworld_tag(args.capture_size, args.geometry)
             res[key] = part_realworld(args.train_views, args.steps, args.fresh, args.capture_size, args.geometry)
         verdicts(res)
         save_results(res)

@@ -113,6 +113,12 @@ class CorpusPreset:
     """explicit (object, light, materials) triples instead of the full product"""
 
 
+def _combo_preset(name: str, combos: tuple[tuple[str, str, int], ...]) -> CorpusPreset:
+    """A preset of explicit (object, light, materials) captures at 128 px, 32 views, 512 / 256 spp."""
+    return CorpusPreset(name, tuple(sorted({c[0] for c in combos})), tuple(sorted({c[1] for c in combos})),
+                        tuple(sorted({c[2] for c in combos})), 128, 32, spp_env=512, spp_point=256, combos=combos)
+
+
 def preset(name: Preset) -> CorpusPreset:
     """A corpus preset (``small``, ``paper``, ``hyper``, ``segment`` or ``segment-dev``).
 
@@ -148,19 +154,16 @@ def preset(name: Preset) -> CorpusPreset:
             ("stanford-bunny.obj", "env-studio-r000", 3), ("stanford-bunny.obj", "point-03", 1),
             ("sphere", "env-forest-r180", 1), ("sphere", "point-08", 3),
         )
-        return CorpusPreset("small", tuple(sorted({c[0] for c in combos})), tuple(sorted({c[1] for c in combos})), (1, 3),
-                            128, 32, spp_env=512, spp_point=256, combos=combos)
+        return _combo_preset("small", combos)
     if name == "segment":
         combos = (("spot.obj", "env-sunset-r090", 3), ("spot.obj", "point-16", 3),
                   ("dragon_10k.obj", "env-sunset-r270", 3), ("dragon_10k.obj", "point-18", 3))
-        return CorpusPreset("segment", tuple(sorted({c[0] for c in combos})), tuple(sorted({c[1] for c in combos})), (3,),
-                            128, 32, spp_env=512, spp_point=256, combos=combos)
+        return _combo_preset("segment", combos)
     if name == "segment-dev":
         combos = (("cow.obj", "env-apartment-r000", 3), ("igea.ply", "env-city-r180", 3),
                   ("armadillo.obj", "env-forest-r000", 3), ("beetle.obj", "env-museum-r180", 3),
                   ("blub_triangulated.obj", "point-05", 3), ("cow.obj", "point-11", 3))
-        return CorpusPreset("segment-dev", tuple(sorted({c[0] for c in combos})), tuple(sorted({c[1] for c in combos})), (3,),
-                            128, 32, spp_env=512, spp_point=256, combos=combos)
+        return _combo_preset("segment-dev", combos)
     if name == "hyper":
         train_objects = tuple(o for o in OBJECTS if o not in HELDOUT_OBJECTS)
         train_lights = [l.name for l in env_illuminations() + point_illuminations() if not l.heldout]

@@ -82,7 +82,8 @@ def rm_plus_plus(sources: list[ViewData], targets: list[ViewData]) -> list[np.nd
     return out
 
 
-def rm_oracle(sources: list[ViewData], targets: list[ViewData], score: Callable[[ViewData, np.ndarray], float | None]) -> tuple[list[np.ndarray], str]:
+def rm_oracle(sources: list[ViewData], targets: list[ViewData], score: Callable[[ViewData, np.ndarray], float | None]
+              ) -> tuple[list[np.ndarray], str, dict[str, float]]:
     """RM: the single source image with the lowest mean score over the targets (an oracle).
 
     Args:
@@ -91,7 +92,9 @@ def rm_oracle(sources: list[ViewData], targets: list[ViewData], score: Callable[
         score: (target, prediction) -> DSSIM (None for a frame without foreground).
 
     Returns:
-        predictions per target and the chosen source's name. A target that is itself the chosen
+        predictions per target, the chosen source's name, and every source's mean score over the
+        targets (name -> score; the chosen one is the lowest: RM is the best of them, so with
+        many similar sources it gains by selection alone). A target that is itself the chosen
         source (same-view evaluation) is predicted from its own best other source, so no frame
         ever copies itself; the chosen source minimises the mean over the other targets.
     """
@@ -123,4 +126,4 @@ def rm_oracle(sources: list[ViewData], targets: list[ViewData], score: Callable[
             if p is None:
                 p = np.zeros(t.data.coverage.shape + (3,), np.float32)
         out.append(p)
-    return out, sources[best].name
+    return out, sources[best].name, {s.name: float(m) for s, m in zip(sources, mean)}

@@ -19,6 +19,8 @@ class MethodScores:
 
     per_frame: dict[str, float | None] = field(default_factory=dict)
     note: str = ""
+    per_source: dict[str, float] = field(default_factory=dict)
+    """RM only: every candidate source's mean DSSIM (RM keeps the lowest)"""
 
     @property
     def mean(self) -> float:
@@ -39,8 +41,12 @@ def evaluate_split(train: list[ViewData], targets: list[ViewData], models: dict[
     if baselines and len(train) >= 2:
         preds = rm_plus_plus(train, targets)
         out["RM++"] = MethodScores({t.name: score_view(t, p) for t, p in zip(targets, preds)})
-        preds, chosen = rm_oracle(train, targets, score_view)
-        out["RM"] = MethodScores({t.name: score_view(t, p) for t, p in zip(targets, preds)}, note=f"source {chosen}")
+        preds, chosen, per_source = rm_oracle(train, targets, score_view)
+        finite = sorted(v for v in per_source.values() if np.isfinite(v))
+        spread = (f"; best of {len(finite)} single sources, which score {finite[0]:.3f}-{finite[-1]:.3f} "
+                  f"(median {np.median(finite):.3f})" if len(finite) > 1 else "")
+        out["RM"] = MethodScores({t.name: score_view(t, p) for t, p in zip(targets, preds)}, note=f"source {chosen}{spread}",
+                                 per_source=per_source)
     return out
 
 

@@ -291,7 +291,8 @@ def evaluate(
             "model": str(model_paths[0].resolve()) if len(model_paths) == 1 else None,
             "models": {label: {"path": str(p.resolve()), "made_by": made_by[label]} for label, p in zip(models, model_paths)},
             "ratios": ratios, "metric": "DSSIM (capture-format.md)",
-            "results": {split: {m: {"mean": s.mean, "per_frame": s.per_frame, **({"note": s.note} if s.note else {})}
+            "results": {split: {m: {"mean": s.mean, "per_frame": s.per_frame, **({"note": s.note} if s.note else {}),
+                                    **({"per_source_mean": s.per_source} if s.per_source else {})}
                                 for m, s in res.items()} for split, res in results.items()},
         })
         typer.echo(f"json: {json_path}")

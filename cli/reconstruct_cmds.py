@@ -54,6 +54,8 @@ def reconstruct(
     sequential_overlap: int = typer.Option(5, help="registration: ring neighbours on each side (file order)"),
     retrieval_neighbours: int = typer.Option(8, help="registration: most similar photos matched per photo"),
     camera_model: str = typer.Option("SIMPLE_RADIAL", help="registration: SIMPLE_PINHOLE | PINHOLE | SIMPLE_RADIAL | RADIAL | OPENCV"),
+    refine_principal_point: bool = typer.Option(False, "--refine-principal-point/--centred-principal-point",
+                                                help="registration: refine the principal point after mapping (as instant-ngp's colmap2nerf; default: image centre, as COLMAP and LLFF)"),
     single_camera: bool = typer.Option(True, "--single-camera/--camera-per-photo", help="registration: photos of one size share one camera"),
     mask_features: bool = typer.Option(False, "--mask-features/--no-mask-features", help="registration: restrict features to the masks (turntables)"),
     capture_size: int = typer.Option(512, help="longest side of the capture images, pixels"),
@@ -83,7 +85,7 @@ def reconstruct(
         poisson_depth=poisson_depth, smooth_iterations=smooth_iterations, sphere_max_rms=sphere_max_rms,
         max_image_size=max_image_size, max_num_features=max_num_features, upsample_below=upsample_below, pairing=pairing,  # type: ignore[arg-type]
         sequential_overlap=sequential_overlap, retrieval_neighbours=retrieval_neighbours,
-        camera_model=camera_model, single_camera=single_camera, mask_features=mask_features, capture_size=capture_size,  # type: ignore[arg-type]
+        camera_model=camera_model, refine_principal_point=refine_principal_point, single_camera=single_camera, mask_features=mask_features, capture_size=capture_size,  # type: ignore[arg-type]
         train_views=train_views, split=split, split_start=split_start, min_registered=min_registered,  # type: ignore[arg-type]
         min_registered_fraction=min_registered_fraction, ignore_exposure=ignore_exposure, mask_coverage=mask_coverage, supersample=supersample,
         dtype=dtype, threads=threads, seed=seed)  # type: ignore[arg-type]

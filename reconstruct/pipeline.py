@@ -77,6 +77,8 @@ class ReconstructOptions:
     """registration: most similar photos matched per photo"""
     camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "SIMPLE_RADIAL"
     """registration: COLMAP camera model"""
+    refine_principal_point: bool = False
+    """registration: also refine the principal point after mapping (see SfmOptions)"""
     single_camera: bool = True
     """registration: photos of one size share one camera"""
     mask_features: bool = False
@@ -128,7 +130,8 @@ class ReconstructOptions:
         return SfmOptions(max_image_size=self.max_image_size, max_num_features=self.max_num_features,
                           upsample_below=self.upsample_below, pairing=self.pairing,
                           sequential_overlap=self.sequential_overlap, retrieval_neighbours=self.retrieval_neighbours,
-                          camera_model=self.camera_model, single_camera=self.single_camera, num_threads=self.threads,
+                          camera_model=self.camera_model, refine_principal_point=self.refine_principal_point,
+                          single_camera=self.single_camera, num_threads=self.threads,
                           seed=self.seed)
 
     def geometry_options(self) -> GeometryOptions:

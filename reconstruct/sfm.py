@@ -83,6 +83,11 @@ class SfmOptions:
     """retrieval pairing: VLAD vocabulary size, learned from the set's own descriptors"""
     camera_model: CameraModelName = "SIMPLE_RADIAL"
     """COLMAP camera model fitted to the photos"""
+    refine_principal_point: bool = False
+    """after mapping, one more global bundle adjustment that also refines the principal point
+    (instant-ngp's colmap2nerf does this; COLMAP and LLFF keep it at the image centre). It moves
+    every rotation by about atan(offset / focal): on the fox photos the principal point sits
+    ~15 px off centre (0.6 deg), on the cape ~8 px (0.24 deg); see bench/reconstruct.md"""
     single_camera: bool = True
     """photos of the same size share one camera (one lens, one zoom); False = one per photo"""
     min_num_inliers: int = 15
@@ -513,12 +518,15 @@ def _features_and_matches(photo_dir: Path, names: list[str], work_dir: Path, opt
             match_pairs("matching (two-hop)", extra)
             pairs = sorted(set(pairs) | set(extra))
         seconds["matching"] = time.perf_counter() - t0
+        write_json_atomic(work_dir / "matched_pairs.json", {"pairs": len(pairs)})
         stages.mark("matches", fp_matches, done=True)
+        n_pairs = len(pairs)
     else:
         resumed.append("matches")
-        pairs = sorted(_pair_inliers(db_path, names))
+        saved = _load_state(work_dir / "matched_pairs.json").get("pairs")  # absent in older work folders
+        n_pairs = int(saved) if saved is not None else len(_pair_inliers(db_path, names))
 
-    return db_path, len(pairs), pairing
+    return db_path, n_pairs, pairing
 
 
 def register_photos(photo_dir: str | Path, names: list[str], work_dir: str | Path, opts: SfmOptions = SfmOptions(),
@@ -554,7 +562,8 @@ def register_photos(photo_dir: str | Path, names: list[str], work_dir: str | Pat
     resumed: list[str] = []
 
     _, fp_matches, _ = _fingerprints(photo_dir, names, opts, masks)
-    fp_mapping = fingerprint([fp_matches, opts.seed])
+    # refining the principal point is a later step of mapping (older mapping states stay valid)
+    fp_mapping = fingerprint([fp_matches, opts.seed] + (["refine_principal_point"] if opts.refine_principal_point else []))
 
     if stages.status("mapping", fp_mapping) == "done" and model_dir.is_dir() and report_path.is_file():
         rec = pycolmap.Reconstruction(str(model_dir))
@@ -603,6 +612,12 @@ def register_photos(photo_dir: str | Path, names: list[str], work_dir: str | Pat
         )
     ranked = sorted(recs.values(), key=lambda r: r.num_reg_images(), reverse=True)
     rec = ranked[0]
+    if opts.refine_principal_point:
+        progress("principal point", 0, 1)
+        t0 = time.perf_counter()
+        refine_principal_point(rec, pycolmap)
+        seconds["principal_point"] = time.perf_counter() - t0
+        progress("principal point", 1, 1)
     others: dict[str, int] = {}
     for r in ranked[1:]:
         for iid in r.reg_image_ids():
@@ -623,6 +638,15 @@ def register_photos(photo_dir: str | Path, names: list[str], work_dir: str | Pat
     reg.stats = asdict(rep)
     progress("mapping", n, n)
     return reg, rep
+
+
+def refine_principal_point(rec: Any, pycolmap: Any) -> None:
+    """One global bundle adjustment of a COLMAP reconstruction (in place) that refines the
+    principal point along with focal length, distortion, poses and points (colmap2nerf's step)."""
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.refine_principal_point = True
+    ba.print_summary = False
+    pycolmap.bundle_adjustment(rec, ba)
 
 
 def triangulate_known(photo_dir: str | Path, registration: Registration, work_dir: str | Path, opts: SfmOptions = SfmOptions(),

@@ -63,8 +63,8 @@ def test_rm_oracle_picks_the_one_right_source():
     # sources 0, 1, 3 are corrupted (scaled colours); source 2 is the only correct one
     wrong = lambda nc, nw: 0.3 * headlight(nc, nw)[..., ::-1]  # noqa: E731
     sources = [truth[2] if i == 2 else sphere_view(f"s{i}", cams[i], wrong) for i in range(4)]
-    preds, chosen = rm_oracle(sources, truth[4:], score_view)
-    assert chosen == "v2"
+    preds, chosen, per_source = rm_oracle(sources, truth[4:], score_view)
+    assert chosen == "v2" and min(per_source, key=per_source.get) == "v2" and len(per_source) == 4
     for t, p in zip(truth[4:], preds):
         assert score_view(t, p) < 0.01
 
@@ -72,7 +72,7 @@ def test_rm_oracle_picks_the_one_right_source():
 def test_rm_same_view_never_copies_itself():
     cams = orbit_world_from_cam(4, 4.0, 10.0)
     views = [sphere_view(f"v{i}", m, lambda nc, nw: np.repeat(0.5 + 0.5 * nw[..., :1], 3, -1)) for i, m in enumerate(cams)]
-    preds, chosen = rm_oracle(views, views, score_view)
+    preds, _, _ = rm_oracle(views, views, score_view)
     for t, p in zip(views, preds):
         assert score_view(t, p) > 1e-3  # a self-copy would score exactly 0
     preds = rm_plus_plus(views, views)

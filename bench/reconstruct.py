@@ -295,9 +295,10 @@ def display(img: np.ndarray, scale: float) -> np.ndarray:
     return (linear_to_srgb(img / scale) * 255).round().astype(np.uint8)
 
 
-def realworld_tag(capture_size: int, geometry: str) -> str:
-    """Suffix of a real-world variant's results key and figure ('' for the default 256 px, auto)."""
-    return ("" if capture_size == 256 else f"_{capture_size}px") + ("" if geometry == "auto" else f"_{geometry}")
+def realworld_tag(capture_size: int, geometry: str, train_views: int = 8) -> str:
+    """Suffix of a real-world variant's results key and figure ('' for the default 256 px, auto, 8 views)."""
+    return (("" if capture_size == 256 else f"_{capture_size}px") + ("" if geometry == "auto" else f"_{geometry}")
+            + ("" if train_views == 8 else f"_{train_views}views"))
 
 
 def part_realworld(train_views: int, steps: int, fresh: bool, capture_size: int = 256, geometry: str = "auto") -> dict:
@@ -345,7 +346,7 @@ def part_realworld(train_views: int, steps: int, fresh: bool, capture_size: int 
         scale = float(np.percentile(v.data.radiance_lin[fg], 99)) if fg.any() else 1.0
         dam = render_frame(fit.model, v.data, v.centre_world)
         rows.append(np.concatenate([display(x, scale) for x in (v.data.radiance_lin, dam, a, b)], axis=1))
-    figure = FIGURE.with_name(FIGURE.stem + realworld_tag(capture_size, geometry) + ".png")
+    figure = FIGURE.with_name(FIGURE.stem + realworld_tag(capture_size, geometry, train_views) + ".png")
     write_png(figure, np.concatenate(rows, axis=0))
     return {"capture": {"frames": rep.frames, "train": len(train), "test": len(test), "split": "spread",
                         "capture_size": opts.capture_size, "geometry": rep.geometry_mode, "geometry_reason": rep.geometry_reason,
@@ -427,7 +428,8 @@ def write_report(res: dict, command: str) -> None:
     for key in sorted(k for k in res if k.startswith("realworld")):
         rw = res[key]
         d = rw["dssim"]
-        L += [f"## The real-world table (mold_gold_cape, capture {rw['capture']['capture_size']} px, geometry {rw['capture']['geometry']})", "",
+        L += [f"## The real-world table (mold_gold_cape, capture {rw['capture']['capture_size']} px, geometry {rw['capture']['geometry']}, "
+              f"{rw['capture']['train']} train views)", "",
               f"Capture: {rw['capture']['frames']} frames at {rw['capture']['capture_size']} px, cameras {rw['capture']['cameras']} "
               "(the chosen registration above), "
               f"geometry {rw['capture']['geometry']} ({rw['capture']['geometry_reason']}); {rw['capture']['linearisation']}.",
@@ -533,13 +535,14 @@ def main(argv: list[str] | None = None) -> int:
         elif part == "geometry":
             res["geometry"] = part_geometry(args.fresh)
         else:
-            key = "realworld" + realworld_tag(args.capture_size, args.geometry)
+            key = "realworld" + realworld_tag(args.capture_size, args.geometry, args.train_views)
             res[key] = part_realworld(args.train_views, args.steps, args.fresh, args.capture_size, args.geometry)
         verdicts(res)
         save_results(res)
     verdicts(res)
     save_results(res)
     cmd = ".venv/bin/python bench/reconstruct.py" + (f" --part {args.part}" if args.part != "all" else "") + (f" --geometry {args.geometry}" if args.geometry != "auto" else "")
+    cmd += f" --train-views {args.train_views}" if args.train_views != 8 else ""
     if parts:  # every command whose results the JSON holds (parts merge), in the order they ran
         res["commands"] = [c for c in res.get("commands", []) if c != cmd] + [cmd]
         save_results(res)

@@ -20,7 +20,9 @@ from damcap.common.errors import DamcapError
 from damcap.common.numerics import reflect, safe_normalize
 
 Encoding = Literal["vn", "nr", "vnr"]
-Activation = Literal["leaky_relu", "relu", "softplus", "tanh"]
+Activation = Literal["leaky_relu", "relu", "softplus", "shifted_softplus", "tanh"]
+ACTIVATIONS: tuple[str, ...] = ("leaky_relu", "relu", "softplus", "shifted_softplus", "tanh")
+LN2 = math.log(2.0)
 
 ENCODING_DIMS = {"vn": 6, "nr": 6, "vnr": 9}
 
@@ -34,7 +36,8 @@ class DamArchitecture:
     depth: int = 4
     """hidden layers"""
     activation: Activation = "leaky_relu"
-    """hidden non-linearity"""
+    """hidden non-linearity (see :func:`hidden_activation`); ``damcap fit``'s default is
+    'shifted_softplus' (FitOptions), the predictor and the segmentation DAMs use this one"""
     encoding: Encoding = "nr"
     """network input: 'vn' = (V, N), the paper's raw 6 numbers; 'nr' = (N, R) with R the view
     mirrored about N (also 6 numbers, same information: V = 2 (N.R) N - R; specular lobes under
@@ -47,8 +50,8 @@ class DamArchitecture:
             raise DamcapError(f"DAM width and depth must be >= 1, got width={self.width}, depth={self.depth}")
         if self.encoding not in ENCODING_DIMS:
             raise DamcapError(f"unknown DAM input encoding {self.encoding!r}; use one of {sorted(ENCODING_DIMS)}")
-        if self.activation not in ("leaky_relu", "relu", "softplus", "tanh"):
-            raise DamcapError(f"unknown activation {self.activation!r}")
+        if self.activation not in ACTIVATIONS:
+            raise DamcapError(f"unknown activation {self.activation!r}; use one of {', '.join(ACTIVATIONS)}")
 
     @property
     def layer_shapes(self) -> list[tuple[int, int]]:
@@ -91,13 +94,26 @@ def encode_inputs(view_dir_world: torch.Tensor, normal_world: torch.Tensor, enco
     return torch.cat([v, n, r], -1)
 
 
-def _activation(x: torch.Tensor, name: Activation) -> torch.Tensor:
+def hidden_activation(x: torch.Tensor, name: Activation) -> torch.Tensor:
+    """A hidden layer's non-linearity, elementwise.
+
+    'shifted_softplus' is softplus(x) - ln 2: smooth like softplus, and 0 at 0 like ReLU. The
+    shift matters without biases: plain softplus units are all positive, so a bias-free layer
+    after them adds a large common offset to every input, and under a point light (more than
+    half the pixels black, so the L1 optimum of that offset is black) fits can collapse to a
+    black image in their first steps (measured: bench/synth.md).
+
+    >>> hidden_activation(torch.tensor([0.0, 30.0]), "shifted_softplus")
+    tensor([ 0.0000, 29.3069])
+    """
     if name == "leaky_relu":
         return F.leaky_relu(x, 0.01)
     if name == "relu":
         return F.relu(x)
     if name == "softplus":
         return F.softplus(x)
+    if name == "shifted_softplus":
+        return F.softplus(x) - LN2
     return torch.tanh(x)
 
 
@@ -143,7 +159,7 @@ def dam_forward(weights_flat: torch.Tensor, inputs: torch.Tensor, arch: DamArchi
             if b is not None:
                 x = x + b[:, None, :]
         if k < len(layers) - 1:
-            x = _activation(x, arch.activation)
+            x = hidden_activation(x, arch.activation)
     if x.dtype in (torch.float16, torch.bfloat16):
         x = x.float()  # the output is radiance: never in a format that overflows at 65504
     out = F.softplus(x).clamp_max(torch.finfo(x.dtype).max)

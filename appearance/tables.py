@@ -23,7 +23,7 @@ import json
 import math
 import statistics
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -97,16 +97,22 @@ def representation_rows(train: list[ViewData], test: list[ViewData], opts: Table
 
 
 def learning_to_learn_rows(train: list[ViewData], test: list[ViewData], net, fitted, opts: TableOptions) -> tuple[dict, dict]:
-    """The predictor alone and refined K steps, next to the SGD fit ``fitted``."""
+    """The predictor alone and refined K steps, next to an SGD fit of the same DAM architecture:
+    ``fitted`` when the predictor's architecture is the fit's, else a fit of the predictor's (the
+    paper compares a predicted DAM with the same DAM fitted; the shipped predictor emits leaky-ReLU
+    DAMs, ``damcap fit`` defaults to shifted softplus)."""
     from .hyper import predict_dam, predictor_input
 
     k, crop, scale = predictor_input(train)
     t = time.perf_counter()
     predicted = predict_dam(net, crop, scale)
     predict_s = time.perf_counter() - t
+    samples = samples_of(train)
+    a = predicted.arch
+    if a != fitted.arch:
+        fitted = fit_dam(samples, replace(opts.fit, width=a.width, depth=a.depth, activation=a.activation, encoding=a.encoding)).model
     models = {"DAM (SGD fit)": fitted, "predicted": predicted}
     seconds = {"predict": predict_s}
-    samples = samples_of(train)
     for steps in opts.refine_steps:
         t = time.perf_counter()
         models[f"predicted + {steps} refine"] = refine_dam(predicted, samples, steps)[0]

@@ -95,6 +95,7 @@ RENDER_CAPTURE = ("sphere_dir_256", ClosedFormOptions(shape="sphere", light="dir
 #: "default" is FitOptions() itself.
 SETTINGS: list[tuple[str, dict]] = [
     ("default", {}),
+    ("leaky_relu", {"activation": "leaky_relu"}),  # the default before shifted softplus
     ("steps500", {"steps": 500}),
     ("steps1000", {"steps": 1000}),
     ("steps4000", {"steps": 4000}),
@@ -119,7 +120,7 @@ SETTINGS: list[tuple[str, dict]] = [
     ("predict_k1000", {"predict_refine_steps": 1000}),
 ]
 #: table rows that are the same options as another setting: (name, same options as)
-ALIASES = [("steps2000", "default"), ("enc_nr", "default"), ("holdout2_s2000", "default"), ("holdout2_s8000", "steps8000"),
+ALIASES = [("shifted_softplus", "default"), ("steps2000", "default"), ("enc_nr", "default"), ("holdout2_s2000", "default"), ("holdout2_s8000", "steps8000"),
            ("w32d4", "default"), ("batch4096", "default"), ("input128", "default"), ("float32", "default")]
 BENCH_KEYS = ("input_subsample", "predict_refine_steps")
 """setting keys that are not FitOptions fields: input_subsample = keep every n-th training pixel in
@@ -130,6 +131,7 @@ STUDIES: dict[str, list[str]] = {
     "pixels per step": ["batch1024", "default", "batch16384"],
     "training input resolution": ["input32", "input64", "default"],
     "precision": ["default", "bfloat16"],
+    "hidden activation": ["leaky_relu", "default"],
     "predictor + K refine steps": ["predict_k0", "predict_k100", "predict_k300", "predict_k1000"],
 }
 

@@ -74,7 +74,7 @@ def fit(
     width: int = typer.Option(None, help="hidden units per layer"),
     depth: int = typer.Option(None, help="hidden layers"),
     encoding: str = typer.Option(None, help="network input: vn (paper) | nr | vnr"),
-    activation: str = typer.Option(None, help="leaky_relu | relu | softplus | tanh"),
+    activation: str = typer.Option(None, help="hidden non-linearity: shifted_softplus (default) | leaky_relu | relu | softplus | tanh"),
     adversarial: bool = typer.Option(None, "--adversarial/--no-adversarial", help="add the adversarial cost (alpha 0.001)"),
     holdout_views: int = typer.Option(None, help="training views held out for the stopping rule (0 = none)"),
     seed: int = typer.Option(None),

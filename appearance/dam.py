@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 import torch
 import torch.nn.functional as F
@@ -21,7 +21,7 @@ from damcap.common.numerics import reflect, safe_normalize
 
 Encoding = Literal["vn", "nr", "vnr"]
 Activation = Literal["leaky_relu", "relu", "softplus", "shifted_softplus", "tanh"]
-ACTIVATIONS: tuple[str, ...] = ("leaky_relu", "relu", "softplus", "shifted_softplus", "tanh")
+ACTIVATIONS: tuple[str, ...] = get_args(Activation)
 LN2 = math.log(2.0)
 
 ENCODING_DIMS = {"vn": 6, "nr": 6, "vnr": 9}

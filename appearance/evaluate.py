@@ -33,6 +33,15 @@ def score_view(view: ViewData, prediction_lin: np.ndarray) -> float | None:
     return dssim(view.data.radiance_lin, prediction_lin, view.data.coverage)
 
 
+def rm_source_spread(per_source: dict[str, float]) -> dict | None:
+    """How RM's candidate sources score: count, min, median and max of their finite mean DSSIMs
+    (None with fewer than two; RM keeps the min, so its win over the median is selection)."""
+    finite = sorted(v for v in per_source.values() if np.isfinite(v))
+    if len(finite) < 2:
+        return None
+    return {"n": len(finite), "min": finite[0], "median": float(np.median(finite)), "max": finite[-1], "scores": finite}
+
+
 def evaluate_split(train: list[ViewData], targets: list[ViewData], models: dict[str, DeepAppearanceMap], baselines: bool = True) -> dict[str, MethodScores]:
     """DSSIM of every model and of RM / RM++ on ``targets``, with ``train`` as the baselines' sources."""
     out: dict[str, MethodScores] = {}
@@ -42,9 +51,8 @@ def evaluate_split(train: list[ViewData], targets: list[ViewData], models: dict[
         preds = rm_plus_plus(train, targets)
         out["RM++"] = MethodScores({t.name: score_view(t, p) for t, p in zip(targets, preds)})
         preds, chosen, per_source = rm_oracle(train, targets, score_view)
-        finite = sorted(v for v in per_source.values() if np.isfinite(v))
-        spread = (f"; best of {len(finite)} single sources, which score {finite[0]:.3f}-{finite[-1]:.3f} "
-                  f"(median {np.median(finite):.3f})" if len(finite) > 1 else "")
+        sp = rm_source_spread(per_source)
+        spread = f"; best of {sp['n']} single sources, which score {sp['min']:.3f}-{sp['max']:.3f} (median {sp['median']:.3f})" if sp else ""
         out["RM"] = MethodScores({t.name: score_view(t, p) for t, p in zip(targets, preds)}, note=f"source {chosen}{spread}",
                                  per_source=per_source)
     return out

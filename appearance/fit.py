@@ -22,7 +22,7 @@ import json
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, ContextManager, Literal
 
@@ -88,6 +88,10 @@ class FitOptions:
     @property
     def architecture(self) -> DamArchitecture:
         return DamArchitecture(width=self.width, depth=self.depth, activation=self.activation, encoding=self.encoding)
+
+    def for_architecture(self, arch: DamArchitecture) -> "FitOptions":
+        """These options fitting ``arch`` (its width, depth, activation and encoding)."""
+        return replace(self, width=arch.width, depth=arch.depth, activation=arch.activation, encoding=arch.encoding)
 
 
 @dataclass
@@ -300,9 +304,8 @@ def refine_dam(model: DeepAppearanceMap, samples: PixelSamples, steps: int, lear
     before = training_l1(model, samples)
     if steps <= 0:
         return model, before, before
-    a = model.arch
-    opts = FitOptions(steps=steps, learning_rate=learning_rate, width=a.width, depth=a.depth, activation=a.activation,
-                      encoding=a.encoding, holdout_views=0, eval_every=steps, seed=seed, checkpoint_every=0)
+    opts = FitOptions(steps=steps, learning_rate=learning_rate, holdout_views=0, eval_every=steps, seed=seed,
+                      checkpoint_every=0).for_architecture(model.arch)
     refined = fit_dam(samples, opts, init_model=model, progress=progress).model
     after = training_l1(refined, samples)
     return (refined, before, after) if after <= before else (model, before, before)

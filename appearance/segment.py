@@ -574,9 +574,9 @@ def kmeans_baseline(views: list[ViewData], materials: int, steps: int = 1500, se
         if w.sum() == 0:
             dams.append(DeepAppearanceMap(DamArchitecture(encoding=encoding), scale))
             continue
-        # the same DAM architecture as the joint segmentation's (DamArchitecture's activation)
-        dams.append(fit_dam(samples, FitOptions(steps=steps, seed=seed, encoding=encoding, holdout_views=0,
-                                                activation=DamArchitecture().activation)).model)
+        # the same DAM architecture as the joint segmentation's
+        opts = FitOptions(steps=steps, seed=seed, holdout_views=0).for_architecture(DamArchitecture(encoding=encoding))
+        dams.append(fit_dam(samples, opts).model)
     centre, radius = scene_bounds(views)
     onehot = np.eye(materials, dtype=np.float32)[labels]
     keep = np.random.default_rng(seed).choice(len(pos), min(len(pos), 200_000), replace=False)

@@ -23,7 +23,7 @@ import json
 import math
 import statistics
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
@@ -108,9 +108,8 @@ def learning_to_learn_rows(train: list[ViewData], test: list[ViewData], net, fit
     predicted = predict_dam(net, crop, scale)
     predict_s = time.perf_counter() - t
     samples = samples_of(train)
-    a = predicted.arch
-    if a != fitted.arch:
-        fitted = fit_dam(samples, replace(opts.fit, width=a.width, depth=a.depth, activation=a.activation, encoding=a.encoding)).model
+    if predicted.arch != fitted.arch:
+        fitted = fit_dam(samples, opts.fit.for_architecture(predicted.arch)).model
     models = {"DAM (SGD fit)": fitted, "predicted": predicted}
     seconds = {"predict": predict_s}
     for steps in opts.refine_steps:

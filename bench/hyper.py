@@ -76,9 +76,8 @@ def bench_capture(path: Path, net, refine_steps: list[int], fit_seeds: list[int]
     rec["refine"] = rows
     # SGD = the predictor's own DAM architecture fitted (the paper's comparison); damcap fit's
     # default architecture, when it differs, is reported beside it
-    a = model.arch
-    same_arch = FitOptions(seed=0, checkpoint_every=0, width=a.width, depth=a.depth, activation=a.activation, encoding=a.encoding)
-    if FitOptions().architecture != a:
+    same_arch = FitOptions(checkpoint_every=0).for_architecture(model.arch)
+    if FitOptions().architecture != model.arch:
         rec["default_fit_novel"] = [novel_and_same(train, test, fit_dam(samples, FitOptions(seed=seed, checkpoint_every=0)).model)[0]
                                     for seed in fit_seeds]
         log(f"  {path.name}: damcap fit default ({FitOptions().activation}): novel {statistics.mean(rec['default_fit_novel']):.4f}")

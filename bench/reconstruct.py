@@ -362,6 +362,7 @@ def part_realworld(train_views: int, steps: int, fresh: bool, capture_size: int 
 # --------------------------------------------------------------------------------------------
 
 def write_report(res: dict, command: str) -> None:
+    from damcap.appearance.evaluate import rm_source_spread
     from damcap.common.atomic import write_text_atomic
 
     m = res.get("machine", {})
@@ -439,12 +440,12 @@ def write_report(res: dict, command: str) -> None:
               "| method | same view (train) | novel view (test) | paper, novel view (own spheres) |", "|---|---|---|---|"]
         for meth in ("DAM", "RM++", "RM"):
             L.append(f"| {meth} | {d['train'].get(meth, float('nan')):.4f} | {d['test'].get(meth, float('nan')):.4f} | {rw['paper_reference'][meth]} |")
-        per = [v for v in rw.get("rm_per_source", {}).get("test", {}).values() if np.isfinite(v)]
-        if len(per) > 1:
-            worse = sum(v > d["test"]["RM++"] for v in per)
-            L += ["", f"RM is an oracle: the best of {len(per)} single sources, chosen by the test DSSIM itself. On the novel "
-                  f"views those sources score {min(per):.4f}-{max(per):.4f} (median {float(np.median(per)):.4f}); "
-                  f"{worse} of {len(per)} score worse than RM++ ({d['test']['RM++']:.4f})."]
+        sp = rm_source_spread(rw.get("rm_per_source", {}).get("test", {}))
+        if sp:
+            worse = sum(v > d["test"]["RM++"] for v in sp["scores"])
+            L += ["", f"RM is an oracle: the best of {sp['n']} single sources, chosen by the test DSSIM itself. On the novel "
+                  f"views those sources score {sp['min']:.4f}-{sp['max']:.4f} (median {sp['median']:.4f}); "
+                  f"{worse} of {sp['n']} score worse than RM++ ({d['test']['RM++']:.4f})."]
         L += ["", rw.get("verdict", ""), "", f"![novel views]({Path(rw['figure']).name})", "",
               "Columns: " + ", ".join(rw["figure_columns"]) + ".", ""]
     write_text_atomic(REPORT, "\n".join(L) + "\n")

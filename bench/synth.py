@@ -328,9 +328,14 @@ ANCHOR_SMALL = ("stanford-bunny__point-03__m1", "sphere__env-forest-r180__m1")
 """training-part, single-material captures of the small preset used by the ``anchor`` stage"""
 
 
-DEV_RENDERS = (("armadillo.obj", "env-forest-r000", 512, 11), ("cow.obj", "point-05", 256, 12),
-               ("beetle.obj", "env-museum-r180", 512, 13), ("igea.ply", "point-11", 256, 14))
-"""four more training-part captures (object, illumination, spp, seed) for the ``activation`` stage"""
+ANCHOR_RENDERED = CACHE / "synth_anchor" / "stanford-bunny__env-studio-r000__m1"
+"""the bunny under the studio map that the ``anchor`` stage renders"""
+DEV_COMBOS = (("armadillo.obj", "env-forest-r000", 1), ("cow.obj", "point-05", 1), ("beetle.obj", "env-museum-r180", 1),
+              ("igea.ply", "point-11", 1))
+"""four more training-part captures (object, illumination, materials) for the ``activation`` stage,
+rendered at the small preset's settings"""
+DEV_SEEDS = (11, 12, 13, 14)
+"""their render seeds (those the activation was chosen on; the preset's own would be per name)"""
 ACTIVATION_VARIANTS = {"default": {}, "leaky_relu": {"activation": "leaky_relu"}, "softplus": {"activation": "softplus"}}
 
 
@@ -339,21 +344,13 @@ def stage_activation(fit_seeds: list[int]) -> dict:
     softplus), leaky ReLU and plain softplus on seven training-part single-material captures
     (the anchor stage's three and DEV_RENDERS, rendered here at the small preset's 128 px and
     32 views), fit seeds ``fit_seeds``. Training-part only: the held-out captures play no part."""
-    from damcap.reconstruct.synth_set import point_illuminations
-
-    points = {e.name: e.spec for e in point_illuminations()}
-    roots = [small_corpus_dir() / "captures" / n for n in ANCHOR_SMALL] + [CACHE / "synth_anchor" / "stanford-bunny__env-studio-r000__m1"]
+    roots = [small_corpus_dir() / "captures" / n for n in ANCHOR_SMALL] + [ANCHOR_RENDERED]
     if not all((r / "transforms.json").is_file() for r in roots):
         raise SystemExit("run the 'small' and 'anchor' stages first")
-    for obj, light, spp, seed in DEV_RENDERS:
-        if light.startswith("env-"):
-            _, name, rot = light.split("-")
-            spec = env(next(p.name for p in (DATA / "envmaps").iterdir() if p.stem == name), float(rot[1:]))
-        else:
-            spec = points[light]
-        root = CACHE / "synth_dev" / f"{Path(obj).stem}__{light}__m1"
-        opts = SynthOptions(object=str(DATA / "meshes" / obj), light=spec, materials=1, views=32, resolution=128, spp=spp, seed=seed)
-        make_synthetic_capture(root, opts, threads=os.cpu_count())  # resumes / skips a finished render
+    entries, options = plan_corpus(replace(preset("small"), combos=DEV_COMBOS), DATA)
+    for e, opts, seed in zip(entries, options, DEV_SEEDS):
+        root = CACHE / "synth_dev" / e.name
+        make_synthetic_capture(root, replace(opts, seed=seed), threads=os.cpu_count())  # resumes / skips a finished render
         roots.append(root)
     rows = []
     for root in roots:
@@ -385,7 +382,7 @@ def stage_anchor(fit_seeds: list[int], floor_every: int) -> dict:
         raise SystemExit("run the 'small' stage first: the anchor stage reads its training-part captures")
     p = preset("small")
     opts = bunny_options(env("studio.hdr"), p.resolution, p.spp_env, views=p.views, seed=7)
-    root = CACHE / "synth_anchor" / "stanford-bunny__env-studio-r000__m1"
+    root = ANCHOR_RENDERED
     with Timed() as tr:
         make_synthetic_capture(root, opts, threads=os.cpu_count())  # resumes a partial render
     entries[root.name] = (root, {"name": root.name, "object": "stanford-bunny", "light": opts.light, "light_kind": "env"})

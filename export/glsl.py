@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from damcap.appearance.dam import DeepAppearanceMap
+from damcap.appearance.dam import LN2, DeepAppearanceMap
 
 
 def _floats(values: np.ndarray) -> str:
@@ -47,7 +47,7 @@ def glsl_source(model: DeepAppearanceMap, prefix: str = "dam") -> str:
         "leaky_relu": "return x > 0.0 ? x : 0.01 * x;",
         "relu": "return max(x, 0.0);",
         "softplus": "return max(x, 0.0) + log(1.0 + exp(-abs(x)));",
-        "shifted_softplus": "return max(x, 0.0) + log(1.0 + exp(-abs(x))) - 0.6931471805599453;",
+        "shifted_softplus": f"return max(x, 0.0) + log(1.0 + exp(-abs(x))) - {LN2!r};",
         "tanh": "float e = exp(-2.0 * abs(x)); return sign(x) * (1.0 - e) / (1.0 + e);",
     }[arch.activation]
     lines.append(f"float {prefix}_act(float x) {{ {act} }}")

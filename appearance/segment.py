@@ -10,8 +10,11 @@ enter the data cost of every material (the W of Eq. 3):
     cost = c_d + beta c_s
 
 Training starts from k-means clusters of the lit pixels' chromaticity (colour without the amount
-of light, so clusters follow materials rather than lit and unlit sides): Psi is first taught these
-labels and each DAM its cluster, then everything is refined jointly. (The paper's k-means baseline,
+of light, so clusters follow materials rather than lit and unlit sides), taken from each surface
+point's darkest observation among the training views (specular highlights only add light, and
+move with the view), with the illumination's tint modelled as a function of the normal; pixels
+too dim to shape the clusters are assigned to the nearest one. Psi is first taught these labels
+and each DAM its cluster, then everything is refined jointly. (The paper's k-means baseline,
 clusters in RGB + normal space with one DAM fitted per cluster, is :func:`kmeans_baseline`.)
 
 The segmentation is carried onto the geometry: the training pixels' world positions with their
@@ -24,7 +27,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Literal, get_args
 
 import numpy as np
 import torch
@@ -45,6 +48,8 @@ from .pixels import FOREGROUND_COVERAGE, view_dir_world
 # --------------------------------------------------------------------------------------------
 # Options
 # --------------------------------------------------------------------------------------------
+
+InitColour = Literal["pixel", "darkest-view"]
 
 
 @dataclass(frozen=True)
@@ -75,6 +80,17 @@ class SegmentOptions:
     the world normal (0, 1 or 2; 0 = plain chromaticity k-means): under a tinted environment map
     one material is redder where it faces the sun and bluer where it faces the sky, and plain
     k-means splits it by orientation (measured on the segment-dev captures: bench/segment.md)"""
+    init_colour: InitColour = "darkest-view"
+    """the colour the initial clustering sees per pixel: 'pixel' (its own) or 'darkest-view' (the
+    least bright observation of the same surface point among the training views). Specular
+    reflection only adds light and moves with the view, so the darkest observation is the closest
+    to the diffuse colour; a material's highlights (tinted by what they reflect) otherwise cluster
+    with another material (measured on the segment-dev captures: bench/segment.md)"""
+    colour_floor: float = 2e-5
+    """pixels whose mean radiance is below this fraction of the radiance scale (the capture's
+    95th percentile) show no usable colour and start unlabelled. The clusters are always fitted to
+    the pixels above 0.02; dimmer ones down to this floor (e.g. lit only by interreflection) are
+    assigned to the nearest cluster"""
     psi_resolution: int = 128
     """Psi runs on frames area-downsampled to at most this many pixels per side; its weights are
     upsampled bilinearly. Speed vs accuracy, measured on the segment-dev captures (128 px): 64
@@ -100,6 +116,10 @@ class SegmentOptions:
                 raise DamcapError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
         if self.init_steps < 0 or self.sparsity_beta < 0 or self.prior_weight < 0:
             raise DamcapError("--init-steps, --sparsity-beta and --prior-weight must be >= 0")
+        if self.init_colour not in get_args(InitColour):
+            raise DamcapError(f"--init-colour must be one of {', '.join(get_args(InitColour))}, got {self.init_colour!r}")
+        if not 0 < self.colour_floor <= 0.02:
+            raise DamcapError(f"--colour-floor must be in (0, 0.02], got {self.colour_floor}")
         if self.illumination_degree not in (0, 1, 2):
             raise DamcapError(f"--illumination-degree must be 0, 1 or 2, got {self.illumination_degree}")
 
@@ -160,6 +180,55 @@ def chromaticity_features(radiance_lin: np.ndarray, radiance_scale: float, dark_
     return chroma.astype(np.float32), bright
 
 
+def darkest_observation(position_world: np.ndarray, normal_world: np.ndarray, frame_index: np.ndarray, brightness: np.ndarray,
+                        radius_world: float, min_cos: float = 0.9) -> np.ndarray:
+    """For every pixel, the least bright observation of the same surface point in any frame.
+
+    Two pixels of different frames observe the same surface point when their world positions lie
+    within ``radius_world`` of each other and their normals agree (cosine above ``min_cos``; a
+    thin part's far side does not count). Each frame contributes its nearest pixel; the pixel
+    itself is always a candidate.
+
+    Args:
+        position_world: (P, 3) world positions of the pixels of all frames.
+        normal_world: (P, 3) their unit normals.
+        frame_index: (P,) int, the frame each pixel belongs to.
+        brightness: (P,) e.g. r + g + b of the linear radiance.
+        radius_world: world units, about half the pixel footprint (see :func:`pixel_spacing`).
+        min_cos: normals' agreement.
+
+    Returns:
+        (P,) int64 index of the darkest observation of each pixel's surface point.
+    """
+    pos = np.asarray(position_world, np.float64)
+    nrm = np.asarray(normal_world, np.float64)
+    best = np.arange(len(pos))
+    best_b = np.asarray(brightness, np.float64).copy()
+    for f in np.unique(frame_index):
+        idx_f = np.flatnonzero(frame_index == f)
+        dist, j = cKDTree(pos[idx_f]).query(pos, k=1, distance_upper_bound=radius_world)
+        found = np.isfinite(dist)
+        cand = idx_f[j[found]]
+        rows = np.flatnonzero(found)
+        same = (nrm[cand] * nrm[rows]).sum(1) > min_cos
+        rows, cand = rows[same], cand[same]
+        darker = brightness[cand] < best_b[rows]
+        best[rows[darker]] = cand[darker]
+        best_b[rows[darker]] = brightness[cand[darker]]
+    return best.astype(np.int64)
+
+
+def pixel_spacing(position_world: list[np.ndarray]) -> float:
+    """World distance between neighbouring pixels: median over frames of the median distance
+    from a pixel to its nearest neighbour in the same frame.
+
+    Args:
+        position_world: per frame, (P_f, 3) the foreground pixels' world positions.
+    """
+    meds = [float(np.median(cKDTree(p).query(p, k=2)[0][:, 1])) for p in position_world if len(p) > 1]
+    return float(np.median(meds)) if meds else 0.0
+
+
 def kmeans(features: np.ndarray, k: int, seed: int, iterations: int = 50, restarts: int = 4) -> np.ndarray:
     """Lloyd's k-means with k-means++ seeding; the best of ``restarts`` runs.
 
@@ -218,7 +287,7 @@ def normal_polynomial(normal_world: np.ndarray, degree: int) -> np.ndarray:
 
 
 def illumination_aware_kmeans(chroma: np.ndarray, normal_world: np.ndarray, k: int, seed: int, degree: int = 2,
-                              iterations: int = 30, ridge: float = 1e-2, eps: float = 1e-6) -> np.ndarray:
+                              iterations: int = 30, ridge: float = 1e-2, eps: float = 1e-6, fit: np.ndarray | None = None) -> np.ndarray:
     """Cluster colours into materials while a smooth illumination colour varies with the normal.
 
     Model: ``log chroma_i = a_{label_i} + B(n_i) theta + s_i``: a log-chromaticity per material
@@ -237,17 +306,25 @@ def illumination_aware_kmeans(chroma: np.ndarray, normal_world: np.ndarray, k: i
         iterations: alternation rounds at most (stops when the labels settle).
         ridge: ridge on theta, relative to the number of pixels.
         eps: floor of a chromaticity before the log.
+        fit: (P,) bool, the pixels the clusters and the tint are fitted to (default: all). The
+            others (e.g. too dim to shape the clusters) are only assigned: nearest material
+            after removing the fitted tint.
 
     Returns:
         (P,) int64 labels in [0, k).
     """
-    f = np.log(np.maximum(np.asarray(chroma, dtype=np.float64), eps))
-    f -= f.mean(axis=1, keepdims=True)
+    f_all = np.log(np.maximum(np.asarray(chroma, dtype=np.float64), eps))
+    f_all -= f_all.mean(axis=1, keepdims=True)
+    fit = np.ones(len(f_all), bool) if fit is None else np.asarray(fit, bool)
+    f = f_all[fit]
     labels = kmeans(f.astype(np.float32), k, seed)
-    basis = normal_polynomial(normal_world, degree)
+    basis_all = normal_polynomial(normal_world, degree)
+    basis_mean = basis_all[fit].mean(axis=0) if fit.any() else np.zeros(basis_all.shape[1])
+    basis = basis_all[fit] - basis_mean
+    theta = np.zeros((basis.shape[1], 3))
+    centres = _cluster_means(f, labels, k)
     if basis.shape[1] == 0:
-        return labels
-    basis -= basis.mean(axis=0)
+        return _assign_rest(labels, fit, f_all, centres)
     normal_eq = basis.T @ basis + ridge * len(basis) * np.eye(basis.shape[1])
     tint = np.zeros_like(f)
     for _ in range(iterations):
@@ -260,7 +337,22 @@ def illumination_aware_kmeans(chroma: np.ndarray, normal_world: np.ndarray, k: i
         if np.array_equal(new, labels):
             break
         labels = new
-    return labels.astype(np.int64)
+    return _assign_rest(labels, fit, f_all - (basis_all - basis_mean) @ theta, centres)
+
+
+def _cluster_means(features: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
+    """(k, D) mean feature per label; an empty cluster's centre is infinitely far."""
+    return np.stack([features[labels == j].mean(0) if (labels == j).any() else np.full(features.shape[1], np.inf) for j in range(k)])
+
+
+def _assign_rest(fit_labels: np.ndarray, fit: np.ndarray, features: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """(P,) labels: ``fit_labels`` on the fitted pixels, the nearest centre elsewhere."""
+    labels = np.empty(len(fit), np.int64)
+    labels[fit] = fit_labels
+    rest = ~fit
+    if rest.any():
+        labels[rest] = (((features[rest][:, None, :] - centres[None]) ** 2).sum(-1)).argmin(1)
+    return labels
 
 
 # --------------------------------------------------------------------------------------------
@@ -415,6 +507,48 @@ def scene_bounds(views: list[ViewData]) -> tuple[np.ndarray, float]:
     return centre.astype(np.float32), max(radius, 1e-6)
 
 
+def initial_labels(views: list[ViewData], radiance_scale: float, opts: SegmentOptions) -> list[np.ndarray]:
+    """The clustering the joint training starts from: one material label per foreground pixel.
+
+    k-means on the chromaticity of the bright pixels (of each pixel's own colour or of its
+    surface point's darkest observation, ``opts.init_colour``), with the illumination's tint
+    modelled as a polynomial of the normal (``opts.illumination_degree``); pixels between
+    ``opts.colour_floor`` and the bright level are assigned to the nearest cluster.
+
+    Args:
+        views: training views.
+        radiance_scale: the capture's radiance scale (:func:`.fit.radiance_scale_of`).
+        opts: materials, seed, init_colour, colour_floor, illumination_degree.
+
+    Returns:
+        per view, (P_f,) int64 labels of its foreground pixels (row-major order) in [0, n);
+        -1 where a pixel is too dark to show its colour.
+    """
+    n = opts.materials
+    fgs = [v.data.coverage > FOREGROUND_COVERAGE for v in views]
+    rad = np.concatenate([v.data.radiance_lin[fg] for v, fg in zip(views, fgs)])
+    nrm = np.concatenate([v.data.normal_world[fg] for v, fg in zip(views, fgs)])
+    chroma, bright = chromaticity_features(rad, radiance_scale)
+    usable = np.flatnonzero(bright | chromaticity_features(rad, radiance_scale, dark_fraction=opts.colour_floor)[1])
+    if opts.init_colour == "darkest-view" and len(usable):
+        fg_pos = [v.data.position_world[fg] for v, fg in zip(views, fgs)]
+        frame = np.concatenate([np.full(len(p), i) for i, p in enumerate(fg_pos)])
+        darkest = darkest_observation(np.concatenate(fg_pos)[usable], nrm[usable], frame[usable], rad[usable].sum(1),
+                                      0.5 * pixel_spacing(fg_pos))
+        chroma = chroma.copy()
+        chroma[usable] = chroma[usable][darkest]
+    labels = np.full(len(chroma), -1, np.int64)
+    fit = bright[usable]  # the clusters are fitted to the bright pixels; dim ones are only assigned
+    if fit.sum() < n:  # nothing lit enough to tell colours apart
+        labels[:] = np.arange(len(chroma)) % n
+    elif opts.illumination_degree == 0:
+        fit_labels = kmeans(chroma[usable][fit], n, opts.seed)
+        labels[usable] = _assign_rest(fit_labels, fit, chroma[usable], _cluster_means(chroma[usable][fit], fit_labels, n))
+    else:
+        labels[usable] = illumination_aware_kmeans(chroma[usable], nrm[usable], n, opts.seed, opts.illumination_degree, fit=fit)
+    return np.split(labels, np.cumsum([int(fg.sum()) for fg in fgs])[:-1])
+
+
 def segment_materials(views: list[ViewData], opts: SegmentOptions, progress: Callable[[int, int, dict[str, float]], None] | None = None) -> SegmentationModel:
     """Train n DAMs and Psi jointly on training views (unsupervised).
 
@@ -431,26 +565,10 @@ def segment_materials(views: list[ViewData], opts: SegmentOptions, progress: Cal
     arch = opts.architecture
     n = opts.materials
     gen = torch.Generator().manual_seed(opts.seed)
-    fgs = [v.data.coverage > FOREGROUND_COVERAGE for v in views]
-    fg_rad = [v.data.radiance_lin[fg] for v, fg in zip(views, fgs)]
-    all_rad = np.concatenate(fg_rad)
-    scale = radiance_scale_of(torch.from_numpy(all_rad))
+    scale = radiance_scale_of(torch.from_numpy(np.concatenate([v.data.radiance_lin[v.data.coverage > FOREGROUND_COVERAGE] for v in views])))
     centre, radius = scene_bounds(views)
     frames = _prepare(views, arch.encoding, scale, centre, radius)
-
-    # initial labels: k-means on chromaticity of the lit pixels, with the illumination's tint
-    # modelled as a function of the normal (-1 = too dark to tell, ignored)
-    chroma, bright = chromaticity_features(all_rad, scale)
-    labels_flat = np.full(len(chroma), -1, np.int64)
-    if bright.sum() < n:  # nothing lit enough to tell colours apart
-        labels_flat[:] = np.arange(len(chroma)) % n
-    elif opts.illumination_degree == 0:
-        labels_flat[bright] = kmeans(chroma[bright], n, opts.seed)
-    else:
-        fg_nrm = np.concatenate([v.data.normal_world[fg] for v, fg in zip(views, fgs)])
-        labels_flat[bright] = illumination_aware_kmeans(chroma[bright], fg_nrm[bright], n, opts.seed, opts.illumination_degree)
-    splits = np.cumsum([len(r) for r in fg_rad])[:-1]
-    init_labels = [torch.from_numpy(lab) for lab in np.split(labels_flat, splits)]
+    init_labels = [torch.from_numpy(lab) for lab in initial_labels(views, scale, opts)]
 
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(opts.seed)

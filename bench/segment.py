@@ -103,7 +103,9 @@ def stage_closed_form(restarts: int) -> list[dict]:
 
 
 #: the development-set ablations: name -> the options that differ from the default
-DEV_VARIANTS = {"default": {}, "illumination_degree=0 (plain chromaticity k-means)": {"illumination_degree": 0},
+DEV_VARIANTS = {"default": {}, "init_colour=pixel (each pixel's own colour)": {"init_colour": "pixel"},
+                "colour_floor=0.02 (bright pixels only)": {"colour_floor": 0.02},
+                "illumination_degree=0 (plain chromaticity k-means)": {"illumination_degree": 0},
                 "prior_weight=0 (the paper's cost alone)": {"prior_weight": 0.0},
                 "psi_resolution=64 (faster)": {"psi_resolution": 64}}
 
@@ -121,7 +123,7 @@ def ensure_corpus(folder: Path, preset: str) -> None:
 
 
 #: the held-out seed study: this session's defaults next to the previous ones, over fit seeds
-SEED_VARIANTS = {"default": {}, "previous default (illumination_degree=0, psi_resolution=64)": {"illumination_degree": 0, "psi_resolution": 64}}
+SEED_VARIANTS = {"default": {}, "previous default (init_colour=pixel, colour_floor=0.02)": {"init_colour": "pixel", "colour_floor": 0.02}}
 
 
 def iou_study(captures: list[tuple[Path, dict]], variants: dict[str, dict], seeds: tuple[int, ...], label: str) -> dict:

@@ -28,6 +28,8 @@ def segment(
     sparsity_beta: float = typer.Option(None, help="weight of the sparsity cost"),
     prior_weight: float = typer.Option(None, help="weight of the initial (chromaticity k-means) labels during the joint phase; 0 = the paper's cost alone"),
     illumination_degree: int = typer.Option(None, help="initial clustering: degree (0-2) of the illumination tint modelled as a polynomial of the normal; 0 = plain chromaticity k-means"),
+    init_colour: str = typer.Option(None, help="initial clustering: 'darkest-view' (the least bright observation of each surface point among the training views, closest to its diffuse colour) or 'pixel' (each pixel's own colour)"),
+    colour_floor: float = typer.Option(None, help="initial clustering: pixels dimmer than this fraction of the radiance scale start unlabelled; those up to 0.02 are assigned to the nearest cluster (0.02 = bright pixels only)"),
     seed: int = typer.Option(None),
     device: str = typer.Option(None, help="cpu | cuda | auto"),
 ) -> None:
@@ -41,7 +43,7 @@ def segment(
     from damcap.common.version import damcap_version
 
     given = dict(steps=steps, init_steps=init_steps, sparsity_beta=sparsity_beta, prior_weight=prior_weight,
-                 illumination_degree=illumination_degree, seed=seed, device=device)
+                 illumination_degree=illumination_degree, init_colour=init_colour, colour_floor=colour_floor, seed=seed, device=device)
     base = SegmentOptions(**{k: v for k, v in given.items() if v is not None})
     if materials != "auto":
         try:

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
+import torch
 
+from damcap.appearance.fit import radiance_scale_of
 from damcap.appearance.segment import (
-    SegmentOptions, choose_materials, darkest_observation, illumination_aware_kmeans, kmeans, kmeans_baseline, match_materials,
-    initial_labels, pixel_spacing, segment_materials, segmentation_scores,
+    SegmentOptions, choose_materials, chromaticity_features, darkest_observation, illumination_aware_kmeans, initial_labels, kmeans,
+    kmeans_baseline, match_materials, pixel_spacing, segment_materials, segmentation_scores,
 )
 from damcap.appearance.views import load_views
 from damcap.cli.main import main
@@ -77,11 +80,6 @@ def test_each_dam_reproduces_its_material(two_materials, segmented):
 
 def test_prior_weight_keeps_the_initial_labels(two_materials):
     """The joint phase's prior term pulls Psi toward the chromaticity k-means labels it started from."""
-    import torch
-
-    from damcap.appearance.fit import radiance_scale_of
-    from damcap.appearance.segment import chromaticity_features
-
     _, train, _ = two_materials
     fgs = [v.data.coverage > 0.5 for v in train]
     rad = np.concatenate([v.data.radiance_lin[fg] for v, fg in zip(train, fgs)])
@@ -126,13 +124,6 @@ def test_darkest_observation_finds_the_same_surface_point_in_other_frames():
 def test_darkest_view_initialisation_ignores_view_dependent_highlights(two_materials):
     """Give material 0 a strong highlight tinted like material 1 in some frames: clustering each
     pixel's own colour labels the highlights as material 1; the darkest observation does not."""
-    import dataclasses
-
-    import torch
-
-    from damcap.appearance.fit import radiance_scale_of
-    from damcap.appearance.segment import chromaticity_features
-
     _, train, _ = two_materials
     fgs = [v.data.coverage > 0.5 for v in train]
     truth = np.concatenate([v.data.weights[fg].argmax(1) for v, fg in zip(train, fgs)])
@@ -161,12 +152,6 @@ def test_dim_pixels_are_assigned_to_the_clusters_of_the_bright_ones(two_material
     interreflection): with ``colour_floor`` 0.02 it starts unlabelled; with the default floor its
     pixels are assigned to the clusters the bright pixels form, and the bright pixels' labels do
     not change."""
-    import dataclasses
-
-    import torch
-
-    from damcap.appearance.fit import radiance_scale_of
-
     _, train, _ = two_materials
     fgs = [v.data.coverage > 0.5 for v in train]
     views, dim = [], []

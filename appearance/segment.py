@@ -50,6 +50,8 @@ from .pixels import FOREGROUND_COVERAGE, view_dir_world
 # --------------------------------------------------------------------------------------------
 
 InitColour = Literal["pixel", "darkest-view"]
+BRIGHT_FRACTION = 0.02
+"""pixels whose mean radiance exceeds this fraction of the radiance scale shape the initial clusters"""
 
 
 @dataclass(frozen=True)
@@ -89,7 +91,7 @@ class SegmentOptions:
     colour_floor: float = 2e-5
     """pixels whose mean radiance is below this fraction of the radiance scale (the capture's
     95th percentile) show no usable colour and start unlabelled. The clusters are always fitted to
-    the pixels above 0.02; dimmer ones down to this floor (e.g. lit only by interreflection) are
+    the pixels above BRIGHT_FRACTION (0.02); dimmer ones down to this floor (e.g. lit only by interreflection) are
     assigned to the nearest cluster"""
     psi_resolution: int = 128
     """Psi runs on frames area-downsampled to at most this many pixels per side; its weights are
@@ -118,8 +120,8 @@ class SegmentOptions:
             raise DamcapError("--init-steps, --sparsity-beta and --prior-weight must be >= 0")
         if self.init_colour not in get_args(InitColour):
             raise DamcapError(f"--init-colour must be one of {', '.join(get_args(InitColour))}, got {self.init_colour!r}")
-        if not 0 < self.colour_floor <= 0.02:
-            raise DamcapError(f"--colour-floor must be in (0, 0.02], got {self.colour_floor}")
+        if not 0 < self.colour_floor <= BRIGHT_FRACTION:
+            raise DamcapError(f"--colour-floor must be in (0, {BRIGHT_FRACTION}], got {self.colour_floor}")
         if self.illumination_degree not in (0, 1, 2):
             raise DamcapError(f"--illumination-degree must be 0, 1 or 2, got {self.illumination_degree}")
 
@@ -159,7 +161,7 @@ def kmeans_features(radiance_lin: np.ndarray, normal_world: np.ndarray, radiance
     return np.concatenate([standardise(rgb), standardise(normal_world)], axis=1).astype(np.float32)
 
 
-def chromaticity_features(radiance_lin: np.ndarray, radiance_scale: float, dark_fraction: float = 0.02, eps: float = 1e-8) -> tuple[np.ndarray, np.ndarray]:
+def chromaticity_features(radiance_lin: np.ndarray, radiance_scale: float, dark_fraction: float = BRIGHT_FRACTION, eps: float = 1e-8) -> tuple[np.ndarray, np.ndarray]:
     """Shading-invariant colour features for initialising the joint segmentation.
 
     Chromaticity rgb / (r + g + b) does not change with the amount of light a pixel receives,
@@ -322,9 +324,8 @@ def illumination_aware_kmeans(chroma: np.ndarray, normal_world: np.ndarray, k: i
     basis_mean = basis_all[fit].mean(axis=0) if fit.any() else np.zeros(basis_all.shape[1])
     basis = basis_all[fit] - basis_mean
     theta = np.zeros((basis.shape[1], 3))
-    centres = _cluster_means(f, labels, k)
     if basis.shape[1] == 0:
-        return _assign_rest(labels, fit, f_all, centres)
+        return _assign_rest(labels, fit, f_all, _cluster_means(f, labels, k))
     normal_eq = basis.T @ basis + ridge * len(basis) * np.eye(basis.shape[1])
     tint = np.zeros_like(f)
     for _ in range(iterations):
@@ -524,12 +525,13 @@ def initial_labels(views: list[ViewData], radiance_scale: float, opts: SegmentOp
         per view, (P_f,) int64 labels of its foreground pixels (row-major order) in [0, n);
         -1 where a pixel is too dark to show its colour.
     """
+    opts.validate()
     n = opts.materials
     fgs = [v.data.coverage > FOREGROUND_COVERAGE for v in views]
     rad = np.concatenate([v.data.radiance_lin[fg] for v, fg in zip(views, fgs)])
     nrm = np.concatenate([v.data.normal_world[fg] for v, fg in zip(views, fgs)])
     chroma, bright = chromaticity_features(rad, radiance_scale)
-    usable = np.flatnonzero(bright | chromaticity_features(rad, radiance_scale, dark_fraction=opts.colour_floor)[1])
+    usable = np.flatnonzero(chromaticity_features(rad, radiance_scale, dark_fraction=opts.colour_floor)[1])  # includes bright
     if opts.init_colour == "darkest-view" and len(usable):
         fg_pos = [v.data.position_world[fg] for v, fg in zip(views, fgs)]
         frame = np.concatenate([np.full(len(p), i) for i, p in enumerate(fg_pos)])

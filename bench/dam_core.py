@@ -16,6 +16,7 @@ steps, input encoding, hold-out stopping, width and the adversarial cost, and st
   2nd / 4th pixel in both axes, a transformation done here, not in the library; test views, and
   the train views the same-view DSSIM is measured on, stay at 128x128);
 * compute precision (``bfloat16``: ``FitOptions.precision``; ``float32`` is the default);
+* weight decay (``wd0.03``, ``wd0.1``: ``FitOptions.weight_decay``; 0 is the default);
 * the shipped learning-to-learn predictor plus K refinement steps (``predict_k0`` ...
   ``predict_k1000``), as ``damcap predict --refine-steps K`` does it (``predictor_input``,
   ``predict_dam``, ``refine_dam``); its time includes the prediction (not loading the file).
@@ -114,6 +115,8 @@ SETTINGS: list[tuple[str, dict]] = [
     ("input64", {"input_subsample": 2}),
     ("input32", {"input_subsample": 4}),
     ("bfloat16", {"precision": "bfloat16"}),
+    ("wd0.03", {"weight_decay": 0.03}),
+    ("wd0.1", {"weight_decay": 0.1}),
     ("predict_k0", {"predict_refine_steps": 0}),
     ("predict_k100", {"predict_refine_steps": 100}),
     ("predict_k300", {"predict_refine_steps": 300}),
@@ -121,7 +124,7 @@ SETTINGS: list[tuple[str, dict]] = [
 ]
 #: table rows that are the same options as another setting: (name, same options as)
 ALIASES = [("shifted_softplus", "default"), ("steps2000", "default"), ("enc_nr", "default"), ("holdout2_s2000", "default"), ("holdout2_s8000", "steps8000"),
-           ("w32d4", "default"), ("batch4096", "default"), ("input128", "default"), ("float32", "default")]
+           ("w32d4", "default"), ("batch4096", "default"), ("input128", "default"), ("float32", "default"), ("wd0", "default")]
 BENCH_KEYS = ("input_subsample", "predict_refine_steps")
 """setting keys that are not FitOptions fields: input_subsample = keep every n-th training pixel in
 both axes; predict_refine_steps = K, predict with the shipped predictor, then K refine_dam steps"""
@@ -132,6 +135,7 @@ STUDIES: dict[str, list[str]] = {
     "training input resolution": ["input32", "input64", "default"],
     "precision": ["default", "bfloat16"],
     "hidden activation": ["leaky_relu", "default"],
+    "weight decay": ["default", "wd0.03", "wd0.1"],
     "predictor + K refine steps": ["predict_k0", "predict_k100", "predict_k300", "predict_k1000"],
 }
 
@@ -175,11 +179,12 @@ def split_overrides(overrides: dict) -> tuple[dict, dict]:
 
 def run_key(capture: str, opts: FitOptions, bench: dict | None = None) -> str:
     """The run log's key: capture, FitOptions and bench-level keys (predictor runs: with the
-    predictor file's hash). ``precision`` is left out at its default so that runs logged before
-    the option existed keep their keys."""
+    predictor file's hash). ``precision`` and ``weight_decay`` are left out at their defaults so
+    that runs logged before the options existed keep their keys."""
     d = asdict(opts)
-    if d.get("precision") == "float32":
-        del d["precision"]
+    for name, default in (("precision", "float32"), ("weight_decay", 0.0)):
+        if d.get(name) == default:
+            del d[name]
     return capture + "|" + json.dumps(d, sort_keys=True) + ("|" + json.dumps(bench, sort_keys=True) if bench else "")
 
 
@@ -633,7 +638,8 @@ def write_markdown(result: dict, path: Path, plot_path: Path) -> None:
              "sampled per step; `input64`/`input32` train on every 2nd/4th pixel of each 128×128 training frame in both axes "
              "(64×64 / 32×32 inputs, subsampled in the benchmark, no filtering), while novel-view DSSIM is still measured on the "
              "full-resolution test views and same-view DSSIM on the full-resolution train views; `bfloat16` runs the training step "
-             "under bfloat16 autocast (`FitOptions.precision`; weights stay float32); `predict_kK` predicts the DAM with the "
+             "under bfloat16 autocast (`FitOptions.precision`; weights stay float32); `wd0.03`/`wd0.1` add decoupled weight decay "
+             "(`FitOptions.weight_decay`, AdamW); `predict_kK` predicts the DAM with the "
              "shipped learning-to-learn predictor from one train view and refines it K steps on all train views "
              "(`refine_dam`, as `damcap predict --refine-steps K`): its time is choosing and cropping the input view, the "
              "prediction and the refinement"

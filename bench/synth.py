@@ -28,6 +28,9 @@ Stages (``--stages``, default all, in this order):
 * ``activation``: how ``FitOptions.activation`` was chosen: the default (shifted softplus), leaky
   ReLU and plain softplus, 2 fit seeds, on seven training-part captures (the anchor stage's three
   and four more rendered here); the held-out captures play no part.
+* ``weight_decay``: ``FitOptions.weight_decay`` (0 by default) at 0.03 and 0.1 on the same
+  training-part captures, then the best of them on the held-out Table 1 captures next to the
+  ``table1`` stage's default rows.
 
 Every timed section records the wall time and the CPU time other processes took meanwhile
 (the machine is shared). Outputs: ``bench/results/synth.json`` (stages merged into an existing
@@ -75,7 +78,7 @@ REPO = BENCH.parent
 CACHE = BENCH / ".cache"
 RESULTS = BENCH / "results"
 DATA = Path(os.environ.get("DAMCAP_SHARED_DATA", REPO.parent / "shared" / "data"))
-STAGES = ("throughput", "noise", "small", "paper", "table1", "why", "anchor", "activation")
+STAGES = ("throughput", "noise", "small", "paper", "table1", "why", "anchor", "activation", "weight_decay")
 #: seed offset of the second render in noise-floor measurements
 NOISE_SEED_OFFSET = 7919
 
@@ -339,11 +342,10 @@ DEV_SEEDS = (11, 12, 13, 14)
 ACTIVATION_VARIANTS = {"default": {}, "leaky_relu": {"activation": "leaky_relu"}, "softplus": {"activation": "softplus"}}
 
 
-def stage_activation(fit_seeds: list[int]) -> dict:
-    """How FitOptions.activation was chosen: novel-view DSSIM / RM++ of the default (shifted
-    softplus), leaky ReLU and plain softplus on seven training-part single-material captures
-    (the anchor stage's three and DEV_RENDERS, rendered here at the small preset's 128 px and
-    32 views), fit seeds ``fit_seeds``. Training-part only: the held-out captures play no part."""
+def training_part_roots() -> list[Path]:
+    """The seven training-part single-material captures that fit defaults are chosen on: the
+    anchor stage's three and DEV_COMBOS (rendered here, or reused, at the small preset's 128 px
+    and 32 views). The held-out captures are not among them."""
     roots = [small_corpus_dir() / "captures" / n for n in ANCHOR_SMALL] + [ANCHOR_RENDERED]
     if not all((r / "transforms.json").is_file() for r in roots):
         raise SystemExit("run the 'small' and 'anchor' stages first")
@@ -352,23 +354,73 @@ def stage_activation(fit_seeds: list[int]) -> dict:
         root = CACHE / "synth_dev" / e.name
         make_synthetic_capture(root, replace(opts, seed=seed), threads=os.cpu_count())  # resumes / skips a finished render
         roots.append(root)
+    return roots
+
+
+def novel_ratios(root: Path, variants: dict[str, dict], fit_seeds: list[int]) -> dict[str, list[float]]:
+    """Novel-view DSSIM / RM++ of a DAM fitted with each variant's FitOptions overrides, per fit seed."""
+    cap = read_capture(root)
+    train, test = load_views(cap, "train"), load_views(cap, "test")
+    samples = samples_of(train)
+    rm_pp, out = None, {}
+    for label, ov in variants.items():
+        per = []
+        for seed in fit_seeds:
+            fit = fit_dam(samples, FitOptions(seed=seed, **ov))
+            res = evaluate_split(train, test, {"DAM": fit.model}, baselines=rm_pp is None)
+            rm_pp = res["RM++"].mean if rm_pp is None else rm_pp
+            per.append(res["DAM"].mean / rm_pp)
+        out[label] = per
+    return out
+
+
+def stage_activation(fit_seeds: list[int]) -> dict:
+    """How FitOptions.activation was chosen: novel-view DSSIM / RM++ of the default (shifted
+    softplus), leaky ReLU and plain softplus on the training-part captures
+    (:func:`training_part_roots`), fit seeds ``fit_seeds``."""
     rows = []
-    for root in roots:
-        cap = read_capture(root)
-        train, test = load_views(cap, "train"), load_views(cap, "test")
-        samples = samples_of(train)
-        rm_pp, row = None, {"name": root.name, "ratio_novel": {}}
-        for label, ov in ACTIVATION_VARIANTS.items():
-            per = []
-            for seed in fit_seeds:
-                fit = fit_dam(samples, FitOptions(seed=seed, **ov))
-                res = evaluate_split(train, test, {"DAM": fit.model}, baselines=rm_pp is None)
-                rm_pp = res["RM++"].mean if rm_pp is None else rm_pp
-                per.append(res["DAM"].mean / rm_pp)
-            row["ratio_novel"][label] = per
+    for root in training_part_roots():
+        row = {"name": root.name, "ratio_novel": novel_ratios(root, ACTIVATION_VARIANTS, fit_seeds)}
         rows.append(row)
         log(f"activation {root.name}: " + ", ".join(f"{k} {statistics.fmean(v):.2f}" for k, v in row["ratio_novel"].items()))
     return {"fit_seeds": fit_seeds, "default": FitOptions().activation, "rows": rows}
+
+
+WEIGHT_DECAYS = (0.03, 0.1)
+"""FitOptions.weight_decay values the ``weight_decay`` stage measures next to the default (0)"""
+WEIGHT_DECAY_HELDOUT = 0.1
+"""the one measured on the held-out captures: the best on the training-part captures"""
+
+
+def stage_weight_decay(fit_seeds: list[int], res: dict) -> dict:
+    """Weight decay (``FitOptions.weight_decay``, default 0): novel-view DSSIM / RM++ on the
+    training-part captures (fit seeds ``fit_seeds[:2]``) for 0 and WEIGHT_DECAYS, then the
+    representation rows of Table 1 on the held-out captures with WEIGHT_DECAY_HELDOUT, next to
+    the default's rows of the ``table1`` stage (same captures, seeds and baselines)."""
+    if "table1" not in res:
+        raise SystemExit("run the 'table1' stage first")
+    variants = {"0": {}} | {str(wd): {"weight_decay": wd} for wd in WEIGHT_DECAYS}
+    rows = []
+    for root in training_part_roots():
+        rows.append({"name": root.name, "ratio_novel": novel_ratios(root, variants, fit_seeds[:2])})
+        log(f"weight decay {root.name}: " + ", ".join(f"{k} {statistics.fmean(v):.2f}" for k, v in rows[-1]["ratio_novel"].items()))
+    t1 = res["table1"]
+    per_capture = []
+    for rec in t1["per_capture"]:
+        root = small_corpus_dir() / "captures" / rec["name"]
+        cap = read_capture(root)
+        train, test = load_views(cap, "train"), load_views(cap, "test")
+        samples = samples_of(train)
+        fits = []
+        for seed in t1["fit_seeds"]:
+            fit = fit_dam(samples, FitOptions(seed=seed, weight_decay=WEIGHT_DECAY_HELDOUT))
+            fits.append({"seed": seed, "same_view": evaluate_split(train, train, {"DAM": fit.model}, baselines=False)["DAM"].mean,
+                         "novel_view": evaluate_split(train, test, {"DAM": fit.model}, baselines=False)["DAM"].mean})
+        per_capture.append({**{k: rec[k] for k in ("name", "light_kind", "baselines", "noise_floor")}, "fits": fits})
+        log(f"weight decay {WEIGHT_DECAY_HELDOUT} held-out {rec['name']}: novel "
+            f"{statistics.fmean(f['novel_view'] for f in fits):.4f} (default {rec['dam']['novel_view']:.4f})")
+    return {"dev_fit_seeds": fit_seeds[:2], "dev_rows": rows, "heldout_weight_decay": WEIGHT_DECAY_HELDOUT,
+            "heldout_per_capture": per_capture, "heldout_table": summarise_table1(per_capture, t1["fit_seeds"])}
 
 
 def stage_anchor(fit_seeds: list[int], floor_every: int) -> dict:
@@ -616,6 +668,33 @@ def write_markdown(res: dict, path: Path) -> None:
         L.append("| **mean** | " + " | ".join(f"**{statistics.fmean(statistics.fmean(r['ratio_novel'][k]) for r in a['rows']):.3f}**"
                                              for k in labels) + " |")
         L += ["", "A ratio near 1 with identical seeds is a fit that collapsed to a black image (plain softplus under point lights).", ""]
+    if "weight_decay" in res:
+        w = res["weight_decay"]
+        labels = list(w["dev_rows"][0]["ratio_novel"])
+        L += ["## Weight decay (`FitOptions.weight_decay`; not the default)", "",
+              f"Training-part captures: novel-view DSSIM / RM++, mean over fit seeds {w['dev_fit_seeds']} (per seed in brackets), "
+              "by weight decay (0 = `FitOptions()`).", "",
+              "| capture | " + " | ".join(labels) + " |", "|---|" + "---:|" * len(labels)]
+        for r in w["dev_rows"]:
+            L.append(f"| {r['name']} | " + " | ".join(f"{statistics.fmean(r['ratio_novel'][k]):.2f} ("
+                                                    + ", ".join(f"{x:.2f}" for x in r['ratio_novel'][k]) + ")" for k in labels) + " |")
+        L.append("| **mean** | " + " | ".join(f"**{statistics.fmean(statistics.fmean(r['ratio_novel'][k]) for r in w['dev_rows']):.3f}**"
+                                             for k in labels) + " |")
+        if "table1" in res:
+            d, h = res["table1"]["table"], w["heldout_table"]
+            L += ["", f"Held-out captures (Table 1's representation rows, fit seeds {res['table1']['fit_seeds']}), "
+                  f"weight decay {w['heldout_weight_decay']} next to the default; DAM mean DSSIM (DAM / RM++ per fit seed):", "",
+                  "| fit | point, same view | point, novel view | env, same view | env, novel view |", "|---|---:|---:|---:|---:|"]
+            for label, t in (("default (0)", d), (f"weight decay {w['heldout_weight_decay']}", h)):
+                L.append(f"| {label} | " + " | ".join(
+                    f"{t[k][c]['DAM']:.4f} ({', '.join(f'{x:.2f}' for x in t[k][c]['DAM/RM++_per_fit_seed'])})"
+                    for k in ("point", "env") for c in ("same_view", "novel_view")) + " |")
+            L.append("| RM++ | " + " | ".join(f"{d[k][c]['RM++']:.4f}" for k in ("point", "env") for c in ("same_view", "novel_view")) + " |")
+            for label, t in (("DAM / RM++, default", d), (f"DAM / RM++, weight decay {w['heldout_weight_decay']}", h)):
+                L.append(f"| {label} | " + " | ".join(f"**{t[k][c]['DAM/RM++']:.2f}**" for k in ("point", "env")
+                                                      for c in ("same_view", "novel_view")) + " |")
+        L += ["", "Weight decay is not the default: on the closed-form captures of `bench/dam_core.md` (local shading only) "
+              "it raises the ratio (study *weight decay* there).", ""]
     if res.get("notes"):
         L += ["## Notes", ""] + [f"- {n}" for n in res["notes"]] + [""]
     path.write_text("\n".join(L), encoding="utf-8")
@@ -661,6 +740,8 @@ def main() -> None:
             res["why"] = stage_why()
         elif stage == "activation":
             res["activation"] = stage_activation([int(s) for s in args.fit_seeds.split(",")][:2])
+        elif stage == "weight_decay":
+            res["weight_decay"] = stage_weight_decay([int(s) for s in args.fit_seeds.split(",")], res)
         elif stage == "anchor":
             res["anchor"] = stage_anchor([int(s) for s in args.fit_seeds.split(",")], args.floor_every)
         elif stage == "table1":

@@ -80,6 +80,7 @@ def fit(
     seed: int = typer.Option(None),
     device: str = typer.Option(None, help="cpu | cuda | auto"),
     precision: str = typer.Option(None, help="training-step compute: float32 | bfloat16 (autocast; weights and the saved model stay float32)"),
+    weight_decay: float = typer.Option(None, help="decoupled weight decay (AdamW), e.g. 0.1: smoother, for captures with shadows and interreflection (default 0)"),
     resume: bool = typer.Option(True, "--resume/--no-resume", help="continue from OUTPUT.ckpt if a run was interrupted"),
     target_dssim: Optional[float] = typer.Option(None, "--target-dssim", help="fit growing DAMs and keep the smallest whose DSSIM on the held-out train views is at most this"),
 ) -> None:
@@ -92,7 +93,7 @@ def fit(
 
     given = dict(steps=steps, batch_size=batch_size, learning_rate=learning_rate, width=width, depth=depth,
                  encoding=encoding, activation=activation, adversarial=adversarial, holdout_views=holdout_views,
-                 seed=seed, device=device, precision=precision)
+                 seed=seed, device=device, precision=precision, weight_decay=weight_decay)
     opts = FitOptions(**{k: v for k, v in given.items() if v is not None})
     opts.validate()  # numeric options and --precision, before reading the capture
     opts.architecture  # validates width/depth/encoding/activation

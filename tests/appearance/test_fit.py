@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -103,6 +106,24 @@ def test_bad_options_are_clear():
         FitOptions(steps=0).validate()
     with pytest.raises(DamcapError, match="learning-rate"):
         FitOptions(learning_rate=-1).validate()
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(DamcapError, match="--weight-decay must be a finite number >= 0"):
+            FitOptions(weight_decay=bad).validate()
+
+
+def test_weight_decay_is_decoupled_and_follows_the_learning_rate_schedule(small_samples):
+    """With no data gradient (every sample weight 0) Adam leaves the weights alone and AdamW's
+    decay is all that acts: w_T = w_0 * prod_t (1 - lr_t * weight_decay), lr_t the cosine schedule."""
+    s = small_samples
+    blind = type(s)(s.view_dir_world, s.normal_world, s.radiance_lin, torch.zeros_like(s.weight), s.frame_index)
+    steps, lr, wd = 40, 1e-2, 0.5
+    opts = FitOptions(steps=steps, learning_rate=lr, holdout_views=0, checkpoint_every=0, seed=4)
+    start = fit_dam(blind, opts).model.get_flat_weights().double()
+    decayed = fit_dam(blind, replace(opts, weight_decay=wd)).model.get_flat_weights().double()
+    lr_t = [lr * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * t / steps))) for t in range(steps)]
+    factor = math.prod(1 - a * wd for a in lr_t)
+    assert factor < 0.9
+    torch.testing.assert_close(decayed, start * factor, rtol=1e-5, atol=1e-7)
 
 
 # --------------------------------------------------------------------------------------------
@@ -168,7 +189,7 @@ def test_bad_precision_is_refused():
         FitOptions(precision="float16").validate()  # type: ignore[arg-type]
 
 
-def test_cli_precision(small_capture, tmp_path, capsys):
+def test_cli_precision_and_weight_decay(small_capture, tmp_path, capsys):
     from safetensors.torch import load_file
 
     from damcap.appearance.dam_file import load_dam
@@ -182,6 +203,9 @@ def test_cli_precision(small_capture, tmp_path, capsys):
     assert model.weights_flat.dtype == torch.float32 and meta["provenance"]["options"]["precision"] == "bfloat16"
     code, _, err = run_cli(["fit", small_capture, "-o", tmp_path / "x.dam", "--precision", "fp8"], capsys)
     assert_one_line_error(code, err, "--precision", "'fp8'", "bfloat16")
+    assert not (tmp_path / "x.dam").exists()
+    code, _, err = run_cli(["fit", small_capture, "-o", tmp_path / "x.dam", "--weight-decay", "-0.5"], capsys)
+    assert_one_line_error(code, err, "--weight-decay", "-0.5")
     assert not (tmp_path / "x.dam").exists()
 
 

@@ -186,17 +186,24 @@ def error_breakdown(est: np.ndarray, ref: np.ndarray, longest_codes: np.ndarray)
         per_channel[name] = {"median": round(float(np.median(a)), 4), "p90": round(float(np.percentile(a, 90)), 4),
                              "share_over_total_p90": round(float((a > total_p90).mean()), 4)}
     own_scale = lr - np.array([np.median(lr[..., c][use]) for c in range(3)])
+
+    def signed_median(c: int, where: np.ndarray) -> float | None:
+        return round(float(np.median(signed[..., c][where])), 4) if where.any() else None
+
     by_code = {}
     for c, name in enumerate(CHANNELS):
         z = longest_codes[..., c]
-        by_code[name] = [{"codes": list(b), "pixels": int((m := use & (z >= b[0]) & (z < b[1])).sum()),
-                          "signed_median": round(float(np.median(signed[..., c][m])), 4) if m.any() else None} for b in CODE_BANDS]
-    green_code_band = use & (longest_codes[..., 1] >= 34) & (longest_codes[..., 1] < 50)
-    zr = longest_codes[..., 0][green_code_band]
-    edges = np.quantile(zr, np.linspace(0, 1, 5)) if zr.size else np.zeros(5)
-    green_by_red = [{"red_codes": [int(edges[k]), int(edges[k + 1])],
-                     "signed_median": round(float(np.median(signed[..., 1][green_code_band][(zr >= edges[k]) & (zr <= edges[k + 1])])), 4)}
-                    for k in range(4)] if zr.size else []
+        by_code[name] = []
+        for lo, hi in CODE_BANDS:
+            m = use & (z >= lo) & (z < hi)
+            by_code[name].append({"codes": [lo, hi], "pixels": int(m.sum()), "signed_median": signed_median(c, m)})
+    green_dark = use & (longest_codes[..., 1] >= 34) & (longest_codes[..., 1] < 50)
+    green_by_red = []
+    if green_dark.any():
+        edges = np.quantile(longest_codes[..., 0][green_dark], np.linspace(0, 1, 5))
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            m = green_dark & (longest_codes[..., 0] >= lo) & (longest_codes[..., 0] <= hi)
+            green_by_red.append({"red_codes": [int(lo), int(hi)], "signed_median": signed_median(1, m)})
     return {"per_channel": per_channel, "p90_own_scale_per_channel": round(float(np.percentile(np.abs(own_scale[use]), 90)), 4),
             "total_p90": round(total_p90, 4), "signed_by_longest_code": by_code, "green_34_50_by_red_code": green_by_red}
 

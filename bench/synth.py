@@ -388,15 +388,19 @@ def stage_activation(fit_seeds: list[int]) -> dict:
 
 WEIGHT_DECAYS = (0.03, 0.1)
 """FitOptions.weight_decay values the ``weight_decay`` stage measures next to the default (0)"""
-WEIGHT_DECAY_HELDOUT = 0.1
-"""the one measured on the held-out captures: the best on the training-part captures"""
+
+
+def mean_ratio(rows: list[dict], label: str) -> float:
+    """Mean over captures of each capture's mean over fit seeds of ``ratio_novel[label]``."""
+    return statistics.fmean(statistics.fmean(r["ratio_novel"][label]) for r in rows)
 
 
 def stage_weight_decay(fit_seeds: list[int], res: dict) -> dict:
     """Weight decay (``FitOptions.weight_decay``, default 0): novel-view DSSIM / RM++ on the
-    training-part captures (fit seeds ``fit_seeds[:2]``) for 0 and WEIGHT_DECAYS, then the
-    representation rows of Table 1 on the held-out captures with WEIGHT_DECAY_HELDOUT, next to
-    the default's rows of the ``table1`` stage (same captures, seeds and baselines)."""
+    training-part captures (fit seeds ``fit_seeds[:2]``) for 0 and WEIGHT_DECAYS; then, with the
+    one of WEIGHT_DECAYS that did best there, the representation rows of Table 1 on the held-out
+    captures, next to the default's rows of the ``table1`` stage (same captures, seeds and
+    baselines)."""
     if "table1" not in res:
         raise SystemExit("run the 'table1' stage first")
     variants = {"0": {}} | {str(wd): {"weight_decay": wd} for wd in WEIGHT_DECAYS}
@@ -404,6 +408,7 @@ def stage_weight_decay(fit_seeds: list[int], res: dict) -> dict:
     for root in training_part_roots():
         rows.append({"name": root.name, "ratio_novel": novel_ratios(root, variants, fit_seeds[:2])})
         log(f"weight decay {root.name}: " + ", ".join(f"{k} {statistics.fmean(v):.2f}" for k, v in rows[-1]["ratio_novel"].items()))
+    heldout_wd = min(WEIGHT_DECAYS, key=lambda wd: mean_ratio(rows, str(wd)))
     t1 = res["table1"]
     per_capture = []
     for rec in t1["per_capture"]:
@@ -413,13 +418,13 @@ def stage_weight_decay(fit_seeds: list[int], res: dict) -> dict:
         samples = samples_of(train)
         fits = []
         for seed in t1["fit_seeds"]:
-            fit = fit_dam(samples, FitOptions(seed=seed, weight_decay=WEIGHT_DECAY_HELDOUT))
+            fit = fit_dam(samples, FitOptions(seed=seed, weight_decay=heldout_wd))
             fits.append({"seed": seed, "same_view": evaluate_split(train, train, {"DAM": fit.model}, baselines=False)["DAM"].mean,
                          "novel_view": evaluate_split(train, test, {"DAM": fit.model}, baselines=False)["DAM"].mean})
         per_capture.append({**{k: rec[k] for k in ("name", "light_kind", "baselines", "noise_floor")}, "fits": fits})
-        log(f"weight decay {WEIGHT_DECAY_HELDOUT} held-out {rec['name']}: novel "
+        log(f"weight decay {heldout_wd} held-out {rec['name']}: novel "
             f"{statistics.fmean(f['novel_view'] for f in fits):.4f} (default {rec['dam']['novel_view']:.4f})")
-    return {"dev_fit_seeds": fit_seeds[:2], "dev_rows": rows, "heldout_weight_decay": WEIGHT_DECAY_HELDOUT,
+    return {"dev_fit_seeds": fit_seeds[:2], "dev_rows": rows, "heldout_weight_decay": heldout_wd,
             "heldout_per_capture": per_capture, "heldout_table": summarise_table1(per_capture, t1["fit_seeds"])}
 
 
@@ -541,6 +546,17 @@ def stage_why(fit_seed: int = 0) -> dict:
 # --------------------------------------------------------------------------------------------
 
 
+def ratio_table(rows: list[dict], labels: list[str]) -> list[str]:
+    """Markdown rows: per capture, each label's mean novel-view ratio (per fit seed in brackets),
+    then the mean over captures."""
+    L = ["| capture | " + " | ".join(labels) + " |", "|---|" + "---:|" * len(labels)]
+    for r in rows:
+        L.append(f"| {r['name']} | " + " | ".join(f"{statistics.fmean(r['ratio_novel'][k]):.2f} ("
+                                                + ", ".join(f"{x:.2f}" for x in r['ratio_novel'][k]) + ")" for k in labels) + " |")
+    L.append("| **mean** | " + " | ".join(f"**{mean_ratio(rows, k):.3f}**" for k in labels) + " |")
+    return L
+
+
 def write_markdown(res: dict, path: Path) -> None:
     m = res.get("machine", {})
     L = ["# Synthetic data set (Mitsuba 3): throughput, noise floor, corpus time, Table 1", "",
@@ -660,26 +676,16 @@ def write_markdown(res: dict, path: Path) -> None:
         labels = list(ACTIVATION_VARIANTS)
         L += ["## How the default activation was chosen (training-part captures only)", "",
               f"Novel-view DSSIM / RM++, mean over fit seeds {a['fit_seeds']} (per seed in brackets); *default* = "
-              f"`FitOptions()` (activation `{a['default']}`), the others change only the activation.", "",
-              "| capture | " + " | ".join(labels) + " |", "|---|" + "---:|" * len(labels)]
-        for r in a["rows"]:
-            L.append(f"| {r['name']} | " + " | ".join(f"{statistics.fmean(r['ratio_novel'][k]):.2f} ("
-                                                    + ", ".join(f"{x:.2f}" for x in r['ratio_novel'][k]) + ")" for k in labels) + " |")
-        L.append("| **mean** | " + " | ".join(f"**{statistics.fmean(statistics.fmean(r['ratio_novel'][k]) for r in a['rows']):.3f}**"
-                                             for k in labels) + " |")
+              f"`FitOptions()` (activation `{a['default']}`), the others change only the activation.", ""]
+        L += ratio_table(a["rows"], labels)
         L += ["", "A ratio near 1 with identical seeds is a fit that collapsed to a black image (plain softplus under point lights).", ""]
     if "weight_decay" in res:
         w = res["weight_decay"]
         labels = list(w["dev_rows"][0]["ratio_novel"])
         L += ["## Weight decay (`FitOptions.weight_decay`; not the default)", "",
               f"Training-part captures: novel-view DSSIM / RM++, mean over fit seeds {w['dev_fit_seeds']} (per seed in brackets), "
-              "by weight decay (0 = `FitOptions()`).", "",
-              "| capture | " + " | ".join(labels) + " |", "|---|" + "---:|" * len(labels)]
-        for r in w["dev_rows"]:
-            L.append(f"| {r['name']} | " + " | ".join(f"{statistics.fmean(r['ratio_novel'][k]):.2f} ("
-                                                    + ", ".join(f"{x:.2f}" for x in r['ratio_novel'][k]) + ")" for k in labels) + " |")
-        L.append("| **mean** | " + " | ".join(f"**{statistics.fmean(statistics.fmean(r['ratio_novel'][k]) for r in w['dev_rows']):.3f}**"
-                                             for k in labels) + " |")
+              "by weight decay (0 = `FitOptions()`).", ""]
+        L += ratio_table(w["dev_rows"], labels)
         if "table1" in res:
             d, h = res["table1"]["table"], w["heldout_table"]
             L += ["", f"Held-out captures (Table 1's representation rows, fit seeds {res['table1']['fit_seeds']}), "

@@ -81,8 +81,9 @@ class FitOptions:
     weight_decay: float = 0.0
     """decoupled weight decay (AdamW; each step multiplies the weights by 1 - lr x weight_decay).
     It trades fit for smoothness: 0.1 lowered the mean novel-view DSSIM / RM++ over seven
-    path-traced training-part captures (shadows, interreflection) from 0.47 to 0.43 but raised it
-    on the closed-form ones (bench/synth.md, bench/dam_core.md), so the default is none"""
+    path-traced training-part captures (shadows, interreflection) from 0.47 to 0.43 (0.39 with
+    8000 steps) but raised it on the closed-form ones (bench/synth.md, bench/dam_core.md), so the
+    default is none"""
 
     def validate(self) -> None:
         require_options(self, at_least_1=("steps", "batch_size", "width", "depth", "eval_every"),

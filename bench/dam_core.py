@@ -16,7 +16,8 @@ steps, input encoding, hold-out stopping, width and the adversarial cost, and st
   2nd / 4th pixel in both axes, a transformation done here, not in the library; test views, and
   the train views the same-view DSSIM is measured on, stay at 128x128);
 * compute precision (``bfloat16``: ``FitOptions.precision``; ``float32`` is the default);
-* weight decay (``wd0.03``, ``wd0.1``: ``FitOptions.weight_decay``; 0 is the default);
+* weight decay (``wd0.03``, ``wd0.1``, and ``wd0.1_s4000`` / ``wd0.1_s8000`` with more steps:
+  ``FitOptions.weight_decay``; 0 is the default);
 * the shipped learning-to-learn predictor plus K refinement steps (``predict_k0`` ...
   ``predict_k1000``), as ``damcap predict --refine-steps K`` does it (``predictor_input``,
   ``predict_dam``, ``refine_dam``); its time includes the prediction (not loading the file).
@@ -117,6 +118,8 @@ SETTINGS: list[tuple[str, dict]] = [
     ("bfloat16", {"precision": "bfloat16"}),
     ("wd0.03", {"weight_decay": 0.03}),
     ("wd0.1", {"weight_decay": 0.1}),
+    ("wd0.1_s4000", {"weight_decay": 0.1, "steps": 4000}),
+    ("wd0.1_s8000", {"weight_decay": 0.1, "steps": 8000}),
     ("predict_k0", {"predict_refine_steps": 0}),
     ("predict_k100", {"predict_refine_steps": 100}),
     ("predict_k300", {"predict_refine_steps": 300}),
@@ -135,7 +138,7 @@ STUDIES: dict[str, list[str]] = {
     "training input resolution": ["input32", "input64", "default"],
     "precision": ["default", "bfloat16"],
     "hidden activation": ["leaky_relu", "default"],
-    "weight decay": ["default", "wd0.03", "wd0.1"],
+    "weight decay": ["default", "wd0.03", "wd0.1", "steps4000", "wd0.1_s4000", "steps8000", "wd0.1_s8000"],
     "predictor + K refine steps": ["predict_k0", "predict_k100", "predict_k300", "predict_k1000"],
 }
 
@@ -639,7 +642,7 @@ def write_markdown(result: dict, path: Path, plot_path: Path) -> None:
              "(64×64 / 32×32 inputs, subsampled in the benchmark, no filtering), while novel-view DSSIM is still measured on the "
              "full-resolution test views and same-view DSSIM on the full-resolution train views; `bfloat16` runs the training step "
              "under bfloat16 autocast (`FitOptions.precision`; weights stay float32); `wd0.03`/`wd0.1` add decoupled weight decay "
-             "(`FitOptions.weight_decay`, AdamW); `predict_kK` predicts the DAM with the "
+             "(`FitOptions.weight_decay`, AdamW), `wd0.1_s4000`/`wd0.1_s8000` with 4000 / 8000 steps; `predict_kK` predicts the DAM with the "
              "shipped learning-to-learn predictor from one train view and refines it K steps on all train views "
              "(`refine_dam`, as `damcap predict --refine-steps K`): its time is choosing and cropping the input view, the "
              "prediction and the refinement"

@@ -178,8 +178,18 @@ def chromaticity_features(radiance_lin: np.ndarray, radiance_scale: float, dark_
     """
     total = radiance_lin.sum(1, keepdims=True)
     chroma = radiance_lin / np.maximum(total, eps)
-    bright = total[:, 0] > 3 * dark_fraction * radiance_scale
-    return chroma.astype(np.float32), bright
+    return chroma.astype(np.float32), lit_mask(radiance_lin, radiance_scale, dark_fraction)
+
+
+def lit_mask(radiance_lin: np.ndarray, radiance_scale: float, fraction: float) -> np.ndarray:
+    """(P,) bool: pixels whose mean radiance over the channels exceeds ``fraction`` of the scale.
+
+    Args:
+        radiance_lin: (P, 3) linear radiance.
+        radiance_scale: > 0 (the capture's 95th percentile).
+        fraction: of the scale.
+    """
+    return radiance_lin.sum(1) > 3 * fraction * radiance_scale
 
 
 def darkest_observation(position_world: np.ndarray, normal_world: np.ndarray, frame_index: np.ndarray, brightness: np.ndarray,
@@ -531,7 +541,7 @@ def initial_labels(views: list[ViewData], radiance_scale: float, opts: SegmentOp
     rad = np.concatenate([v.data.radiance_lin[fg] for v, fg in zip(views, fgs)])
     nrm = np.concatenate([v.data.normal_world[fg] for v, fg in zip(views, fgs)])
     chroma, bright = chromaticity_features(rad, radiance_scale)
-    usable = np.flatnonzero(chromaticity_features(rad, radiance_scale, dark_fraction=opts.colour_floor)[1])  # includes bright
+    usable = np.flatnonzero(lit_mask(rad, radiance_scale, opts.colour_floor))  # includes the bright pixels
     if opts.init_colour == "darkest-view" and len(usable):
         fg_pos = [v.data.position_world[fg] for v, fg in zip(views, fgs)]
         frame = np.concatenate([np.full(len(p), i) for i, p in enumerate(fg_pos)])

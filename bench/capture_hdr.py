@@ -50,7 +50,7 @@ from _common import cpu_model  # noqa: E402
 
 from damcap.capture.exif import read_exposure, read_hdr_image_list
 from damcap.capture.hdr import HdrOptions, merge_bracket_files, read_ldr_codes
-from damcap.capture.metrics import abs_log_ratio_error
+from damcap.capture.metrics import abs_log_ratio_error, centred_log_ratio
 from damcap.capture.simulate import bracket_times, simulate_raw_bracket
 from damcap.common.atomic import write_json_atomic, write_text_atomic
 from damcap.common.exr import read_exr
@@ -181,15 +181,14 @@ def error_breakdown(est: np.ndarray, ref: np.ndarray, longest_codes: np.ndarray)
     cross-talk between channels, by the band of that frame's red code for the green channel.
     """
     use = (ref > 0).all(axis=-1)
-    lr = np.log(np.maximum(est.astype(np.float64), 1e-30)) - np.log(np.where(ref > 0, ref, 1.0))
-    signed = lr - np.median(lr[use])
+    signed = centred_log_ratio(est, ref, mask=use)[0]
     total_p90 = float(np.percentile(np.abs(signed[use]), 90))
     per_channel = {}
     for c, name in enumerate(CHANNELS):
         a = np.abs(signed[..., c][use])
         per_channel[name] = {"median": round(float(np.median(a)), 4), "p90": round(float(np.percentile(a, 90)), 4),
                              "share_over_total_p90": round(float((a > total_p90).mean()), 4)}
-    own_scale = lr - np.array([np.median(lr[..., c][use]) for c in range(3)])
+    own_scale = signed - np.array([np.median(signed[..., c][use]) for c in range(3)])
 
     def signed_median(c: int, where: np.ndarray) -> float | None:
         return round(float(np.median(signed[..., c][where])), 4) if where.any() else None

@@ -27,6 +27,37 @@ class LogRatioError:
     """Number of values (pixel-channels) compared."""
 
 
+def centred_log_ratio(
+    estimate: np.ndarray, reference: np.ndarray, mask: np.ndarray | None = None, eps: float = 1e-30
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Per value ``ln(estimate) - ln(reference)`` minus its median over the resolved values.
+
+    Args: as :func:`abs_log_ratio_error`.
+
+    Returns:
+        log_ratio: (H, W, C) float64, centred (meaningless where not resolved);
+        resolved: (H, W, C) bool, the values compared;
+        offset: the median removed (the global scale is ``exp(-offset)``).
+
+    Raises:
+        DamcapError: shapes differ or nothing is resolved.
+    """
+    est = np.asarray(estimate, dtype=np.float64)
+    ref = np.asarray(reference, dtype=np.float64)
+    if est.shape != ref.shape:
+        raise DamcapError(f"estimate {est.shape} and reference {ref.shape} differ in shape")
+    use = np.isfinite(ref) & (ref > 0) & np.isfinite(est)
+    if mask is not None:
+        m = np.asarray(mask, dtype=bool)
+        use &= m[..., None] if m.ndim == est.ndim - 1 else m
+    if not use.any():
+        raise DamcapError("no resolved reference values to compare")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lr = np.log(np.maximum(est, eps)) - np.log(np.where(use, ref, 1.0))
+    offset = float(np.median(lr[use]))
+    return lr - offset, use, offset
+
+
 def abs_log_ratio_error(
     estimate: np.ndarray, reference: np.ndarray, mask: np.ndarray | None = None, eps: float = 1e-30
 ) -> LogRatioError:
@@ -49,18 +80,7 @@ def abs_log_ratio_error(
     >>> e.median, round(e.scale, 6)
     (0.0, 0.333333)
     """
-    est = np.asarray(estimate, dtype=np.float64)
-    ref = np.asarray(reference, dtype=np.float64)
-    if est.shape != ref.shape:
-        raise DamcapError(f"estimate {est.shape} and reference {ref.shape} differ in shape")
-    use = np.isfinite(ref) & (ref > 0) & np.isfinite(est)
-    if mask is not None:
-        m = np.asarray(mask, dtype=bool)
-        use &= m[..., None] if m.ndim == est.ndim - 1 else m
-    if not use.any():
-        raise DamcapError("no resolved reference values to compare")
-    lr = np.log(np.maximum(est[use], eps)) - np.log(ref[use])
-    offset = float(np.median(lr))
-    a = np.abs(lr - offset)
+    lr, use, offset = centred_log_ratio(estimate, reference, mask, eps)
+    a = np.abs(lr[use])
     return LogRatioError(median=float(np.median(a)), p90=float(np.percentile(a, 90)), scale=float(np.exp(-offset)),
                          pixels=int(use.sum()))

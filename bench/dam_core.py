@@ -10,7 +10,7 @@ views, 22 test), on a 2-core CPU:
 Every fit runs over several seeds (mean, std, min, max reported); a speed/accuracy sweep varies
 steps, input encoding, hold-out stopping, width and the adversarial cost, and studies:
 
-* DAM depth (``w32d2``, ``w32d6``; ``w32d4`` is the default);
+* DAM depth (``w32d2``, ``w32d6``; ``w32d4`` is the default) and width (``w16d4``: 912 weights);
 * pixels sampled per step (``batch1024``, ``batch16384``; 4096 is the default);
 * input resolution (``input64``, ``input32``: the *training* frames' arrays subsampled to every
   2nd / 4th pixel in both axes, a transformation done here, not in the library; test views, and
@@ -111,6 +111,7 @@ SETTINGS: list[tuple[str, dict]] = [
     # studies (module docstring); keys in BENCH_KEYS are handled here, not by FitOptions
     ("w32d2", {"depth": 2}),
     ("w32d6", {"depth": 6}),
+    ("w16d4", {"width": 16}),
     ("batch1024", {"batch_size": 1024}),
     ("batch16384", {"batch_size": 16384}),
     ("input64", {"input_subsample": 2}),
@@ -134,6 +135,7 @@ both axes; predict_refine_steps = K, predict with the shipped predictor, then K 
 #: the families of the study rows (summary lines in the markdown, markers in the plot)
 STUDIES: dict[str, list[str]] = {
     "depth (width 32)": ["w32d2", "default", "w32d6"],
+    "width (depth 4)": ["w16d4", "default"],
     "pixels per step": ["batch1024", "default", "batch16384"],
     "training input resolution": ["input32", "input64", "default"],
     "precision": ["default", "bfloat16"],
@@ -637,7 +639,7 @@ def write_markdown(result: dict, path: Path, plot_path: Path) -> None:
              "(RM/RM++ leave the frame itself out; the DAM saw them). Time = wall seconds of the `fit_dam` call (adversarial: "
              "building its whole-frame inputs, ~0.1 s, is not included; it is in the JSON). Ratio = DAM novel-view DSSIM / RM++ "
              "novel-view DSSIM per seed, then mean ± sample std over seeds. DSSIM does not depend on timing: fits are deterministic per seed.\n")
-    L.append("Studies (rows after `holdout0_s8000`): `w32d2`/`w32d6` vary the DAM depth at width 32; `batch1024`/`batch16384` the pixels "
+    L.append("Studies (rows after `holdout0_s8000`): `w32d2`/`w32d6` vary the DAM depth at width 32, `w16d4` the width at depth 4; `batch1024`/`batch16384` the pixels "
              "sampled per step; `input64`/`input32` train on every 2nd/4th pixel of each 128×128 training frame in both axes "
              "(64×64 / 32×32 inputs, subsampled in the benchmark, no filtering), while novel-view DSSIM is still measured on the "
              "full-resolution test views and same-view DSSIM on the full-resolution train views; `bfloat16` runs the training step "

@@ -31,6 +31,9 @@ Stages (``--stages``, default all, in this order):
 * ``weight_decay``: ``FitOptions.weight_decay`` (0 by default) at several strengths and step
   counts on the same training-part captures, then the best of them on the held-out Table 1
   captures next to the ``table1`` stage's default rows.
+* ``design``: the rest of the fit's design on the same training-part captures: the input encoding
+  (``nr``, ``vnr``, ``vn``), smaller networks than the default 32x4, and the paper's adversarial
+  cost, 2 fit seeds.
 
 Every timed section records the wall time and the CPU time other processes took meanwhile
 (the machine is shared). Outputs: ``bench/results/synth.json`` (stages merged into an existing
@@ -65,10 +68,10 @@ from _common import CpuMeter, cpu_model, log  # noqa: E402
 
 from damcap.appearance.baselines import ViewData
 from damcap.appearance.evaluate import evaluate_split
-from damcap.appearance.fit import FitOptions, fit_dam
+from damcap.appearance.fit import FitOptions, fit_dam, radiance_scale_of
 from damcap.appearance.metrics import dssim
 from damcap.appearance.pixels import PixelSamples
-from damcap.appearance.views import load_views, samples_of
+from damcap.appearance.views import load_views, samples_of, training_frames
 from damcap.common.capture_folder import read_capture, read_frame
 from damcap.reconstruct.synth import SynthOptions, compose_frame, make_synthetic_capture, render_seeds, resolve_scene
 from damcap.reconstruct.synth_geometry import GeometryBuffers, RayCaster, frame_geometry
@@ -80,7 +83,7 @@ REPO = BENCH.parent
 CACHE = BENCH / ".cache"
 RESULTS = BENCH / "results"
 DATA = Path(os.environ.get("DAMCAP_SHARED_DATA", REPO.parent / "shared" / "data"))
-STAGES = ("throughput", "noise", "small", "paper", "table1", "why", "anchor", "activation", "weight_decay")
+STAGES = ("throughput", "noise", "small", "paper", "table1", "why", "anchor", "activation", "weight_decay", "design")
 #: seed offset of the second render in noise-floor measurements
 NOISE_SEED_OFFSET = 7919
 
@@ -371,7 +374,9 @@ def novel_ratios(root: Path, variants: dict[str, dict], fit_seeds: list[int]) ->
     for label, ov in variants.items():
         per = []
         for seed in fit_seeds:
-            fit = fit_dam(samples, FitOptions(seed=seed, **ov))
+            opts = FitOptions(seed=seed, **ov)
+            frames = training_frames(train, opts.encoding, radiance_scale_of(samples.radiance_lin)) if opts.adversarial else None
+            fit = fit_dam(samples, opts, frames_for_adversarial=frames)
             res = evaluate_split(train, test, {"DAM": fit.model}, baselines=rm_pp is None)
             rm_pp = res["RM++"].mean if rm_pp is None else rm_pp
             per.append(res["DAM"].mean / rm_pp)
@@ -451,6 +456,35 @@ def stage_weight_decay(fit_seeds: list[int], res: dict) -> dict:
                        "table": summarise_table1(per_capture[label], t1["fit_seeds"])} for label in labels}
     return {"dev_fit_seeds": fit_seeds[:2], "variants": REGULARISED_VARIANTS, "dev_rows": rows, "choices": choices,
             "heldout": heldout}
+
+
+DESIGN_VARIANTS: dict[str, dict] = {
+    "default": {},
+    "vnr": {"encoding": "vnr"},
+    "vn": {"encoding": "vn"},
+    "24x3": {"width": 24, "depth": 3},
+    "16x4": {"width": 16},
+    "32x2": {"depth": 2},
+    "16x2": {"width": 16, "depth": 2},
+    "adversarial": {"adversarial": True},
+}
+"""the ``design`` stage's fits, by label: FitOptions overrides ("default" is ``FitOptions()``, a
+32x4 network on the encoding 'nr'); sizes are width x depth"""
+
+
+def stage_design(fit_seeds: list[int]) -> dict:
+    """The rest of the fit's design on path-traced captures: input encoding, network size and the
+    paper's adversarial cost (DESIGN_VARIANTS), novel-view DSSIM / RM++ on the training-part
+    captures (:func:`training_part_roots`), fit seeds ``fit_seeds``, with each variant's number
+    of weights and its mean fit time."""
+    rows = []
+    for root in training_part_roots():
+        t = time.perf_counter()
+        rows.append({"name": root.name, "ratio_novel": novel_ratios(root, DESIGN_VARIANTS, fit_seeds)})
+        log(f"design {root.name} ({time.perf_counter() - t:.0f} s): "
+            + ", ".join(f"{k} {statistics.fmean(v):.2f}" for k, v in rows[-1]["ratio_novel"].items()))
+    weights = {k: FitOptions(**v).architecture.num_weights for k, v in DESIGN_VARIANTS.items()}
+    return {"fit_seeds": fit_seeds, "variants": DESIGN_VARIANTS, "num_weights": weights, "rows": rows}
 
 
 def stage_anchor(fit_seeds: list[int], floor_every: int) -> dict:
@@ -729,6 +763,23 @@ def write_markdown(res: dict, path: Path) -> None:
                                                                for c in ("same_view", "novel_view")) + " |")
         L += ["", "Weight decay is not the default: on the closed-form captures of `bench/dam_core.md` (local shading only) "
               "it raises the ratio (study *weight decay* there).", ""]
+    if "design" in res:
+        d = res["design"]
+        labels = list(d["variants"])
+        L += ["## Input encoding, network size, adversarial cost (training-part captures only)", "",
+              f"Novel-view DSSIM / RM++, mean over fit seeds {d['fit_seeds']} (per seed in brackets). *default* = "
+              "`FitOptions()`: 32 units x 4 hidden layers on the encoding `nr` (normal, mirrored view); each other column "
+              "changes one thing: the encoding (`vnr` adds the view direction, `vn` is the paper's view and normal), the "
+              "size (width x depth), or adds the paper's adversarial cost (alpha 0.001). Weights per network: "
+              + ", ".join(f"{k} {n}" for k, n in d["num_weights"].items()) + ".", ""]
+        L += ratio_table(d["rows"], labels)
+        base = mean_ratio(d["rows"], "default")
+        near = [k for k in labels[1:] if abs(mean_ratio(d["rows"], k) - base) <= 0.02]
+        worse = [k for k in labels[1:] if mean_ratio(d["rows"], k) > base + 0.02]
+        better = [k for k in labels[1:] if mean_ratio(d["rows"], k) < base - 0.02]
+        L += ["", f"Against the default's mean ({base:.3f}): within 0.02, less than the two fit seeds of one capture "
+              f"often differ: {', '.join(near) or 'none'}; worse by more: {', '.join(worse) or 'none'}; better by more: "
+              f"{', '.join(better) or 'none'}.", ""]
     if res.get("notes"):
         L += ["## Notes", ""] + [f"- {n}" for n in res["notes"]] + [""]
     path.write_text("\n".join(L), encoding="utf-8")
@@ -774,6 +825,8 @@ def main() -> None:
             res["why"] = stage_why()
         elif stage == "activation":
             res["activation"] = stage_activation([int(s) for s in args.fit_seeds.split(",")][:2])
+        elif stage == "design":
+            res["design"] = stage_design([int(s) for s in args.fit_seeds.split(",")][:2])
         elif stage == "weight_decay":
             res["weight_decay"] = stage_weight_decay([int(s) for s in args.fit_seeds.split(",")], res)
         elif stage == "anchor":

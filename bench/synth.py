@@ -476,7 +476,7 @@ def stage_design(fit_seeds: list[int]) -> dict:
     """The rest of the fit's design on path-traced captures: input encoding, network size and the
     paper's adversarial cost (DESIGN_VARIANTS), novel-view DSSIM / RM++ on the training-part
     captures (:func:`training_part_roots`), fit seeds ``fit_seeds``, with each variant's number
-    of weights and its mean fit time."""
+    of weights."""
     rows = []
     for root in training_part_roots():
         t = time.perf_counter()

@@ -9,7 +9,7 @@ from damcap.common.capture_folder import Capture, Split, read_frame
 
 from .baselines import ViewData
 from .dam import Encoding, encode_inputs
-from .fit import TrainingFrame
+from .fit import FitOptions, TrainingFrame, radiance_scale_of
 from .pixels import FOREGROUND_COVERAGE, PixelSamples, gather_samples, view_dir_world
 
 
@@ -34,3 +34,11 @@ def training_frames(views: list[ViewData], encoding: Encoding, radiance_scale: f
         rad = torch.from_numpy(np.where(fg[..., None], v.data.radiance_lin, 0) / radiance_scale).float().permute(2, 0, 1)
         out.append(TrainingFrame(rad, x, torch.from_numpy(fg)))
     return out
+
+
+def adversarial_frames(views: list[ViewData], samples: PixelSamples, opts: FitOptions) -> list[TrainingFrame] | None:
+    """The whole frames ``fit_dam`` needs for ``opts``' adversarial cost (None when it is off):
+    :func:`training_frames` of ``views`` at the radiance scale of their pixels ``samples``."""
+    if not opts.adversarial:
+        return None
+    return training_frames(views, opts.encoding, radiance_scale_of(samples.radiance_lin))

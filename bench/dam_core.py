@@ -73,11 +73,11 @@ from _common import NCPU, CpuMeter, log, machine_info, own_cpu_s, system_busy_s 
 
 from damcap.appearance.baselines import ViewData
 from damcap.appearance.evaluate import evaluate_split
-from damcap.appearance.fit import FitOptions, fit_dam, radiance_scale_of, refine_dam
+from damcap.appearance.fit import FitOptions, fit_dam, refine_dam
 from damcap.appearance.hyper import predict_dam, predictor_input
 from damcap.appearance.hyper_file import load_predictor, shipped_predictor_path
 from damcap.appearance.render import render_frame
-from damcap.appearance.views import load_views, samples_of, training_frames
+from damcap.appearance.views import adversarial_frames, load_views, samples_of
 from damcap.common.capture_folder import read_capture
 from damcap.reconstruct.closed_form import ClosedFormOptions, make_closed_form_capture
 
@@ -385,12 +385,9 @@ def accuracy_record(data: dict, model) -> dict:
 
 def fit_once(data: dict, opts: FitOptions, *, max_aborts: int, quiet_wait_s: float, budget_left) -> dict:
     """One fit: wall seconds of fit_dam (incl. its setup), novel- and same-view DSSIM."""
-    frames = None
-    t_prep = 0.0
-    if opts.adversarial:
-        t = time.perf_counter()
-        frames = training_frames(data["train"], opts.encoding, radiance_scale_of(data["samples"].radiance_lin))
-        t_prep = time.perf_counter() - t
+    t = time.perf_counter()
+    frames = adversarial_frames(data["train"], data["samples"], opts)
+    t_prep = time.perf_counter() - t if frames is not None else 0.0
     res, m, tl, aborts, waited = timed(lambda tl: fit_dam(data["samples"], opts, frames_for_adversarial=frames, progress=tl),
                                        max_aborts=max_aborts, quiet_wait_s=quiet_wait_s, budget_left=budget_left)
     timing = timing_record(m, tl, aborts, waited)

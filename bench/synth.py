@@ -68,10 +68,10 @@ from _common import CpuMeter, cpu_model, log  # noqa: E402
 
 from damcap.appearance.baselines import ViewData
 from damcap.appearance.evaluate import evaluate_split
-from damcap.appearance.fit import FitOptions, fit_dam, radiance_scale_of
+from damcap.appearance.fit import FitOptions, fit_dam
 from damcap.appearance.metrics import dssim
 from damcap.appearance.pixels import PixelSamples
-from damcap.appearance.views import load_views, samples_of, training_frames
+from damcap.appearance.views import adversarial_frames, load_views, samples_of
 from damcap.common.capture_folder import read_capture, read_frame
 from damcap.reconstruct.synth import SynthOptions, compose_frame, make_synthetic_capture, render_seeds, resolve_scene
 from damcap.reconstruct.synth_geometry import GeometryBuffers, RayCaster, frame_geometry
@@ -375,8 +375,7 @@ def novel_ratios(root: Path, variants: dict[str, dict], fit_seeds: list[int]) ->
         per = []
         for seed in fit_seeds:
             opts = FitOptions(seed=seed, **ov)
-            frames = training_frames(train, opts.encoding, radiance_scale_of(samples.radiance_lin)) if opts.adversarial else None
-            fit = fit_dam(samples, opts, frames_for_adversarial=frames)
+            fit = fit_dam(samples, opts, frames_for_adversarial=adversarial_frames(train, samples, opts))
             res = evaluate_split(train, test, {"DAM": fit.model}, baselines=rm_pp is None)
             rm_pp = res["RM++"].mean if rm_pp is None else rm_pp
             per.append(res["DAM"].mean / rm_pp)
@@ -384,16 +383,23 @@ def novel_ratios(root: Path, variants: dict[str, dict], fit_seeds: list[int]) ->
     return out
 
 
+def dev_rows(stage: str, variants: dict[str, dict], fit_seeds: list[int]) -> list[dict]:
+    """Per training-part capture (:func:`training_part_roots`): its name and :func:`novel_ratios`
+    of ``variants``, logged as ``stage``."""
+    rows = []
+    for root in training_part_roots():
+        t = time.perf_counter()
+        rows.append({"name": root.name, "ratio_novel": novel_ratios(root, variants, fit_seeds)})
+        log(f"{stage} {root.name} ({time.perf_counter() - t:.0f} s): "
+            + ", ".join(f"{k} {statistics.fmean(v):.2f}" for k, v in rows[-1]["ratio_novel"].items()))
+    return rows
+
+
 def stage_activation(fit_seeds: list[int]) -> dict:
     """How FitOptions.activation was chosen: novel-view DSSIM / RM++ of the default (shifted
     softplus), leaky ReLU and plain softplus on the training-part captures
     (:func:`training_part_roots`), fit seeds ``fit_seeds``."""
-    rows = []
-    for root in training_part_roots():
-        row = {"name": root.name, "ratio_novel": novel_ratios(root, ACTIVATION_VARIANTS, fit_seeds)}
-        rows.append(row)
-        log(f"activation {root.name}: " + ", ".join(f"{k} {statistics.fmean(v):.2f}" for k, v in row["ratio_novel"].items()))
-    return {"fit_seeds": fit_seeds, "default": FitOptions().activation, "rows": rows}
+    return {"fit_seeds": fit_seeds, "default": FitOptions().activation, "rows": dev_rows("activation", ACTIVATION_VARIANTS, fit_seeds)}
 
 
 REGULARISED_VARIANTS: dict[str, dict] = {
@@ -430,10 +436,7 @@ def stage_weight_decay(fit_seeds: list[int], res: dict) -> dict:
         rows = prev["dev_rows"]
         log("weight decay: training-part results reused from bench/results/synth.json")
     else:
-        rows = []
-        for root in training_part_roots():
-            rows.append({"name": root.name, "ratio_novel": novel_ratios(root, REGULARISED_VARIANTS, fit_seeds[:2])})
-            log(f"weight decay {root.name}: " + ", ".join(f"{k} {statistics.fmean(v):.2f}" for k, v in rows[-1]["ratio_novel"].items()))
+        rows = dev_rows("weight decay", REGULARISED_VARIANTS, fit_seeds[:2])
     by_dev = lambda label: mean_ratio(rows, label)  # noqa: E731
     choices = {"same_steps": min((k for k, v in REGULARISED_VARIANTS.items() if "steps" not in v), key=by_dev),
                "overall": min(REGULARISED_VARIANTS, key=by_dev)}
@@ -477,14 +480,9 @@ def stage_design(fit_seeds: list[int]) -> dict:
     paper's adversarial cost (DESIGN_VARIANTS), novel-view DSSIM / RM++ on the training-part
     captures (:func:`training_part_roots`), fit seeds ``fit_seeds``, with each variant's number
     of weights."""
-    rows = []
-    for root in training_part_roots():
-        t = time.perf_counter()
-        rows.append({"name": root.name, "ratio_novel": novel_ratios(root, DESIGN_VARIANTS, fit_seeds)})
-        log(f"design {root.name} ({time.perf_counter() - t:.0f} s): "
-            + ", ".join(f"{k} {statistics.fmean(v):.2f}" for k, v in rows[-1]["ratio_novel"].items()))
     weights = {k: FitOptions(**v).architecture.num_weights for k, v in DESIGN_VARIANTS.items()}
-    return {"fit_seeds": fit_seeds, "variants": DESIGN_VARIANTS, "num_weights": weights, "rows": rows}
+    return {"fit_seeds": fit_seeds, "variants": DESIGN_VARIANTS, "num_weights": weights,
+            "rows": dev_rows("design", DESIGN_VARIANTS, fit_seeds)}
 
 
 def stage_anchor(fit_seeds: list[int], floor_every: int) -> dict:
@@ -773,10 +771,11 @@ def write_markdown(res: dict, path: Path) -> None:
               "size (width x depth), or adds the paper's adversarial cost (alpha 0.001). Weights per network: "
               + ", ".join(f"{k} {n}" for k, n in d["num_weights"].items()) + ".", ""]
         L += ratio_table(d["rows"], labels)
-        base = mean_ratio(d["rows"], "default")
-        near = [k for k in labels[1:] if abs(mean_ratio(d["rows"], k) - base) <= 0.02]
-        worse = [k for k in labels[1:] if mean_ratio(d["rows"], k) > base + 0.02]
-        better = [k for k in labels[1:] if mean_ratio(d["rows"], k) < base - 0.02]
+        means = {k: mean_ratio(d["rows"], k) for k in labels}
+        base = means["default"]
+        near = [k for k in labels[1:] if abs(means[k] - base) <= 0.02]
+        worse = [k for k in labels[1:] if means[k] > base + 0.02]
+        better = [k for k in labels[1:] if means[k] < base - 0.02]
         L += ["", f"Against the default's mean ({base:.3f}): within 0.02, less than the two fit seeds of one capture "
               f"often differ: {', '.join(near) or 'none'}; worse by more: {', '.join(worse) or 'none'}; better by more: "
               f"{', '.join(better) or 'none'}.", ""]
@@ -810,6 +809,7 @@ def main() -> None:
                                            "started_utc": res["machine"]["date_utc"]})
     if "table1" in res:  # derived cells always follow the stored per-capture results
         res["table1"]["table"] = summarise_table1(res["table1"]["per_capture"], res["table1"]["fit_seeds"])
+    fit_seeds = [int(s) for s in args.fit_seeds.split(",")]
     t0 = time.perf_counter()
     for stage in stages:
         log(f"stage {stage}")
@@ -824,15 +824,15 @@ def main() -> None:
         elif stage == "why":
             res["why"] = stage_why()
         elif stage == "activation":
-            res["activation"] = stage_activation([int(s) for s in args.fit_seeds.split(",")][:2])
+            res["activation"] = stage_activation(fit_seeds[:2])
         elif stage == "design":
-            res["design"] = stage_design([int(s) for s in args.fit_seeds.split(",")][:2])
+            res["design"] = stage_design(fit_seeds[:2])
         elif stage == "weight_decay":
-            res["weight_decay"] = stage_weight_decay([int(s) for s in args.fit_seeds.split(",")], res)
+            res["weight_decay"] = stage_weight_decay(fit_seeds, res)
         elif stage == "anchor":
-            res["anchor"] = stage_anchor([int(s) for s in args.fit_seeds.split(",")], args.floor_every)
+            res["anchor"] = stage_anchor(fit_seeds, args.floor_every)
         elif stage == "table1":
-            res["table1"] = stage_table1([int(s) for s in args.fit_seeds.split(",")], args.floor_every)
+            res["table1"] = stage_table1(fit_seeds, args.floor_every)
         res.setdefault("stage_wall_s", {})[stage] = round(time.perf_counter() - t0, 1)
         t0 = time.perf_counter()
         out_json.write_text(json.dumps(res, indent=2) + "\n")

@@ -86,8 +86,8 @@ def fit(
 ) -> None:
     """Fit a deep appearance map to a capture (L1 data cost, optional adversarial cost)."""
     from damcap.appearance.dam_file import save_dam
-    from damcap.appearance.fit import FitOptions, fit_dam, radiance_scale_of
-    from damcap.appearance.views import load_views, samples_of, training_frames
+    from damcap.appearance.fit import FitOptions, fit_dam
+    from damcap.appearance.views import adversarial_frames, load_views, samples_of
     from damcap.common.capture_folder import read_capture
     from damcap.common.version import damcap_version
 
@@ -107,7 +107,7 @@ def fit(
                        resume=resume)
         return
     samples = samples_of(views)
-    frames = training_frames(views, opts.encoding, radiance_scale_of(samples.radiance_lin)) if opts.adversarial else None
+    frames = adversarial_frames(views, samples, opts)
     ckpt = output.with_name(output.name + ".ckpt")
     if not resume and ckpt.exists():
         ckpt.unlink()

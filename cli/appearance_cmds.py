@@ -81,10 +81,11 @@ def fit(
     device: str = typer.Option(None, help="cpu | cuda | auto"),
     precision: str = typer.Option(None, help="training-step compute: float32 | bfloat16 (autocast; weights and the saved model stay float32)"),
     weight_decay: float = typer.Option(None, help="decoupled weight decay (AdamW), e.g. 0.1: smoother, for captures with shadows and interreflection (default 0)"),
+    quantile: float = typer.Option(None, help="quantile of the data cost, in (0, 1): 0.5 = L1 (default); an upper one (e.g. 0.75, with --weight-decay 0.1) discounts cast shadows"),
     resume: bool = typer.Option(True, "--resume/--no-resume", help="continue from OUTPUT.ckpt if a run was interrupted"),
     target_dssim: Optional[float] = typer.Option(None, "--target-dssim", help="fit growing DAMs and keep the smallest whose DSSIM on the held-out train views is at most this"),
 ) -> None:
-    """Fit a deep appearance map to a capture (L1 data cost, optional adversarial cost)."""
+    """Fit a deep appearance map to a capture (L1 or quantile data cost, optional adversarial cost)."""
     from damcap.appearance.dam_file import save_dam
     from damcap.appearance.fit import FitOptions, fit_dam
     from damcap.appearance.views import adversarial_frames, load_views, samples_of
@@ -93,7 +94,7 @@ def fit(
 
     given = dict(steps=steps, batch_size=batch_size, learning_rate=learning_rate, width=width, depth=depth,
                  encoding=encoding, activation=activation, adversarial=adversarial, holdout_views=holdout_views,
-                 seed=seed, device=device, precision=precision, weight_decay=weight_decay)
+                 seed=seed, device=device, precision=precision, weight_decay=weight_decay, quantile=quantile)
     opts = FitOptions(**{k: v for k, v in given.items() if v is not None})
     opts.validate()  # numeric options and --precision, before reading the capture
     opts.architecture  # validates width/depth/encoding/activation

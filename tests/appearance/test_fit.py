@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from damcap.appearance.evaluate import evaluate_split
-from damcap.appearance.fit import FitOptions, fit_dam, holdout_frames, radiance_scale_of
+from damcap.appearance.fit import FitOptions, fit_dam, holdout_frames, radiance_scale_of, weighted_quantile_cost
 from damcap.appearance.views import load_views, samples_of, training_frames
 from damcap.common.capture_folder import read_capture
 from damcap.common.errors import DamcapError
@@ -109,6 +109,9 @@ def test_bad_options_are_clear():
     for bad in (-0.1, float("nan"), float("inf")):
         with pytest.raises(DamcapError, match="--weight-decay must be a finite number >= 0"):
             FitOptions(weight_decay=bad).validate()
+    for bad in (0.0, 1.0, -0.2, float("nan")):
+        with pytest.raises(DamcapError, match=r"--quantile must lie in \(0, 1\)"):
+            FitOptions(quantile=bad).validate()
 
 
 def test_weight_decay_is_decoupled_and_follows_the_learning_rate_schedule(small_samples):
@@ -189,7 +192,7 @@ def test_bad_precision_is_refused():
         FitOptions(precision="float16").validate()  # type: ignore[arg-type]
 
 
-def test_cli_precision_and_weight_decay(small_capture, tmp_path, capsys):
+def test_cli_precision_weight_decay_and_quantile(small_capture, tmp_path, capsys):
     from safetensors.torch import load_file
 
     from damcap.appearance.dam_file import load_dam
@@ -206,6 +209,9 @@ def test_cli_precision_and_weight_decay(small_capture, tmp_path, capsys):
     assert not (tmp_path / "x.dam").exists()
     code, _, err = run_cli(["fit", small_capture, "-o", tmp_path / "x.dam", "--weight-decay", "-0.5"], capsys)
     assert_one_line_error(code, err, "--weight-decay", "-0.5")
+    assert not (tmp_path / "x.dam").exists()
+    code, _, err = run_cli(["fit", small_capture, "-o", tmp_path / "x.dam", "--quantile", "1.5"], capsys)
+    assert_one_line_error(code, err, "--quantile", "1.5")
     assert not (tmp_path / "x.dam").exists()
 
 
@@ -237,3 +243,37 @@ def test_default_activation_learns_a_half_black_target(seed):
     with torch.no_grad():
         pred = model(samples.view_dir_world, samples.normal_world)
     assert (pred - radiance).abs().mean() < 0.2 * radiance.abs().mean()
+
+
+# --------------------------------------------------------------------------------------------
+# the data cost's quantile (FitOptions.quantile)
+
+
+def test_quantile_cost_is_l1_at_one_half_and_is_minimised_by_the_quantile():
+    g = torch.Generator().manual_seed(0)
+    pred, target, w = torch.randn(500, 3, generator=g), torch.randn(500, 3, generator=g), torch.rand(500, generator=g)
+    l1 = ((pred - target).abs().mean(-1) * w).sum() / w.sum()
+    torch.testing.assert_close(weighted_quantile_cost(pred, target, w), l1, rtol=0, atol=0)
+    # over constant predictions, the minimiser is the q-quantile of the (unit-weight) targets
+    values = torch.rand(1001, generator=g) ** 2
+    grid = torch.linspace(0, 1, 2001)
+    for q in (0.25, 0.5, 0.75, 0.9):
+        cost = torch.stack([weighted_quantile_cost(c.expand(1001, 1), values[:, None], torch.ones(1001), q) for c in grid])
+        assert abs(float(grid[cost.argmin()]) - float(torch.quantile(values, q))) <= 1e-3, q
+
+
+def test_an_upper_quantile_fits_the_unshadowed_appearance():
+    """Cast shadows darken a random 60 % of the samples regardless of (view, normal): the L1 fit
+    learns the shadowed median, the 0.75-quantile fit the unshadowed radiance (the two-point
+    distribution's 0.75-quantile)."""
+    samples, lit = _half_lit_samples(seed=3)
+    shadowed = torch.rand(len(lit), generator=torch.Generator().manual_seed(1)) < 0.6
+    seen = type(samples)(samples.view_dir_world, samples.normal_world, torch.where(shadowed[:, None], 0.05 * lit, lit),
+                         samples.weight, samples.frame_index)
+    errors = {}
+    for q in (0.5, 0.75):
+        model = fit_dam(seen, FitOptions(steps=400, seed=0, holdout_views=0, checkpoint_every=0, quantile=q)).model
+        with torch.no_grad():
+            errors[q] = float((model(samples.view_dir_world, samples.normal_world) - lit).abs().mean())
+    assert errors[0.75] < 0.3 * errors[0.5], errors
+    assert errors[0.5] > 0.5 * float(lit.abs().mean()), errors  # the median is the shadowed value

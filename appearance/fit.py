@@ -6,9 +6,10 @@ plus optionally alpha times an adversarial cost. Radiance is divided by the capt
 scale (95th percentile of the training foreground) so that learning rates do not depend on the
 units.
 
-Stopping rule: a few training views are held out; the weights with the lowest held-out L1 are
-kept (training on a 3360-weight network can overfit the training views and get worse on novel
-ones). ``holdout_views = 0`` trains on all views and keeps the last weights.
+Stopping rule: a few training views are held out; the weights with the lowest held-out data
+cost (L1 at the default quantile) are kept (training on a 3360-weight network can overfit the
+training views and get worse on novel ones). ``holdout_views = 0`` trains on all views and keeps
+the last weights. The history's ``train_l1`` / ``holdout_l1`` are that data cost.
 
 Precision: ``FitOptions.precision = "bfloat16"`` runs the training step's DAM forward pass and
 data cost under ``torch.autocast`` (bfloat16 matrix products; :func:`.dam.dam_forward` returns
@@ -89,8 +90,8 @@ class FitOptions:
     """quantile q of the data cost (:func:`weighted_quantile_cost`): 0.5 is the paper's L1. Cast
     shadows and occlusion only darken a pixel, so at each (view, normal) an upper quantile is
     nearer the unshadowed appearance that a DAM can represent (see bench/synth.md, stage
-    'quantile', for the measured effect on path-traced captures). The stopping rule still scores
-    the held-out views by L1"""
+    'quantile', for the measured effect on path-traced captures). The stopping rule scores the
+    held-out views with the same cost"""
 
     def validate(self) -> None:
         require_options(self, at_least_1=("steps", "batch_size", "width", "depth", "eval_every"),
@@ -182,9 +183,14 @@ def weighted_quantile_cost(pred: torch.Tensor, target: torch.Tensor, w: torch.Te
     >>> float(weighted_quantile_cost(p, t, torch.tensor([1.0, 0.0]), 0.75))
     1.5
     """
+    return (quantile_loss(pred, target, quantile) * w).sum() / w.sum().clamp_min(1e-12)
+
+
+def quantile_loss(pred: torch.Tensor, target: torch.Tensor, quantile: float) -> torch.Tensor:
+    """(N,) per-sample pinball loss 2 max(q u, (q - 1) u), u = target - pred, averaged over the
+    channels of (N, C) radiance; exactly the mean absolute difference at q = 0.5."""
     u = target - pred
-    loss = 2 * torch.maximum(quantile * u, (quantile - 1) * u)
-    return (loss.mean(-1) * w).sum() / w.sum().clamp_min(1e-12)
+    return (2 * torch.maximum(quantile * u, (quantile - 1) * u)).mean(-1)
 
 
 def _state_json(opts: FitOptions) -> str:
@@ -303,7 +309,7 @@ def fit_dam(
         optim.step()
         done = step + 1
         if done % opts.eval_every == 0 or done == opts.steps:
-            ho = _evaluate_l1(model, x_ho, y_ho, w_ho, arch) if x_ho.shape[0] else stats["loss"]
+            ho = _evaluate_cost(model, x_ho, y_ho, w_ho, arch, opts.quantile) if x_ho.shape[0] else stats["loss"]
             record = {"step": done, "train_l1": stats["loss"], "holdout_l1": ho, "seconds": elapsed_before + time.perf_counter() - t0}
             history.append(record)
             if x_ho.shape[0] == 0 or ho < best_loss:
@@ -329,7 +335,7 @@ def fit_dam(
 def training_l1(model: DeepAppearanceMap, samples: PixelSamples) -> float:
     """The fit's data cost over all samples: weighted mean L1 of radiance / the model's scale."""
     x = encode_inputs(samples.view_dir_world, samples.normal_world, model.arch.encoding)
-    return _evaluate_l1(model, x, samples.radiance_lin.float() / model.radiance_scale, samples.weight, model.arch)
+    return _evaluate_cost(model, x, samples.radiance_lin.float() / model.radiance_scale, samples.weight, model.arch)
 
 
 def refine_dam(model: DeepAppearanceMap, samples: PixelSamples, steps: int, learning_rate: float = 3e-3, seed: int = 0,
@@ -353,11 +359,13 @@ def refine_dam(model: DeepAppearanceMap, samples: PixelSamples, steps: int, lear
 
 
 @torch.no_grad()
-def _evaluate_l1(model: DeepAppearanceMap, x: torch.Tensor, y: torch.Tensor, w: torch.Tensor, arch: DamArchitecture, chunk: int = 1 << 16) -> float:
+def _evaluate_cost(model: DeepAppearanceMap, x: torch.Tensor, y: torch.Tensor, w: torch.Tensor, arch: DamArchitecture,
+                   quantile: float = 0.5, chunk: int = 1 << 16) -> float:
+    """:func:`weighted_quantile_cost` of the model over many samples, in chunks (L1 at 0.5)."""
     total, wsum = 0.0, 0.0
     for s in range(0, x.shape[0], chunk):
         p = dam_forward(model.weights_flat, x[s:s + chunk], arch)
-        total += float(((p - y[s:s + chunk]).abs().mean(-1) * w[s:s + chunk]).sum())
+        total += float((quantile_loss(p, y[s:s + chunk], quantile) * w[s:s + chunk]).sum())
         wsum += float(w[s:s + chunk].sum())
     return total / max(wsum, 1e-12)
 

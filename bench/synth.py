@@ -816,8 +816,7 @@ def write_markdown(res: dict, path: Path) -> None:
             ch = w["choices"]
             L += ["", f"Held-out captures (Table 1's representation rows, fit seeds {res['table1']['fit_seeds']}) with two of "
                   f"these, chosen on the training-part captures: the best at the default 2000 steps (weight decay "
-                  f"{ch['same_steps']}) and the best of all (weight decay {ch['overall']}). DAM mean DSSIM (DAM / RM++ per fit seed):", "",
-                  ]
+                  f"{ch['same_steps']}) and the best of all (weight decay {ch['overall']}). DAM mean DSSIM (DAM / RM++ per fit seed):", ""]
             L += heldout_table({"default": d} | {f"weight decay {label}": v["table"] for label, v in w["heldout"].items()})
         L += ["", "Weight decay is not the default: on the closed-form captures of `bench/dam_core.md` (local shading only) "
               "it raises the ratio (study *weight decay* there).", ""]
@@ -831,8 +830,8 @@ def write_markdown(res: dict, path: Path) -> None:
         L += ["## The data cost's quantile (`FitOptions.quantile`; not the default)", "",
               "Cast shadows and occlusion only darken a pixel, so at each (view, normal) the upper quantiles of the "
               "observed radiance are nearer the unshadowed appearance that a function of (V, N) can represent. The fit's "
-              "L1 cost (quantile 0.5) is replaced by the pinball loss at quantile q (`damcap fit --quantile q`); the "
-              "stopping rule still scores the held-out training views by L1.", "",
+              "L1 cost (quantile 0.5) is replaced by the pinball loss at quantile q (`damcap fit --quantile q`), and the "
+              "stopping rule scores the held-out training views with the same cost.", "",
               f"Training-part captures: novel-view DSSIM / RM++, mean over fit seeds {q['dev_fit_seeds']} (per seed in "
               "brackets), by quantile, alone and with weight decay (*wd*) 0.1, 2000 steps; the two L1 columns are the weight "
               "decay stage's fits (same captures and seeds).", ""]

@@ -272,8 +272,23 @@ def test_an_upper_quantile_fits_the_unshadowed_appearance():
                          samples.weight, samples.frame_index)
     errors = {}
     for q in (0.5, 0.75):
-        model = fit_dam(seen, FitOptions(steps=400, seed=0, holdout_views=0, checkpoint_every=0, quantile=q)).model
+        model = fit_dam(seen, FitOptions(steps=400, seed=0, checkpoint_every=0, quantile=q)).model
         with torch.no_grad():
             errors[q] = float((model(samples.view_dir_world, samples.normal_world) - lit).abs().mean())
     assert errors[0.75] < 0.3 * errors[0.5], errors
     assert errors[0.5] > 0.5 * float(lit.abs().mean()), errors  # the median is the shadowed value
+
+
+def test_the_stopping_rule_scores_held_out_views_with_the_fits_cost(small_samples):
+    s = small_samples
+    opts = FitOptions(steps=60, eval_every=60, checkpoint_every=0, quantile=0.8, seed=1)
+    result = fit_dam(s, opts)
+    held = torch.zeros(len(s), dtype=torch.bool)
+    for k in holdout_frames(int(s.frame_index.max()) + 1, opts.holdout_views):
+        held |= s.frame_index == k
+    m = result.model
+    with torch.no_grad():
+        pred = m(s.view_dir_world[held], s.normal_world[held]) / m.radiance_scale
+    expected = weighted_quantile_cost(pred, s.radiance_lin[held].float() / m.radiance_scale, s.weight[held], 0.8)
+    assert result.best_step == 60
+    assert math.isclose(result.history[-1]["holdout_l1"], float(expected), rel_tol=1e-4)

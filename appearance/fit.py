@@ -161,6 +161,13 @@ def holdout_frames(n_frames: int, k: int) -> list[int]:
     return sorted({int(round((i + 1) * (n_frames - 1) / (k + 1))) for i in range(k)})
 
 
+def quantile_loss(pred: torch.Tensor, target: torch.Tensor, quantile: float) -> torch.Tensor:
+    """(N,) per-sample pinball loss 2 max(q u, (q - 1) u), u = target - pred, averaged over the
+    channels of (N, C) radiance; exactly the mean absolute difference at q = 0.5."""
+    u = target - pred
+    return (2 * torch.maximum(quantile * u, (quantile - 1) * u)).mean(-1)
+
+
 def weighted_quantile_cost(pred: torch.Tensor, target: torch.Tensor, w: torch.Tensor, quantile: float = 0.5) -> torch.Tensor:
     """The fit's data cost: per-sample-weighted pinball (quantile) loss, scaled so that
     quantile 0.5 is the paper's L1 distance exactly.
@@ -184,13 +191,6 @@ def weighted_quantile_cost(pred: torch.Tensor, target: torch.Tensor, w: torch.Te
     1.5
     """
     return (quantile_loss(pred, target, quantile) * w).sum() / w.sum().clamp_min(1e-12)
-
-
-def quantile_loss(pred: torch.Tensor, target: torch.Tensor, quantile: float) -> torch.Tensor:
-    """(N,) per-sample pinball loss 2 max(q u, (q - 1) u), u = target - pred, averaged over the
-    channels of (N, C) radiance; exactly the mean absolute difference at q = 0.5."""
-    u = target - pred
-    return (2 * torch.maximum(quantile * u, (quantile - 1) * u)).mean(-1)
 
 
 def _state_json(opts: FitOptions) -> str:

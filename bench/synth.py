@@ -470,12 +470,8 @@ def heldout_tables(stage: str, variants: dict[str, dict], t1: dict) -> dict:
 
 
 QUANTILE_VARIANTS: dict[str, dict] = {
-    "0.65": {"quantile": 0.65},
-    "0.75": {"quantile": 0.75},
-    "0.85": {"quantile": 0.85},
-    "0.65, wd 0.1": {"quantile": 0.65, "weight_decay": 0.1},
-    "0.75, wd 0.1": {"quantile": 0.75, "weight_decay": 0.1},
-    "0.85, wd 0.1": {"quantile": 0.85, "weight_decay": 0.1},
+    f"{q}{', wd 0.1' if wd else ''}": {"quantile": q, **({"weight_decay": wd} if wd else {})}
+    for wd in (0.0, 0.1) for q in (0.65, 0.75, 0.85)
 }
 """the ``quantile`` stage's fits, by label: the data cost's quantile (0.5 = L1, the weight decay
 stage's '0' and '0.1'), alone and with weight decay 0.1; 2000 steps"""

@@ -44,6 +44,11 @@ class DamArchitecture:
     distant light are functions of R); 'vnr' = all 9"""
     bias: bool = False
     """biases in every layer (the paper: none)"""
+    separable: bool = False
+    """encoding 'nr' only: the hidden units split into two equal halves, one seeing only N, the
+    other only R (block-diagonal hidden layers; the output layer adds both), so the DAM is
+    softplus(f(N) + g(R)): a diffuse-like term of the normal plus a specular-like term of the
+    mirrored view. ``width`` counts both halves; the structural zeros are not stored"""
 
     def __post_init__(self) -> None:
         if self.width < 1 or self.depth < 1:
@@ -52,6 +57,9 @@ class DamArchitecture:
             raise DamcapError(f"unknown DAM input encoding {self.encoding!r}; use one of {sorted(ENCODING_DIMS)}")
         if self.activation not in ACTIVATIONS:
             raise DamcapError(f"unknown activation {self.activation!r}; use one of {', '.join(ACTIVATIONS)}")
+        if self.separable and (self.encoding != "nr" or self.width % 2):
+            raise DamcapError(f"a separable DAM needs the encoding 'nr' and an even width, got encoding "
+                              f"{self.encoding!r}, width {self.width}")
 
     @property
     def layer_shapes(self) -> list[tuple[int, int]]:
@@ -60,13 +68,22 @@ class DamArchitecture:
         return [(dims[k + 1], dims[k]) for k in range(len(dims) - 1)]
 
     @property
+    def layer_weight_counts(self) -> list[int]:
+        """Stored matrix entries per linear layer: out x in, or half of that for a separable
+        DAM's block-diagonal first and hidden layers (its output layer is full)."""
+        last = len(self.layer_shapes) - 1
+        return [o * i // 2 if self.separable and k < last else o * i for k, (o, i) in enumerate(self.layer_shapes)]
+
+    @property
     def num_weights(self) -> int:
         """Length of the flat weight vector.
 
         >>> DamArchitecture(encoding="vn").num_weights
         3360
+        >>> DamArchitecture(width=44, separable=True).num_weights
+        3168
         """
-        return sum(o * i + (o if self.bias else 0) for o, i in self.layer_shapes)
+        return sum(n + (o if self.bias else 0) for n, (o, _) in zip(self.layer_weight_counts, self.layer_shapes))
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -118,12 +135,25 @@ def hidden_activation(x: torch.Tensor, name: Activation) -> torch.Tensor:
 
 
 def split_weights(weights_flat: torch.Tensor, arch: DamArchitecture) -> list[tuple[torch.Tensor, torch.Tensor | None]]:
-    """Views of a (B, P) flat weight batch as per-layer (B, out, in) matrices and (B, out) biases."""
+    """Per-layer (B, out, in) matrices and (B, out) biases of a (B, P) flat weight batch.
+
+    The flat layout is layer by layer: the matrix row-major (a separable DAM's N block, then its
+    R block), then the biases. A separable DAM's block-diagonal matrices are assembled with their zeros
+    (from tensor ops only, so that torch.export traces them)."""
     layers = []
     k = 0
-    for o, i in arch.layer_shapes:
-        w = weights_flat[:, k:k + o * i].reshape(-1, o, i)
-        k += o * i
+    shapes = arch.layer_shapes
+    for li, (o, i) in enumerate(shapes):
+        if arch.separable and li < len(shapes) - 1:
+            h, hi = o // 2, i // 2  # the N block, then the R block, each (h, hi) row-major
+            w_n = weights_flat[:, k:k + h * hi].reshape(-1, h, hi)
+            w_r = weights_flat[:, k + h * hi:k + 2 * h * hi].reshape(-1, h, hi)
+            zero = torch.zeros_like(w_n)
+            w = torch.cat([torch.cat([w_n, zero], 2), torch.cat([zero, w_r], 2)], 1)
+            k += 2 * h * hi
+        else:
+            w = weights_flat[:, k:k + o * i].reshape(-1, o, i)
+            k += o * i
         b = None
         if arch.bias:
             b = weights_flat[:, k:k + o]
@@ -167,11 +197,11 @@ def dam_forward(weights_flat: torch.Tensor, inputs: torch.Tensor, arch: DamArchi
 
 
 def init_weights(arch: DamArchitecture, generator: torch.Generator | None = None) -> torch.Tensor:
-    """He-uniform initial flat weights, (P,) float32; biases 0."""
+    """He-uniform initial flat weights (fan-in: the inputs a unit sees), (P,) float32; biases 0."""
     parts = []
-    for o, i in arch.layer_shapes:
-        bound = math.sqrt(6.0 / i)
-        parts.append((torch.rand(o * i, generator=generator) * 2 - 1) * bound)
+    for n, (o, _) in zip(arch.layer_weight_counts, arch.layer_shapes):
+        bound = math.sqrt(6.0 / (n // o))
+        parts.append((torch.rand(n, generator=generator) * 2 - 1) * bound)
         if arch.bias:
             parts.append(torch.zeros(o))
     return torch.cat(parts)

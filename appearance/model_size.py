@@ -50,13 +50,17 @@ class SizeChoice:
     """per size tried: width, depth, weights, heldout_dssim, seconds"""
 
 
-def sizes_by_weight_count(encoding: str, ladder: tuple[tuple[int, int], ...] = SIZE_LADDER) -> list[tuple[int, int, int]]:
+def sizes_by_weight_count(encoding: str, ladder: tuple[tuple[int, int], ...] = SIZE_LADDER,
+                          separable: bool = False) -> list[tuple[int, int, int]]:
     """(width, depth, weights) of the ladder, smallest first.
 
     >>> sizes_by_weight_count("nr")[:2]
     [(8, 2, 136), (16, 2, 400)]
+    >>> sizes_by_weight_count("nr", separable=True)[:2]
+    [(8, 2, 80), (16, 2, 224)]
     """
-    sized = [(w, d, DamArchitecture(width=w, depth=d, encoding=encoding).num_weights) for w, d in ladder]  # type: ignore[arg-type]
+    sized = [(w, d, DamArchitecture(width=w, depth=d, encoding=encoding, separable=separable).num_weights)  # type: ignore[arg-type]
+             for w, d in ladder]
     return sorted(sized, key=lambda t: t[2])
 
 
@@ -138,7 +142,7 @@ def fit_to_target(train: list[ViewData], target_dssim: float, opts: FitOptions,
     tried: list[dict[str, float]] = []
     best: tuple[float, DeepAppearanceMap, int, int] | None = None
     chosen: SizeChoice | None = None
-    for width, depth, n_weights in sizes_by_weight_count(opts.encoding):
+    for width, depth, n_weights in sizes_by_weight_count(opts.encoding, separable=opts.separable):
         size_opts = replace(opts, width=width, depth=depth)
         done = finished.get((width, depth))
         if done is not None:

@@ -20,6 +20,8 @@ steps, input encoding, hold-out stopping, width and the adversarial cost, and st
   ``FitOptions.weight_decay``; 0 is the default);
 * the data cost's quantile (``q0.75``, and ``q0.75_wd0.1`` with weight decay 0.1:
   ``FitOptions.quantile``; 0.5, the L1 cost, is the default);
+* a separable DAM, softplus(f(N) + g(R)) (``sep44x4``: 3168 weights, ``sep32x4``: 1728;
+  ``FitOptions.separable``; the default is the joint 32x4 network);
 * the shipped learning-to-learn predictor plus K refinement steps (``predict_k0`` ...
   ``predict_k1000``), as ``damcap predict --refine-steps K`` does it (``predictor_input``,
   ``predict_dam``, ``refine_dam``); its time includes the prediction (not loading the file).
@@ -125,6 +127,8 @@ SETTINGS: list[tuple[str, dict]] = [
     ("wd0.1_s8000", {"weight_decay": 0.1, "steps": 8000}),
     ("q0.75", {"quantile": 0.75}),
     ("q0.75_wd0.1", {"quantile": 0.75, "weight_decay": 0.1}),
+    ("sep44x4", {"width": 44, "separable": True}),
+    ("sep32x4", {"separable": True}),
     ("predict_k0", {"predict_refine_steps": 0}),
     ("predict_k100", {"predict_refine_steps": 100}),
     ("predict_k300", {"predict_refine_steps": 300}),
@@ -146,6 +150,7 @@ STUDIES: dict[str, list[str]] = {
     "hidden activation": ["leaky_relu", "default"],
     "weight decay": ["default", "wd0.03", "wd0.1", "steps4000", "wd0.1_s4000", "steps8000", "wd0.1_s8000"],
     "data-cost quantile": ["default", "q0.75", "wd0.1", "q0.75_wd0.1"],
+    "separable DAM": ["default", "sep32x4", "sep44x4"],
     "predictor + K refine steps": ["predict_k0", "predict_k100", "predict_k300", "predict_k1000"],
 }
 
@@ -189,10 +194,10 @@ def split_overrides(overrides: dict) -> tuple[dict, dict]:
 
 def run_key(capture: str, opts: FitOptions, bench: dict | None = None) -> str:
     """The run log's key: capture, FitOptions and bench-level keys (predictor runs: with the
-    predictor file's hash). ``precision``, ``weight_decay`` and ``quantile`` are left out at
-    their defaults so that runs logged before the options existed keep their keys."""
+    predictor file's hash). ``precision``, ``weight_decay``, ``quantile`` and ``separable`` are
+    left out at their defaults so that runs logged before the options existed keep their keys."""
     d = asdict(opts)
-    for name, default in (("precision", "float32"), ("weight_decay", 0.0), ("quantile", 0.5)):
+    for name, default in (("precision", "float32"), ("weight_decay", 0.0), ("quantile", 0.5), ("separable", False)):
         if d.get(name) == default:
             del d[name]
     return capture + "|" + json.dumps(d, sort_keys=True) + ("|" + json.dumps(bench, sort_keys=True) if bench else "")
@@ -647,7 +652,9 @@ def write_markdown(result: dict, path: Path, plot_path: Path) -> None:
              "full-resolution test views and same-view DSSIM on the full-resolution train views; `bfloat16` runs the training step "
              "under bfloat16 autocast (`FitOptions.precision`; weights stay float32); `wd0.03`/`wd0.1` add decoupled weight decay "
              "(`FitOptions.weight_decay`, AdamW), `wd0.1_s4000`/`wd0.1_s8000` with 4000 / 8000 steps; `q0.75` fits the 0.75-quantile "
-             "(pinball) data cost instead of L1 (`FitOptions.quantile`), `q0.75_wd0.1` with weight decay 0.1; `predict_kK` predicts the DAM with the "
+             "(pinball) data cost instead of L1 (`FitOptions.quantile`), `q0.75_wd0.1` with weight decay 0.1; `sep44x4`/`sep32x4` "
+             "fit a separable DAM, softplus(f(N) + g(R)) with block-diagonal hidden layers (`FitOptions.separable`; 3168 / 1728 "
+             "weights); `predict_kK` predicts the DAM with the "
              "shipped learning-to-learn predictor from one train view and refines it K steps on all train views "
              "(`refine_dam`, as `damcap predict --refine-steps K`): its time is choosing and cropping the input view, the "
              "prediction and the refinement"

@@ -38,6 +38,9 @@ Stages (``--stages``, default all, in this order):
 * ``quantile``: the data cost's quantile (``FitOptions.quantile``, 0.5 = L1 by default), alone
   and with weight decay 0.1, on the same training-part captures; then the best of them on the
   held-out Table 1 captures.
+* ``separable``: a separable DAM, f(N) + g(R) (``FitOptions.separable``), at two sizes, depths
+  and step counts and with the other two knobs, on the same training-part captures; then the
+  44x4 network (the paper's size) and the best of them on the held-out Table 1 captures.
 
 Every timed section records the wall time and the CPU time other processes took meanwhile
 (the machine is shared). Outputs: ``bench/results/synth.json`` (stages merged into an existing
@@ -87,7 +90,8 @@ REPO = BENCH.parent
 CACHE = BENCH / ".cache"
 RESULTS = BENCH / "results"
 DATA = Path(os.environ.get("DAMCAP_SHARED_DATA", REPO.parent / "shared" / "data"))
-STAGES = ("throughput", "noise", "small", "paper", "table1", "why", "anchor", "activation", "weight_decay", "design", "quantile")
+STAGES = ("throughput", "noise", "small", "paper", "table1", "why", "anchor", "activation", "weight_decay", "design", "quantile",
+          "separable")
 #: seed offset of the second render in noise-floor measurements
 NOISE_SEED_OFFSET = 7919
 
@@ -492,6 +496,51 @@ def stage_quantile(fit_seeds: list[int], res: dict) -> dict:
             "heldout": heldout_tables("quantile", {chosen: QUANTILE_VARIANTS[chosen]}, res["table1"])}
 
 
+SEPARABLE_44X4 = {"width": 44, "separable": True}
+"""a separable DAM of about the paper's size: two branches of 22 units x 4 layers, 3168 weights"""
+SEPARABLE_VARIANTS: dict[str, dict] = {
+    "44x4": SEPARABLE_44X4,
+    "32x4": SEPARABLE_44X4 | {"width": 32},
+    "44x3": SEPARABLE_44X4 | {"depth": 3},
+    "44x4, 4000 steps": SEPARABLE_44X4 | {"steps": 4000},
+    "44x4, wd 0.1": SEPARABLE_44X4 | {"weight_decay": 0.1},
+    "44x4, q 0.75, wd 0.1": SEPARABLE_44X4 | {"quantile": 0.75, "weight_decay": 0.1},
+}
+"""the ``separable`` stage's fits, by label (width x depth, both branches counted in the width)"""
+
+
+def stage_separable(fit_seeds: list[int], res: dict) -> dict:
+    """A separable DAM (``FitOptions.separable``: softplus(f(N) + g(R)), block-diagonal hidden
+    layers): novel-view DSSIM / RM++ on the training-part captures (fit seeds ``fit_seeds[:2]``)
+    for each of SEPARABLE_VARIANTS; then, on the held-out captures (Table 1's representation
+    rows), two fits named before any held-out fit was made: the plain 44x4 network and the best
+    variant on the training-part captures, with the ``table1`` stage's fit seeds and with as many
+    more (the point-light column's seeds differ widely). Training-part results already in
+    ``res`` for the same variants and seeds are reused rather than refitted."""
+    if "table1" not in res:
+        raise SystemExit("run the 'table1' stage first")
+    prev = res.get("separable", {})
+    if prev.get("variants") == SEPARABLE_VARIANTS and prev.get("dev_fit_seeds") == fit_seeds[:2]:
+        rows = prev["dev_rows"]
+        log("separable: training-part results reused from bench/results/synth.json")
+    else:
+        rows = dev_rows("separable", SEPARABLE_VARIANTS, fit_seeds[:2])
+    chosen = min(SEPARABLE_VARIANTS, key=lambda label: mean_ratio(rows, label))
+    variants = {label: SEPARABLE_VARIANTS[label] for label in dict.fromkeys(("44x4", chosen))}
+    t1 = res["table1"]
+    more_seeds = [max(t1["fit_seeds"]) + 1 + k for k in range(len(t1["fit_seeds"]))]
+    heldout = heldout_tables("separable", variants, t1)
+    more = heldout_tables("separable", variants, {**t1, "fit_seeds": more_seeds})
+    all_seeds = t1["fit_seeds"] + more_seeds
+    pooled = {}
+    for label in variants:
+        per_capture = [{**a, "fits": a["fits"] + b["fits"]} for a, b in zip(heldout[label]["per_capture"], more[label]["per_capture"])]
+        pooled[label] = {"per_capture": per_capture, "table": summarise_table1(per_capture, all_seeds)}
+    weights = {k: FitOptions(**v).architecture.num_weights for k, v in SEPARABLE_VARIANTS.items()}
+    return {"dev_fit_seeds": fit_seeds[:2], "variants": SEPARABLE_VARIANTS, "num_weights": weights, "dev_rows": rows,
+            "chosen": chosen, "heldout": heldout, "heldout_all_seeds": {"fit_seeds": all_seeds, "by_variant": pooled}}
+
+
 DESIGN_VARIANTS: dict[str, dict] = {
     "default": {},
     "vnr": {"encoding": "vnr"},
@@ -848,6 +897,53 @@ def write_markdown(res: dict, path: Path) -> None:
                   f"**{'met' if met else 'missed'}**. It is not the default: on the closed-form captures of "
                   "`bench/dam_core.md` (no shadows) it is measured in the study *data-cost quantile*."]
         L += [""]
+    if "separable" in res:
+        sp = res["separable"]
+        rows = sp["dev_rows"]
+        if "weight_decay" in res:  # the default's fits on the same captures and seeds, for comparison
+            default_rows = {r["name"]: r["ratio_novel"]["0"] for r in res["weight_decay"]["dev_rows"]}
+            rows = [{"name": r["name"], "ratio_novel": {"default (joint 32x4)": default_rows[r["name"]]} | r["ratio_novel"]}
+                    for r in rows]
+        labels = list(rows[0]["ratio_novel"])
+        L += ["## A separable DAM (`FitOptions.separable`; not the default)", "",
+              "The DAM's hidden units split into two halves, one seeing only the normal N and one only the mirrored view R, "
+              "added before the output softplus: softplus(f(N) + g(R)), a diffuse-like term plus a specular-like term "
+              "(`damcap fit --separable`; block-diagonal hidden layers, width counts both halves). A novel view pairs "
+              "normals and mirror directions that the training views saw, but not together; a separable DAM needs only "
+              "each on its own. Weights: " + ", ".join(f"{k} {n}" for k, n in sp["num_weights"].items()) + " (the default "
+              "joint 32x4: 3360).", "",
+              f"Training-part captures: novel-view DSSIM / RM++, mean over fit seeds {sp['dev_fit_seeds']} (per seed in "
+              "brackets); labels are width x depth, 2000 steps unless they say otherwise; *wd* = weight decay, *q* = the data "
+              "cost's quantile. The default column is the weight decay stage's fits (same captures and seeds).", ""]
+        L += ratio_table(rows, labels)
+        if "table1" in res:
+            tables = {"default": res["table1"]["table"]}
+            if "quantile" in res:
+                q = res["quantile"]
+                tables[f"quantile {q['chosen']}"] = q["heldout"][q["chosen"]]["table"]
+            tables |= {f"separable {label}": v["table"] for label, v in sp["heldout"].items()}
+            L += ["", f"Held-out captures (Table 1's representation rows, fit seeds {res['table1']['fit_seeds']}): the "
+                  f"separable 44x4 and the best separable variant on the training-part captures ({sp['chosen']}), both named "
+                  "before any held-out fit, next to the default and the quantile stage's choice. DAM mean DSSIM "
+                  "(DAM / RM++ per fit seed):", ""]
+            L += heldout_table(tables)
+            pooled = sp.get("heldout_all_seeds")
+            if pooled:
+                L += ["", f"The same two fits over fit seeds {pooled['fit_seeds']} (the three above and three more):", ""]
+                L += heldout_table({f"separable {label}": v["table"] for label, v in pooled["by_variant"].items()})
+            for label, v in sp["heldout"].items():
+                t = v["table"]
+                met = all(t[k]["novel_view"]["DAM/RM++"] <= 0.5 for k in ("point", "env"))
+                line = (f"Target (novel-view DAM / RM++ <= 0.5 in both columns) with separable {label}: point "
+                        f"{t['point']['novel_view']['DAM/RM++']:.2f}, env {t['env']['novel_view']['DAM/RM++']:.2f} -> "
+                        f"**{'met' if met else 'missed'}**")
+                if pooled:
+                    t6 = pooled["by_variant"][label]["table"]
+                    met6 = all(t6[k]["novel_view"]["DAM/RM++"] <= 0.5 for k in ("point", "env"))
+                    line += (f"; over {len(pooled['fit_seeds'])} fit seeds point {t6['point']['novel_view']['DAM/RM++']:.3f}, env "
+                             f"{t6['env']['novel_view']['DAM/RM++']:.3f} -> **{'met' if met6 else 'missed'}**")
+                L += ["", line + "."]
+        L += [""]
     if "design" in res:
         d = res["design"]
         labels = list(d["variants"])
@@ -918,6 +1014,8 @@ def main() -> None:
             res["weight_decay"] = stage_weight_decay(fit_seeds, res)
         elif stage == "quantile":
             res["quantile"] = stage_quantile(fit_seeds, res)
+        elif stage == "separable":
+            res["separable"] = stage_separable(fit_seeds, res)
         elif stage == "anchor":
             res["anchor"] = stage_anchor(fit_seeds, args.floor_every)
         elif stage == "table1":

@@ -75,6 +75,7 @@ def fit(
     depth: int = typer.Option(None, help="hidden layers"),
     encoding: str = typer.Option(None, help="network input: vn (paper) | nr | vnr"),
     activation: str = typer.Option(None, help="hidden non-linearity: shifted_softplus (default) | leaky_relu | relu | softplus | tanh"),
+    separable: bool = typer.Option(None, "--separable/--no-separable", help="DAM = f(N) + g(R): two half-width branches (encoding nr, even width)"),
     adversarial: bool = typer.Option(None, "--adversarial/--no-adversarial", help="add the adversarial cost (alpha 0.001)"),
     holdout_views: int = typer.Option(None, help="training views held out for the stopping rule (0 = none)"),
     seed: int = typer.Option(None),
@@ -93,7 +94,7 @@ def fit(
     from damcap.common.version import damcap_version
 
     given = dict(steps=steps, batch_size=batch_size, learning_rate=learning_rate, width=width, depth=depth,
-                 encoding=encoding, activation=activation, adversarial=adversarial, holdout_views=holdout_views,
+                 encoding=encoding, activation=activation, separable=separable, adversarial=adversarial, holdout_views=holdout_views,
                  seed=seed, device=device, precision=precision, weight_decay=weight_decay, quantile=quantile)
     opts = FitOptions(**{k: v for k, v in given.items() if v is not None})
     opts.validate()  # numeric options and --precision, before reading the capture

@@ -1,8 +1,8 @@
 """A DAM as one self-contained GLSL function (GLSL ES 3.00 / GLSL 3.30 and later).
 
 ``vec3 dam_eval(vec3 view_dir_world, vec3 normal_world)`` returns linear radiance in the
-capture's units. Weights are embedded as ``const float`` arrays in the network's own layout
-(layer by layer, (out, in) row-major), so the function is evaluated exactly like
+capture's units. Weights are embedded as ``const float`` arrays, layer by layer, (out, in) row-major (a
+separable DAM's structural zeros written out), so the function is evaluated exactly like
 :func:`damcap.appearance.dam.dam_forward` up to float rounding.
 """
 
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from damcap.appearance.dam import LN2, DeepAppearanceMap
+from damcap.appearance.dam import LN2, DeepAppearanceMap, split_weights
 
 
 def _floats(values: np.ndarray) -> str:
@@ -30,19 +30,17 @@ def glsl_source(model: DeepAppearanceMap, prefix: str = "dam") -> str:
         prefix: name prefix of every symbol (to place several DAMs in one shader).
     """
     arch = model.arch
-    w = model.get_flat_weights().cpu().numpy().astype(np.float64)
+    layers = split_weights(model.get_flat_weights().cpu()[None], arch)
     lines = [
-        f"// damcap deep appearance map: {arch.depth} hidden layers of {arch.width} ({arch.activation}), "
-        f"input '{arch.encoding}', {arch.num_weights} weights, radiance scale {model.radiance_scale:.9g}",
+        f"// damcap deep appearance map: {arch.depth} hidden layers of {arch.width} ({arch.activation}"
+        f"{', separable' if arch.separable else ''}), input '{arch.encoding}', {arch.num_weights} weights, "
+        f"radiance scale {model.radiance_scale:.9g}",
     ]
-    k = 0
     dims = [arch.layer_shapes[0][1]] + [o for o, _ in arch.layer_shapes]
-    for li, (o, i) in enumerate(arch.layer_shapes):
-        lines.append(f"const float {prefix}_W{li}[{o * i}] = float[{o * i}]({_floats(w[k:k + o * i])});")
-        k += o * i
-        if arch.bias:
-            lines.append(f"const float {prefix}_B{li}[{o}] = float[{o}]({_floats(w[k:k + o])});")
-            k += o
+    for li, ((o, i), (w, b)) in enumerate(zip(arch.layer_shapes, layers)):
+        lines.append(f"const float {prefix}_W{li}[{o * i}] = float[{o * i}]({_floats(w[0].flatten().double().numpy())});")
+        if b is not None:
+            lines.append(f"const float {prefix}_B{li}[{o}] = float[{o}]({_floats(b[0].double().numpy())});")
     act = {
         "leaky_relu": "return x > 0.0 ? x : 0.01 * x;",
         "relu": "return max(x, 0.0);",

@@ -76,3 +76,49 @@ def test_bad_architecture_is_a_clear_error():
 
 def test_tolerances_defined_per_dtype():
     assert TOL[torch.float16] > TOL[torch.float32] > TOL[torch.float64]
+
+
+def _separable(width: int = 8, depth: int = 3, **kw) -> DamArchitecture:
+    return DamArchitecture(width=width, depth=depth, separable=True, **kw)
+
+
+def test_separable_size_counts_only_the_branch_weights():
+    # first layer: each unit sees 3 inputs; hidden: two (w/2 x w/2) blocks; output: all w units
+    for w, d in ((8, 2), (44, 4), (32, 3)):
+        assert _separable(w, d).num_weights == 3 * w + (d - 1) * w * w // 2 + 3 * w
+    assert _separable(8, 2, bias=True).num_weights == 3 * 8 + 8 + 8 * 8 // 2 + 8 + 3 * 8 + 3
+    assert _separable(44, 4).num_weights <= DamArchitecture().num_weights
+
+
+@pytest.mark.parametrize("bias", [False, True])
+def test_separable_dam_is_a_sum_of_a_normal_term_and_a_mirror_term(bias):
+    """softplus^-1 of the output is f(N) + g(R): its mixed difference over (N, R) pairs is 0."""
+    arch = _separable(bias=bias, activation="tanh")
+    w = torch.randn(arch.num_weights, dtype=torch.float64)
+    n1, n2, r1, r2 = torch.randn(4, 20, 3, dtype=torch.float64)
+    pre = lambda n, r: torch.log(torch.expm1(dam_forward(w, torch.cat([n, r], -1), arch)))  # noqa: E731
+    mixed = pre(n1, r1) - pre(n1, r2) - pre(n2, r1) + pre(n2, r2)
+    assert mixed.abs().max() < 1e-9
+    assert (pre(n1, r1) - pre(n2, r1)).abs().max() > 1e-3  # both terms are live
+    assert (pre(n1, r1) - pre(n1, r2)).abs().max() > 1e-3
+
+
+def test_separable_dam_batched_gradients_and_init():
+    arch = _separable()
+    w = torch.randn(arch.num_weights, dtype=torch.float64, requires_grad=True)
+    x = torch.randn(5, 6, dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda w: dam_forward(w, x, arch).double(), (w,), eps=1e-6, atol=1e-4)
+    batch = torch.stack([w.detach(), -w.detach()])
+    torch.testing.assert_close(dam_forward(batch, x.expand(2, 5, 6), arch)[1], dam_forward(-w.detach(), x, arch))
+    # He-uniform over each unit's own inputs: 3 for the first layer, width/2 for the hidden ones
+    init = DeepAppearanceMap(_separable(64, 2), generator=torch.Generator().manual_seed(0)).get_flat_weights()
+    first, hidden = init[:64 * 3], init[64 * 3:64 * 3 + 64 * 32]
+    assert math.sqrt(6 / 3) * 0.95 < first.abs().max() <= math.sqrt(6 / 3)
+    assert math.sqrt(6 / 32) * 0.95 < hidden.abs().max() <= math.sqrt(6 / 32)
+
+
+def test_separable_needs_nr_and_an_even_width():
+    with pytest.raises(DamcapError, match="separable DAM needs the encoding 'nr' and an even width"):
+        _separable(encoding="vn")
+    with pytest.raises(DamcapError, match="even width, got encoding 'nr', width 7"):
+        _separable(width=7)

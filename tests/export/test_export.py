@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
+from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap, split_weights
 from damcap.appearance.dam_file import save_dam
 from damcap.appearance.fit import FitOptions, fit_dam
 from damcap.appearance.metrics import dssim
@@ -71,6 +71,36 @@ def test_onnx_matches_onnxruntime(model_file, tmp_path, capsys):
     with torch.no_grad():
         want = load_dam(model_file)[0](torch.from_numpy(v), torch.from_numpy(n)).numpy()
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * float(np.abs(want).max()))
+
+
+def test_separable_dam_exports_to_onnx(tmp_path):
+    import onnxruntime as ort
+
+    from damcap.export.onnx_export import export_onnx
+
+    m = DeepAppearanceMap(DamArchitecture(width=8, depth=3, separable=True), radiance_scale=3.0,
+                          generator=torch.Generator().manual_seed(4))
+    export_onnx(m, tmp_path / "s.onnx")
+    sess = ort.InferenceSession(str(tmp_path / "s.onnx"), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(5)
+    v, n = rng.normal(size=(2, 500, 3)).astype(np.float32)
+    got = sess.run(None, {"view_dir_world": v, "normal_world": n})[0]
+    with torch.no_grad():
+        want = m(torch.from_numpy(v), torch.from_numpy(n)).numpy()
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * float(np.abs(want).max()))
+
+
+def test_glsl_of_a_separable_dam_writes_its_block_diagonal_matrices():
+    m = DeepAppearanceMap(DamArchitecture(width=6, depth=2, separable=True), generator=torch.Generator().manual_seed(2))
+    src = glsl_source(m)
+    arrays = [line for line in src.splitlines() if line.startswith("const float")]
+    values = np.array([float(x) for line in arrays for x in line.split("(", 1)[1].rstrip(");").split(",")])
+    dense = torch.cat([w[0].flatten() for w, _ in split_weights(m.get_flat_weights()[None], m.arch)]).numpy()
+    np.testing.assert_allclose(values, dense, rtol=1e-7)
+    assert np.count_nonzero(values) == m.arch.num_weights == 6 * 3 + 6 * 6 // 2 + 3 * 6
+    first = values[:36].reshape(6, 6)  # units 0-2 see N only, units 3-5 R only
+    assert not first[:3, 3:].any() and not first[3:, :3].any()
+    assert "separable" in src
 
 
 def test_glsl_is_self_contained_and_carries_every_weight():

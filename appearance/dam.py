@@ -138,8 +138,8 @@ def split_weights(weights_flat: torch.Tensor, arch: DamArchitecture) -> list[tup
     """Per-layer (B, out, in) matrices and (B, out) biases of a (B, P) flat weight batch.
 
     The flat layout is layer by layer: the matrix row-major (a separable DAM's N block, then its
-    R block), then the biases. A separable DAM's block-diagonal matrices are assembled with their zeros
-    (from tensor ops only, so that torch.export traces them)."""
+    R block), then the biases. A separable DAM's block-diagonal matrices are assembled with
+    their zeros from tensor ops only, so that torch.export traces them."""
     layers = []
     k = 0
     shapes = arch.layer_shapes

@@ -38,9 +38,10 @@ Stages (``--stages``, default all, in this order):
 * ``quantile``: the data cost's quantile (``FitOptions.quantile``, 0.5 = L1 by default), alone
   and with weight decay 0.1, on the same training-part captures; then the best of them on the
   held-out Table 1 captures.
-* ``separable``: a separable DAM, f(N) + g(R) (``FitOptions.separable``), at two sizes, depths
-  and step counts and with the other two knobs, on the same training-part captures; then the
-  44x4 network (the paper's size) and the best of them on the held-out Table 1 captures.
+* ``separable``: a separable DAM, f(N) + g(R) (``FitOptions.separable``): 44x4 (about the
+  paper's size), 32x4, 44x3, 44x4 with 4000 steps, with weight decay 0.1 and with weight decay
+  plus the 0.75-quantile cost, on the same training-part captures; then 44x4 and the best of
+  them on the held-out Table 1 captures, over the ``table1`` stage's fit seeds and three more.
 
 Every timed section records the wall time and the CPU time other processes took meanwhile
 (the machine is shared). Outputs: ``bench/results/synth.json`` (stages merged into an existing

@@ -1,9 +1,9 @@
 """A DAM as one self-contained GLSL function (GLSL ES 3.00 / GLSL 3.30 and later).
 
 ``vec3 dam_eval(vec3 view_dir_world, vec3 normal_world)`` returns linear radiance in the
-capture's units. Weights are embedded as ``const float`` arrays, layer by layer, (out, in) row-major (a
-separable DAM's structural zeros written out), so the function is evaluated exactly like
-:func:`damcap.appearance.dam.dam_forward` up to float rounding.
+capture's units. Weights are embedded as ``const float`` arrays, layer by layer, (out, in)
+row-major (a separable DAM's structural zeros written out), so the function is evaluated
+exactly like :func:`damcap.appearance.dam.dam_forward` up to float rounding.
 """
 
 from __future__ import annotations

@@ -25,6 +25,13 @@ def test_a_loose_target_keeps_the_smallest_dam(train_views):
     assert choice.model.arch.num_weights == smallest[2]
 
 
+def test_a_separable_ladder_counts_separable_weights(train_views):
+    choice = fit_to_target(train_views, 0.99, FitOptions(steps=30, holdout_views=1, checkpoint_every=0, separable=True))
+    smallest = sizes_by_weight_count("nr", separable=True)[0]
+    assert choice.reached and choice.model.arch.separable and choice.tried[0]["weights"] == smallest[2]
+    assert choice.model.arch.num_weights == smallest[2] < sizes_by_weight_count("nr")[0][2]
+
+
 def test_an_unreachable_target_tries_every_size_and_keeps_the_most_accurate(train_views):
     choice = fit_to_target(train_views, 1e-9, FitOptions(steps=40, holdout_views=1, checkpoint_every=0))
     assert not choice.reached and len(choice.tried) == len(sizes_by_weight_count("nr"))

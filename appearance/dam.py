@@ -142,18 +142,15 @@ def split_weights(weights_flat: torch.Tensor, arch: DamArchitecture) -> list[tup
     their zeros from tensor ops only, so that torch.export traces them."""
     layers = []
     k = 0
-    shapes = arch.layer_shapes
-    for li, (o, i) in enumerate(shapes):
-        if arch.separable and li < len(shapes) - 1:
-            h, hi = o // 2, i // 2  # the N block, then the R block, each (h, hi) row-major
-            w_n = weights_flat[:, k:k + h * hi].reshape(-1, h, hi)
-            w_r = weights_flat[:, k + h * hi:k + 2 * h * hi].reshape(-1, h, hi)
+    for (o, i), n in zip(arch.layer_shapes, arch.layer_weight_counts):
+        if n < o * i:  # block-diagonal: the N block, then the R block, each (o/2, i/2) row-major
+            w_n = weights_flat[:, k:k + n // 2].reshape(-1, o // 2, i // 2)
+            w_r = weights_flat[:, k + n // 2:k + n].reshape(-1, o // 2, i // 2)
             zero = torch.zeros_like(w_n)
             w = torch.cat([torch.cat([w_n, zero], 2), torch.cat([zero, w_r], 2)], 1)
-            k += 2 * h * hi
         else:
-            w = weights_flat[:, k:k + o * i].reshape(-1, o, i)
-            k += o * i
+            w = weights_flat[:, k:k + n].reshape(-1, o, i)
+        k += n
         b = None
         if arch.bias:
             b = weights_flat[:, k:k + o]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Optional
 
@@ -97,6 +98,21 @@ def reconstruct(
         line += (f", {reg.get('points')} points, mean reprojection error {reg.get('mean_reprojection_error_px', float('nan')):.3f} px, "
                  f"{reg.get('pairs')} pairs ({reg.get('pairing')})")
     typer.echo(line)
+    if reg.get("source") == "sfm" and reg.get("principal_point"):
+        typer.echo(principal_point_line(reg["principal_point"]))
     typer.echo(f"geometry: {report.geometry_mode} ({report.geometry_reason})")
     typer.echo(f"wrote {report.frames} frames to {output} (train {len(report.train)}, test {len(report.test)}; "
                f"{len(report.dropped)} dropped, {len(report.unregistered)} unregistered) in {report.seconds.get('total', 0):.1f} s")
+
+
+def principal_point_line(pp: dict) -> str:
+    """The report line for where the photos put the principal point (``SfmReport.principal_point``)."""
+    (dx, dy), (sx, sy) = pp["offset_px"], pp["sd_px"]
+    sigmas = math.hypot(dx / max(sx, 1e-9), dy / max(sy, 1e-9))
+    where = (f"principal point: the photos put it ({dx:+.1f}, {dy:+.1f}) px from the image centre (1-sigma {sx:.1f}, "
+             f"{sy:.1f} px: {sigmas:.1f} sigma off); ")
+    if pp["used"]:
+        return where + "the cameras use it (--refine-principal-point)"
+    return where + (f"the cameras keep the centre, COLMAP's convention (--refine-principal-point uses it and turns every "
+                    f"camera by {pp['tilt_deg']:.2f} deg)")
+

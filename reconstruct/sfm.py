@@ -16,6 +16,9 @@ Choices that make a 2-core CPU run practical (bench/reconstruct.md measures them
   is learned from the set's own features (no pretrained vocabulary tree to download), plus
   two-hop neighbours in the verified match graph (``transitive_neighbours``).
 - Incremental mapping; the largest model is kept and every other photo is listed with a reason.
+- The report says where the photos put the principal point (a bundle adjustment with it free,
+  on a copy unless ``refine_principal_point``, and its 1-sigma from COLMAP's covariance), so a
+  user sees how far the centred default is from what the photos support.
 
 Resumable: each stage records a fingerprint of its inputs and options in ``work_dir/state.json``;
 a finished stage with the same fingerprint is not redone (an interrupted extraction or matching
@@ -27,11 +30,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import shutil
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import Any, Callable, Literal, Sequence
 
 import numpy as np
 
@@ -104,6 +108,26 @@ class SfmOptions:
 
 
 @dataclass
+class PrincipalPointEstimate:
+    """Where the photos put the principal point of their one shared camera.
+
+    From a bundle adjustment with the principal point free (on a copy of the reconstruction when
+    the registration keeps it at the centre) and that adjustment's covariance (COLMAP's
+    ``BACovariance``) scaled by the residual variance. The standard deviation measures noise
+    only: a camera model that does not fit the lens can move the point by more.
+    """
+
+    offset_px: list[float]
+    """(dx, dy): principal point minus the image centre, photo pixels"""
+    sd_px: list[float]
+    """1-sigma of (dx, dy), photo pixels"""
+    tilt_deg: float
+    """atan(|offset| / focal): how far every camera turns when this point replaces the centre"""
+    used: bool
+    """the registration's cameras use this point (``refine_principal_point``); else the centre"""
+
+
+@dataclass
 class SfmReport:
     """What registration did, for the user and the bench."""
 
@@ -116,6 +140,8 @@ class SfmReport:
     seconds: dict[str, float]
     unregistered: dict[str, str]
     resumed: list[str]
+    principal_point: dict[str, Any] | None = None
+    """:class:`PrincipalPointEstimate` as a dict; None with several cameras or no covariance"""
 
 
 # --------------------------------------------------------------------------------------------
@@ -569,6 +595,11 @@ def register_photos(photo_dir: str | Path, names: list[str], work_dir: str | Pat
         rec = pycolmap.Reconstruction(str(model_dir))
         rep = SfmReport(**json.loads(report_path.read_text(encoding="utf-8")))
         rep.resumed = ["features", "matches", "mapping"]
+        if rep.principal_point is None and rec.num_cameras() == 1:  # a registration from before the estimate
+            principal = adjust_principal_point(rec, pycolmap, apply=False)  # on a copy: the model stays as it was
+            if principal is not None:
+                rep.principal_point = asdict(replace(principal, used=opts.refine_principal_point))
+                write_json_atomic(report_path, asdict(rep))
         reg = registration_of_reconstruction(rec, names, "sfm", str(model_dir))
         reg.unregistered = dict(rep.unregistered)
         reg.stats = asdict(rep)
@@ -612,12 +643,11 @@ def register_photos(photo_dir: str | Path, names: list[str], work_dir: str | Pat
         )
     ranked = sorted(recs.values(), key=lambda r: r.num_reg_images(), reverse=True)
     rec = ranked[0]
-    if opts.refine_principal_point:
-        progress("principal point", 0, 1)
-        t0 = time.perf_counter()
-        refine_principal_point(rec, pycolmap)
-        seconds["principal_point"] = time.perf_counter() - t0
-        progress("principal point", 1, 1)
+    progress("principal point", 0, 1)
+    t0 = time.perf_counter()
+    principal = adjust_principal_point(rec, pycolmap, apply=opts.refine_principal_point)
+    seconds["principal_point"] = time.perf_counter() - t0
+    progress("principal point", 1, 1)
     others: dict[str, int] = {}
     for r in ranked[1:]:
         for iid in r.reg_image_ids():
@@ -632,7 +662,8 @@ def register_photos(photo_dir: str | Path, names: list[str], work_dir: str | Pat
     rep = SfmReport(photos=n, registered=len(registered), points=int(rec.num_points3D()),
                     mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()), pairs=n_pairs,
                     pairing=pairing, seconds={k: round(v, 2) for k, v in seconds.items()},
-                    unregistered=reg.unregistered, resumed=resumed)
+                    unregistered=reg.unregistered, resumed=resumed,
+                    principal_point=asdict(principal) if principal is not None else None)
     write_json_atomic(report_path, asdict(rep))
     stages.mark("mapping", fp_mapping, done=True)
     reg.stats = asdict(rep)
@@ -640,13 +671,70 @@ def register_photos(photo_dir: str | Path, names: list[str], work_dir: str | Pat
     return reg, rep
 
 
-def refine_principal_point(rec: Any, pycolmap: Any) -> None:
-    """One global bundle adjustment of a COLMAP reconstruction (in place) that refines the
-    principal point along with focal length, distortion, poses and points (colmap2nerf's step)."""
+def residual_variance(final_cost: float, residuals: int, parameters: int) -> float:
+    """Variance of one residual after a least-squares fit: ``2 cost / (residuals - parameters)``.
+
+    Args:
+        final_cost: Ceres' cost, half the sum of squared residuals (px^2).
+        residuals: number of scalar residuals.
+        parameters: number of free parameters (effective, after the gauge is fixed).
+
+    Returns:
+        sigma^2 in px^2 (the cost's own mean when there are no spare residuals).
+
+    >>> residual_variance(50.0, 110, 10)
+    1.0
+    """
+    return 2.0 * final_cost / max(residuals - parameters, 1)
+
+
+def principal_point_tilt_deg(offset_px: Sequence[float], focal_px: float) -> float:
+    """How far a camera turns when its principal point moves by ``offset_px``: atan(|offset| / f).
+
+    >>> round(principal_point_tilt_deg([3.0, 4.0], 5.0 / math.tan(math.radians(1.0))), 6)
+    1.0
+    """
+    return math.degrees(math.atan2(math.hypot(*offset_px), focal_px))
+
+
+def adjust_principal_point(rec: Any, pycolmap: Any, apply: bool) -> PrincipalPointEstimate | None:
+    """One global bundle adjustment with the principal point free (colmap2nerf's last step),
+    and where it puts the point.
+
+    Args:
+        rec: a ``pycolmap.Reconstruction``.
+        pycolmap: the module.
+        apply: adjust ``rec`` itself (its cameras then use the point); else a copy, and ``rec``
+            is unchanged.
+
+    Returns:
+        The estimate, or None when the photos use several cameras or COLMAP cannot estimate the
+        covariance (the adjustment is made all the same).
+    """
+    if rec.num_cameras() != 1 and not apply:
+        return None
+    work = rec if apply else pycolmap.Reconstruction(rec)
     ba = pycolmap.BundleAdjustmentOptions()
     ba.refine_principal_point = True
     ba.print_summary = False
-    pycolmap.bundle_adjustment(rec, ba)
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in work.reg_image_ids():
+        config.add_image(image_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.THREE_POINTS)
+    adjuster = pycolmap.create_default_ceres_bundle_adjuster(ba, config, work)
+    summary = adjuster.solve().ceres_summary
+    if work.num_cameras() != 1:
+        return None
+    camera = work.cameras[next(iter(work.cameras))]
+    cov = pycolmap.estimate_ba_covariance(pycolmap.BACovarianceOptions(), work, adjuster)
+    block = cov.get_other_params_cov(camera.params) if cov is not None else None
+    if block is None or block.shape != (len(camera.params), len(camera.params)):
+        return None
+    var = residual_variance(summary.final_cost, summary.num_residuals_reduced, summary.num_effective_parameters_reduced)
+    sd = np.sqrt(np.maximum(np.diag(block)[list(camera.principal_point_idxs())], 0.0) * var)
+    offset = [camera.principal_point_x - camera.width / 2, camera.principal_point_y - camera.height / 2]
+    return PrincipalPointEstimate(offset_px=[round(float(v), 2) for v in offset], sd_px=[round(float(v), 3) for v in sd],
+                                  tilt_deg=round(principal_point_tilt_deg(offset, camera.mean_focal_length()), 3), used=apply)
 
 
 def triangulate_known(photo_dir: str | Path, registration: Registration, work_dir: str | Path, opts: SfmOptions = SfmOptions(),

@@ -72,6 +72,8 @@ def test_sfm_capture_is_valid(sfm_capture):
     src = doc["damcap_source"]
     assert src["tool"] == "damcap reconstruct" and src["options"]["capture_size"] == 96 and src["damcap_version"]
     assert src["registration"]["source"] == "sfm" and src["registration"]["registered"] == N_PHOTOS
+    pp = src["registration"]["principal_point"]  # estimated on a copy; the cameras keep the centre
+    assert pp["used"] is False and len(pp["offset_px"]) == len(pp["sd_px"]) == 2 and pp["tilt_deg"] >= 0
     assert doc["frames"][0]["file_path"] == "images/IMG_0000.exr" and doc["frames"][0]["photo"] == "IMG_0000.jpg"
     assert set(doc["frames"][0]["exposure"]) == {"time_s", "iso", "f_number"}
     assert (sfm_capture / "reconstruction" / "mesh.ply").is_file()

@@ -399,14 +399,14 @@ def write_report(res: dict, command: str) -> None:
     m = res.get("machine", {})
     L = ["# Benchmark: damcap reconstruct", "",
          f"Commands (from the repository root; each merges its parts into the results): `{command}`. Results: `bench/results/reconstruct.json`.", "",
-         f"Machine: {m.get('nproc')} cores ({m.get('cpu_model')}), Python {m.get('python')}, pycolmap {m.get('pycolmap')}, "
-         f"{m.get('platform')}; {m.get('date_utc')}.", "",
+         f"Software of the last measuring command: Python {m.get('python')}, pycolmap {m.get('pycolmap')}, {m.get('platform')}. "
+         "Each section says on which machine and when it was measured.", "",
          "Caveat: the machine is shared with other engineers' jobs; every wall time below was measured under that "
          "load (the 1-minute load average at the start and end of each step is listed; 2 means the two cores were fully "
          "busy). CPU seconds count this process's threads only.", ""]
     reg = res.get("registration")
     if reg:
-        L += ["## Registration (real photos)", "",
+        L += ["## Registration (real photos)", "", measured_on(res, "registration"), "",
               "Targets: >= 95% registered per set; median rotation agreement <= 0.1 deg; cape registered in <= 4 min.", "",
               "| set | variant | registered | pairs (pairing) | features / matching / mapping wall s | total wall s | CPU s | load | median rot. agreement deg: centres-Umeyama / rotation-aligned / relative | reproj. px | principal point - centre px (reference) | the photos' principal point - centre px, ± 1 sigma (tilt) |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -445,7 +445,7 @@ def write_report(res: dict, command: str) -> None:
         L += ["", reg.get("verdict", ""), ""]
     geo = res.get("geometry")
     if geo:
-        L += ["## Geometry (synthetic photos with known geometry)", "",
+        L += ["## Geometry (synthetic photos with known geometry)", "", measured_on(res, "geometry"), "",
               "36 textured photos (320 px, 3 camera rings) of each object with masks; capture at 256 px. Row *auto*: "
               "the whole pipeline (COLMAP registration, then what auto picks), so its error includes the cameras' "
               "(focal length and pose); the other rows use the true cameras (`--poses transforms.json`; Poisson "
@@ -467,7 +467,7 @@ def write_report(res: dict, command: str) -> None:
         rw = res[key]
         d = rw["dssim"]
         L += [f"## The real-world table (mold_gold_cape, capture {rw['capture']['capture_size']} px, geometry {rw['capture']['geometry']}, "
-              f"{rw['capture']['train']} train views)", "",
+              f"{rw['capture']['train']} train views)", "", measured_on(res, key), "",
               f"Capture: {rw['capture']['frames']} frames at {rw['capture']['capture_size']} px, cameras {rw['capture']['cameras']} "
               "(the chosen registration above), "
               f"geometry {rw['capture']['geometry']} ({rw['capture']['geometry_reason']}); {rw['capture']['linearisation']}.",
@@ -498,6 +498,14 @@ def write_report(res: dict, command: str) -> None:
         L += ["", rw.get("verdict", ""), "", f"![novel views]({Path(rw['figure']).name})", "",
               "Columns: " + ", ".join(rw["figure_columns"]) + ".", ""]
     write_text_atomic(REPORT, "\n".join(L) + "\n")
+
+
+def measured_on(res: dict, part: str) -> str:
+    """The line saying which machine and when a part of the results was measured."""
+    m = res.get("machines", {}).get(part)
+    if not m:
+        return "Measured on: not recorded (the part predates per-part machine records)."
+    return f"Measured on: {m['nproc']} cores ({m['cpu_model']}), {m['date_utc']}."
 
 
 def pp_text(r: dict) -> str:
@@ -554,7 +562,7 @@ def pp_determined_text(runs: list[dict]) -> str:
         return ""
     text = "With the default camera model: " + "; ".join(parts) + "."
     if ref_sigmas and min(ref_sigmas) >= 5:
-        text += (" The photos of both sets with reference poses put the point off the centre by more than 5 sigma, so "
+        text += (" The photos of every set with reference poses put the point off the centre by more than 5 sigma, so "
                  "which reference a default agrees with is decided by the reference's convention (LLFF centred, "
                  "colmap2nerf refined), not by what the photos support.")
     if sceaux:
@@ -618,6 +626,22 @@ def keep_timed_runs(new: dict, old: dict | None) -> dict:
     return {**new, "runs": runs}
 
 
+def drop_covered_commands(commands: list[str]) -> list[str]:
+    """The command list without single-part default runs that a later plain run (every part at its
+    defaults) has redone.
+
+    >>> base = ".venv/bin/python bench/reconstruct.py"
+    >>> drop_covered_commands([base + " --part registration", base + " --part realworld --train-views 5", base])
+    ['.venv/bin/python bench/reconstruct.py --part realworld --train-views 5', '.venv/bin/python bench/reconstruct.py']
+    """
+    base = ".venv/bin/python bench/reconstruct.py"
+    if base not in commands:
+        return commands
+    last_all = len(commands) - 1 - commands[::-1].index(base)
+    covered = {f"{base} --part {p}" for p in ("registration", "geometry", "realworld")}
+    return [c for k, c in enumerate(commands) if not (k < last_all and c in covered)]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--part", default="all", choices=["registration", "geometry", "realworld", "all", "report"])
@@ -634,8 +658,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     CACHE.mkdir(parents=True, exist_ok=True)
     res = load_results()
-    res["machine"] = machine_info()
     parts = ["registration", "geometry", "realworld"] if args.part == "all" else ([] if args.part == "report" else [args.part])
+    if parts:
+        res["machine"] = machine_info()
     for part in parts:
         if part == "registration":
             res["registration"] = keep_timed_runs(part_registration(args.fresh), res.get("registration"))
@@ -644,6 +669,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             key = "realworld" + realworld_tag(args.capture_size, args.geometry, args.train_views)
             res[key] = part_realworld(args.train_views, args.steps, args.fresh, args.capture_size, args.geometry)
+        res.setdefault("machines", {})[part if part != "realworld" else key] = machine_info()
         verdicts(res)
         save_results(res)
     verdicts(res)
@@ -651,7 +677,10 @@ def main(argv: list[str] | None = None) -> int:
     cmd = ".venv/bin/python bench/reconstruct.py" + (f" --part {args.part}" if args.part != "all" else "") + (f" --geometry {args.geometry}" if args.geometry != "auto" else "")
     cmd += f" --train-views {args.train_views}" if args.train_views != 8 else ""
     if parts:  # every command whose results the JSON holds (parts merge), in the order they ran
-        res["commands"] = [c for c in res.get("commands", []) if c != cmd] + [cmd]
+        res["commands"] = drop_covered_commands([c for c in res.get("commands", []) if c != cmd] + [cmd])
+        save_results(res)
+    if res.get("commands"):
+        res["commands"] = drop_covered_commands(res["commands"])
         save_results(res)
     cmd = "; ".join(res.get("commands", [cmd]))
     write_report(res, cmd)

@@ -115,4 +115,3 @@ def principal_point_line(pp: dict) -> str:
         return where + "the cameras use it (--refine-principal-point)"
     return where + (f"the cameras keep the centre, COLMAP's convention (--refine-principal-point uses it and turns every "
                     f"camera by {pp['tilt_deg']:.2f} deg)")
-

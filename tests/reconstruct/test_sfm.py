@@ -134,8 +134,7 @@ def test_principal_point_estimate_matches_the_truth_within_its_uncertainty(seed)
     """COLMAP's synthetic scene (12 views of 300 points, 0.5 px image noise) seen by a camera whose
     principal point sits (+20, -12) px from the centre. Started from the centre, the estimate lands
     within 4 of its own standard deviations of the truth (measured: within 2.2), and that standard
-    deviation is the sub-pixel one 3600 noisy observations give (measured 0.64-0.78 px). The
-    reconstruction passed in is left as it was."""
+    deviation is sub-pixel (measured 0.64-0.72 px). The reconstruction passed in is left as it was."""
     import pycolmap
 
     from damcap.reconstruct.sfm import adjust_principal_point, principal_point_tilt_deg
@@ -175,4 +174,3 @@ def test_principal_point_line_says_how_far_and_whether_it_is_used():
     line = principal_point_line(pp)
     assert "(+3.0, -4.0) px" in line and "5.0 sigma off" in line and "turns every camera by 0.25 deg" in line
     assert "the cameras use it" in principal_point_line({**pp, "used": True})
-

@@ -4,6 +4,7 @@ The full registration of a synthetic photo set runs in test_reconstruct.py (end 
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -127,6 +128,17 @@ def test_refine_principal_point_is_one_more_adjustment_on_the_same_matches(tmp_p
     assert est_fixed is not None and est is not None and not est_fixed["used"] and est["used"]
     assert est["offset_px"] == pytest.approx([c_refined.cx - size / 2, c_refined.cy - size / 2], abs=0.01)
     assert est_fixed["offset_px"] == pytest.approx(est["offset_px"], abs=0.5)  # the same adjustment, made on a copy
+
+    # a finished registration from before the estimate existed gets it when resumed; its model is kept
+    report_path = tmp_path / "work" / "registration.json"
+    old = json.loads(report_path.read_text())
+    del old["principal_point"]
+    report_path.write_text(json.dumps(old))
+    resumed, rep_resumed = register_photos(photos, names, tmp_path / "work", replace(opts, refine_principal_point=True))
+    assert rep_resumed.resumed == ["features", "matches", "mapping"]
+    assert rep_resumed.principal_point["used"] and rep_resumed.principal_point["offset_px"] == pytest.approx(est["offset_px"], abs=0.5)
+    assert (resumed.photos[0].camera.cx, resumed.photos[0].camera.cy) == (c_refined.cx, c_refined.cy)
+    assert json.loads(report_path.read_text())["principal_point"] == rep_resumed.principal_point
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

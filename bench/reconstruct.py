@@ -6,18 +6,21 @@ Parts (``--part``, default all; each part's numbers are merged into the JSON):
 * ``registration``: fraction registered and time for mold_gold_cape (119 photos, masks),
   fox (50) and sceaux_castle (11); rotation agreement with the cape's LLFF poses and the fox's
   transforms.json after a similarity alignment of the camera centres (Umeyama), plus the
-  alignment-free pairwise relative-rotation error. Cape variants measure the choices
-  (pairing; masks). Targets: >= 95% registered, median agreement <= 0.1 deg, cape <= 4 min.
+  alignment-free pairwise relative-rotation error, and where each run's photos put the principal
+  point (estimate and 1-sigma). Cape variants measure the choices (pairing; masks); fox and cape
+  variants the principal-point conventions of the two references. Targets: >= 95% registered,
+  median agreement <= 0.1 deg, cape <= 4 min.
 * ``geometry``: median normal error (degrees) of every ``--geometry`` mode on synthetic photo
   sets with known geometry (a bumpy blob and a sphere, textured, rendered by
   :mod:`damcap.reconstruct.textured_photos`), cameras from SfM on those photos.
 * ``realworld``: a DAM fitted on a few cape views (``--train-views``, spread) and evaluated on
   the others against RM++ and RM (DSSIM, capture-format.md). Target: DAM < RM++ < RM. A PNG of
-  novel views (photo | DAM | RM++ | RM) goes to ``bench/reconstruct_novel_views.png``.
+  novel views (photo | DAM | RM++ | RM) goes to ``bench/reconstruct_novel_views*.png``; the
+  report adds a table of the runs by their number of training views.
 
 Timing on a shared machine: wall time depends on what else runs on the two cores. Every timed
 step records wall seconds, this process's CPU seconds (all threads) and the load average, so the
-numbers can be read with that caveat.
+numbers can be read with that caveat; each part records the machine and time it ran on.
 
 Outputs: ``bench/results/reconstruct.json``, ``bench/reconstruct.md``,
 ``bench/reconstruct_novel_views.png``. Work folders: ``bench/.cache/reconstruct/`` (git-ignored;

@@ -65,6 +65,9 @@ class HdrOptions:
     """LDR only: Debevec smoothness weight (scaled by sqrt(observations / levels))."""
     flat_fraction: float = 0.1
     """LDR only: sample pixels are taken among this fraction of flattest pixels, in (0, 1]."""
+    sample_phase: float = 0.0
+    """LDR only: shift of the sample pixels' brightness ranks, a fraction of their spacing in [0, 1);
+    another phase is another equally valid sample (to see how much a result depends on it)."""
     iterations: int = 2
     """LDR only: reweighting rounds of the response and code reliabilities."""
     dtype: Literal["float", "half"] = "float"
@@ -86,6 +89,8 @@ class HdrOptions:
             raise DamcapError(f"--reference-exposure must be positive, got {self.reference_exposure}")
         if not 0 < self.flat_fraction <= 1 or self.response_samples < 16 or self.iterations < 0:
             raise DamcapError("flat_fraction must lie in (0, 1], response_samples >= 16, iterations >= 0")
+        if not 0 <= self.sample_phase < 1:
+            raise DamcapError(f"--sample-phase must lie in [0, 1), got {self.sample_phase}")
 
 
 @dataclass
@@ -300,7 +305,7 @@ def _merge_ldr(paths: list[Path], factors: np.ndarray, ref_h: float, opts: HdrOp
     levels_idx, levels = code_levels(stack, max_code)  # type: ignore[arg-type]
     del stack
     lnh = np.log(factors / ref_h)
-    rows, cols = sample_pixels_for_response(levels_idx, opts.response_samples, opts.flat_fraction)
+    rows, cols = sample_pixels_for_response(levels_idx, opts.response_samples, opts.flat_fraction, opts.sample_phase)
     samples = np.transpose(levels_idx[:, rows, cols, :], (1, 0, 2))
     curve = recover_response(samples, lnh, levels, opts.response, opts.smoothness, opts.iterations)
     merged = merge_ldr(levels_idx, lnh, curve.log_response, curve.level_weight)

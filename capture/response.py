@@ -238,6 +238,7 @@ def sample_pixels_for_response(
     codes: np.ndarray,
     n_samples: int = 2000,
     flat_fraction: float = 0.1,
+    phase: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Pixels to recover a response from: flat regions, spread over the brightness range.
 
@@ -245,11 +246,14 @@ def sample_pixels_for_response(
     brightness (1997, Sec. 2.1). Flatness here is the largest Sobel gradient of a pixel over all
     frames (edges suffer from blur, misregistration and demosaicing); of the flattest
     ``flat_fraction`` of pixels, ``n_samples`` are taken evenly spaced in rank of brightness.
+    ``phase`` shifts those ranks by a fraction of their spacing: each phase is an equally valid
+    sample, so comparing phases shows how much a result owes to which pixels were picked.
 
     Args:
         codes: (P, H, W, C) int code values of the bracket.
         n_samples: pixels wanted (fewer when the image is small).
         flat_fraction: fraction of the flattest pixels to choose from, in (0, 1].
+        phase: shift of the evenly spaced ranks, in units of their spacing, in [0, 1).
 
     Returns:
         rows, cols: (n,) int arrays.
@@ -268,7 +272,8 @@ def sample_pixels_for_response(
     flat = np.flatnonzero(grad.ravel() <= np.quantile(grad, flat_fraction))
     order = flat[np.argsort(luma_sum.ravel()[flat], kind="stable")]
     take = min(n_samples, len(order))
-    idx = order[np.linspace(0, len(order) - 1, take).round().astype(np.int64)]
+    ranks = np.linspace(0, len(order) - 1, take) + phase * (len(order) - 1) / max(take - 1, 1)
+    idx = order[np.minimum(ranks.round().astype(np.int64), len(order) - 1)]
     return idx // wid, idx % wid
 
 

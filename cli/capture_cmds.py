@@ -33,6 +33,8 @@ def hdr(
     response_samples: int = typer.Option(2000, "--response-samples", help="LDR only: pixels sampled for the response"),
     smoothness: float = typer.Option(12.0, "--smoothness", help="LDR only: Debevec smoothness weight"),
     flat_fraction: float = typer.Option(0.1, "--flat-fraction", help="LDR only: sample among this fraction of flattest pixels"),
+    sample_phase: float = typer.Option(0.0, "--sample-phase", help="LDR only: another equally valid set of sample pixels "
+                                       "(a shift in [0, 1) of their brightness ranks)"),
     iterations: int = typer.Option(2, "--iterations", help="LDR only: reweighting rounds of response and weights"),
     dtype: str = typer.Option("float", "--dtype", help="EXR storage: float | half"),
 ) -> None:
@@ -43,7 +45,7 @@ def hdr(
     opts = HdrOptions(exposures_s=parse_exposure_list(exposures) if exposures else None, align=align,
                       colorspace=colorspace, response=response, reference_exposure=reference_exposure,  # type: ignore[arg-type]
                       saturation_fraction=saturation_fraction, response_samples=response_samples, smoothness=smoothness,
-                      flat_fraction=flat_fraction, iterations=iterations, dtype=dtype)  # type: ignore[arg-type]
+                      flat_fraction=flat_fraction, sample_phase=sample_phase, iterations=iterations, dtype=dtype)  # type: ignore[arg-type]
     opts.validate()
     refuse_input_overlap(output, *files)
     if output.suffix.lower() != ".exr":

@@ -305,3 +305,9 @@ def test_inputs_are_not_modified(tmp_path, sim_bracket):
     assert result.shifts == [(0, 0)] * 5  # a tripod bracket stays put
     write_hdr(tmp_path / "o.exr", result, HdrOptions())
     assert tree_digest(folder) == before
+
+
+@pytest.mark.parametrize("phase", [-0.1, 1.0])
+def test_sample_phase_outside_its_range_is_refused(phase):
+    with pytest.raises(DamcapError, match=r"--sample-phase must lie in \[0, 1\)"):
+        HdrOptions(sample_phase=phase).validate()

@@ -106,3 +106,15 @@ def test_sample_pixels_prefers_flat_regions():
     assert len(rows) == 100
     assert not np.any((cols >= 30) & (cols <= 33))  # the Sobel footprint of the edge
     assert (cols < 30).sum() > 30 and (cols > 33).sum() > 30  # both brightness levels represented
+
+
+def test_sample_phases_are_other_samples_of_the_same_pixels():
+    rng = np.random.default_rng(0)
+    img = np.repeat(rng.integers(1, 255, (1, 40, 40, 1)), 3, axis=-1).repeat(2, axis=0).astype(np.uint16)
+    base = set(zip(*sample_pixels_for_response(img, 50, 1.0)))
+    shifted = set(zip(*sample_pixels_for_response(img, 50, 1.0, phase=0.5)))
+    assert len(base) == len(shifted) == 50
+    assert base != shifted  # another sample
+    again = set(zip(*sample_pixels_for_response(img, 50, 1.0, phase=0.0)))
+    assert again == base  # phase 0 is the default sample
+

@@ -10,7 +10,8 @@ Two parts, every method measured side by side in one run:
    (``camera_response_functions_Debevec1997``), OpenCV's Debevec calibrate + merge.
    Issue targets for damcap: median <= 0.025 and 90th percentile <= 0.08, without the curve.
    A diagnostic row reads the response off the reference itself (a bound, not a method). The
-   LDR response knobs (samples, smoothness, flat fraction) are measured on the same stack.
+   LDR response knobs (samples, smoothness, flat fraction, sample phase) are measured on the
+   same stack.
 2. **Simulated RAW brackets** (:mod:`damcap.capture.simulate`): real HDR environment maps
    (1024x512) through a camera model (RGGB Bayer, black level 512, 14 bits, 30000 e- full well,
    3 e- read noise, Poisson shot noise, a real camera's colour matrix) at 5 exposures 2 stops
@@ -176,8 +177,9 @@ KNOB_PHASES = tuple(k / 6 for k in range(6))
 
 
 def memorial_knobs(data: Path) -> dict:
-    """``--response-samples`` x ``--smoothness`` (and ``--flat-fraction`` at the default samples and
-    smoothness) on memorial: error against the reference and the wall time of the whole merge."""
+    """``--response-samples`` x ``--smoothness``, ``--flat-fraction`` at the default samples and
+    smoothness, and ``--sample-phase`` (other equally valid samples) at flat fractions 0.1 and 0.03,
+    on memorial: error against the reference and the wall time of the whole merge."""
     folder = data / "brackets" / "memorial"
     times = read_hdr_image_list(folder / "memorial.hdr_image_list.txt")
     files = sorted(folder / n for n in times)

@@ -95,17 +95,22 @@ def machine() -> dict:
 # Memorial
 # --------------------------------------------------------------------------------------------
 
-def memorial_bench(data: Path, slow: bool = True) -> dict:
+def memorial_stack(data: Path) -> tuple[list[Path], list[float], np.ndarray]:
+    """Memorial's 16 frames (sorted by name), their exposure times in seconds (HDRShop list) and
+    the (H, W, 3) reference radiance map."""
+    folder = data / "brackets" / "memorial"
+    times = read_hdr_image_list(folder / "memorial.hdr_image_list.txt")
+    files = sorted(folder / n for n in times)
+    return files, [times[f.name] for f in files], read_exr(folder / "memorial_reference.hdr")[0][..., :3]
+
+
+def memorial_bench(stack: tuple[list[Path], list[float], np.ndarray], slow: bool = True) -> dict:
     import cv2
 
     import colour
     import colour_hdri
 
-    folder = data / "brackets" / "memorial"
-    times = read_hdr_image_list(folder / "memorial.hdr_image_list.txt")
-    files = sorted(folder / n for n in times)
-    t = [times[f.name] for f in files]
-    ref = read_exr(folder / "memorial_reference.hdr")[0][..., :3]
+    files, t, ref = stack
     codes = [read_ldr_codes(f)[0] for f in files]
     order = np.argsort(t)  # colour-hdri's image_stack_to_HDRI expects the shortest exposure first
     rows = {}
@@ -176,15 +181,11 @@ KNOB_FLAT = (0.03, 0.1, 0.3)
 KNOB_PHASES = tuple(k / 6 for k in range(6))
 
 
-def memorial_knobs(data: Path) -> dict:
+def memorial_knobs(stack: tuple[list[Path], list[float], np.ndarray]) -> dict:
     """``--response-samples`` x ``--smoothness``, ``--flat-fraction`` at the default samples and
     smoothness, and ``--sample-phase`` (other equally valid samples) at flat fractions 0.1 and 0.03,
     on memorial: error against the reference and the wall time of the whole merge."""
-    folder = data / "brackets" / "memorial"
-    times = read_hdr_image_list(folder / "memorial.hdr_image_list.txt")
-    files = sorted(folder / n for n in times)
-    t = [times[f.name] for f in files]
-    ref = read_exr(folder / "memorial_reference.hdr")[0][..., :3]
+    files, t, ref = stack
     rows = []
     grid = [(n, lam, 0.1) for n in KNOB_SAMPLES for lam in KNOB_SMOOTHNESS]
     grid += [(2000, 12.0, f) for f in KNOB_FLAT if f != 0.1]
@@ -435,17 +436,18 @@ def knob_lines(rows: list[dict]) -> list[str]:
     if flats:
         lines += ["", "At the default samples and smoothness, `--flat-fraction`: " + "; ".join(
             f"{r['flat_fraction']:g}: p90 {r['p90']:.4f}, median {r['median']:.4f}, {r['wall_s']:.2f} s" for r in flats) + "."]
-    for flat in (0.1, 0.03):
-        same = [r for r in rows if r["response_samples"] == 2000 and r["smoothness"] == 12.0 and r["flat_fraction"] == flat]
+    # p90 per sample phase at 2000 samples and smoothness 12, for the default flat fraction and 0.03
+    by_phase = {flat: {r.get("sample_phase", 0.0): r for r in rows
+                       if r["response_samples"] == 2000 and r["smoothness"] == 12.0 and r["flat_fraction"] == flat}
+                for flat in (0.1, 0.03)}
+    for flat, same in by_phase.items():
         if len(same) > 1:
-            p90 = [r["p90"] for r in same]
+            p90 = [r["p90"] for r in same.values()]
             lines += ["", f"How much is the sample: {len(same)} equally valid samples (`--sample-phase` "
-                      + ", ".join(f"{r.get('sample_phase', 0):.2f}" for r in same) + f") at 2000 samples, smoothness 12, flat "
+                      + ", ".join(f"{ph:.2f}" for ph in same) + f") at 2000 samples, smoothness 12, flat "
                       f"fraction {flat:g}: p90 {min(p90):.4f}-{max(p90):.4f} (mean {np.mean(p90):.4f}), median "
-                      f"{min(r['median'] for r in same):.4f}-{max(r['median'] for r in same):.4f}."]
-    by_phase = {(r["flat_fraction"], r.get("sample_phase", 0.0)): r["p90"] for r in rows
-                if r["response_samples"] == 2000 and r["smoothness"] == 12.0}
-    pairs = [(by_phase[(0.03, ph)], by_phase[(0.1, ph)]) for f, ph in by_phase if f == 0.1 and (0.03, ph) in by_phase]
+                      f"{min(r['median'] for r in same.values()):.4f}-{max(r['median'] for r in same.values()):.4f}."]
+    pairs = [(r["p90"], by_phase[0.1][ph]["p90"]) for ph, r in by_phase[0.03].items() if ph in by_phase[0.1]]
     if len(pairs) > 1:
         default_p90 = [b for _, b in pairs]
         best = min(r["p90"] for r in rows)
@@ -499,9 +501,10 @@ def main(argv: list[str] | None = None) -> int:
            "date": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC"), "machine": machine(),
            "load_before": load_avg(), "targets": TARGETS}
     doc["command"] = doc["command"].rstrip()
-    doc["memorial"] = memorial_bench(args.data, slow=not args.skip_slow)
+    memorial = memorial_stack(args.data)
+    doc["memorial"] = memorial_bench(memorial, slow=not args.skip_slow)
     print(json.dumps(doc["memorial"], indent=1), flush=True)
-    doc["memorial_knobs"] = memorial_knobs(args.data)
+    doc["memorial_knobs"] = memorial_knobs(memorial)
     doc["raw_setup"] = (f"{args.frames} exposures {args.stops:g} stops apart, longest 1/15 s, ISO 100, f/8; RGGB, 14 bit, "
                         "black 512, full well 30000 e-, read noise 3 e-; 1024x512")
     with tempfile.TemporaryDirectory(prefix="capture_bench_") as work:

@@ -551,11 +551,13 @@ def pp_estimate_text(r: dict) -> str:
 def pp_determined_text(runs: list[dict]) -> str:
     """Where each set's photos put the principal point (the chosen runs) and what that says about
     the references' conventions, or '' before any run recorded the estimate."""
+    from damcap.reconstruct.sfm import offset_in_sigmas
+
     parts, ref_sigmas, sceaux = [], [], None
     for r in runs:
         e = r.get("principal_point_estimate")
         if r["variant"] == "chosen" and e:
-            z = float(np.hypot(*(np.array(e["offset_px"]) / np.maximum(e["sd_px"], 1e-9))))
+            z = offset_in_sigmas(e["offset_px"], e["sd_px"])
             parts.append(f"{r['dataset']} {pp_estimate_text(r)}, {z:.0f} sigma from the centre")
             if r.get("agreement"):
                 ref_sigmas.append(z)

@@ -702,6 +702,14 @@ def ratio_table(rows: list[dict], labels: list[str]) -> list[str]:
     return L
 
 
+def with_columns_of(rows: list[dict], other: list[dict], columns: dict[str, str]) -> list[dict]:
+    """Training-part rows with columns of another stage's rows on the same captures put first:
+    ``columns`` maps the new label to the label in ``other``."""
+    by_name = {r["name"]: r["ratio_novel"] for r in other}
+    return [{"name": r["name"], "ratio_novel": {new: by_name[r["name"]][old] for new, old in columns.items()} | r["ratio_novel"]}
+            for r in rows]
+
+
 def novel_target(table: dict, digits: int = 2, target: float = TARGET_NOVEL_RATIO) -> str:
     """'point P, env E -> **met**' (or missed): a :func:`summarise_table1` table's novel-view
     DAM / RM++ against the target (at most ``target`` in both columns)."""
@@ -875,10 +883,7 @@ def write_markdown(res: dict, path: Path) -> None:
               "it raises the ratio (study *weight decay* there).", ""]
     if "quantile" in res and "weight_decay" in res:
         q, w = res["quantile"], res["weight_decay"]
-        l1 = {"0.5 (L1, default)": "0", "0.5, wd 0.1": "0.1"}
-        wd_rows = {r["name"]: r["ratio_novel"] for r in w["dev_rows"]}
-        rows = [{"name": r["name"], "ratio_novel": {k: wd_rows[r["name"]][v] for k, v in l1.items()} | r["ratio_novel"]}
-                for r in q["dev_rows"]]
+        rows = with_columns_of(q["dev_rows"], w["dev_rows"], {"0.5 (L1, default)": "0", "0.5, wd 0.1": "0.1"})
         labels = list(rows[0]["ratio_novel"])
         L += ["## The data cost's quantile (`FitOptions.quantile`; not the default)", "",
               "Cast shadows and occlusion only darken a pixel, so at each (view, normal) the upper quantiles of the "
@@ -906,9 +911,7 @@ def write_markdown(res: dict, path: Path) -> None:
         sp = res["separable"]
         rows = sp["dev_rows"]
         if "weight_decay" in res:  # the default's fits on the same captures and seeds, for comparison
-            default_rows = {r["name"]: r["ratio_novel"]["0"] for r in res["weight_decay"]["dev_rows"]}
-            rows = [{"name": r["name"], "ratio_novel": {"default (joint 32x4)": default_rows[r["name"]]} | r["ratio_novel"]}
-                    for r in rows]
+            rows = with_columns_of(rows, res["weight_decay"]["dev_rows"], {"default (joint 32x4)": "0"})
         labels = list(rows[0]["ratio_novel"])
         L += ["## A separable DAM (`FitOptions.separable`; not the default)", "",
               "The DAM's hidden units split into two halves, one seeing only the normal N and one only the mirrored view R, "

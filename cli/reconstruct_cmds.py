@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Optional
 
@@ -107,10 +106,11 @@ def reconstruct(
 
 def principal_point_line(pp: dict) -> str:
     """The report line for where the photos put the principal point (``SfmReport.principal_point``)."""
+    from damcap.reconstruct.sfm import offset_in_sigmas
+
     (dx, dy), (sx, sy) = pp["offset_px"], pp["sd_px"]
-    sigmas = math.hypot(dx / max(sx, 1e-9), dy / max(sy, 1e-9))
     where = (f"principal point: the photos put it ({dx:+.1f}, {dy:+.1f}) px from the image centre (1-sigma {sx:.1f}, "
-             f"{sy:.1f} px: {sigmas:.1f} sigma off); ")
+             f"{sy:.1f} px: {offset_in_sigmas(pp['offset_px'], pp['sd_px']):.1f} sigma off); ")
     if pp["used"]:
         return where + "the cameras use it (--refine-principal-point)"
     return where + (f"the cameras keep the centre, COLMAP's convention (--refine-principal-point uses it and turns every "

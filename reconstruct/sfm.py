@@ -697,6 +697,16 @@ def principal_point_tilt_deg(offset_px: Sequence[float], focal_px: float) -> flo
     return math.degrees(math.atan2(math.hypot(*offset_px), focal_px))
 
 
+def offset_in_sigmas(offset_px: Sequence[float], sd_px: Sequence[float]) -> float:
+    """How many standard deviations a principal point lies from the image centre:
+    hypot(dx / sx, dy / sy).
+
+    >>> offset_in_sigmas([3.0, -4.0], [1.0, 1.0])
+    5.0
+    """
+    return math.hypot(*(d / max(sd, 1e-9) for d, sd in zip(offset_px, sd_px)))
+
+
 def adjust_principal_point(rec: Any, pycolmap: Any, apply: bool) -> PrincipalPointEstimate | None:
     """One global bundle adjustment with the principal point free (colmap2nerf's last step),
     and where it puts the point.

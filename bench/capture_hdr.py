@@ -9,9 +9,12 @@ Two parts, every method measured side by side in one run:
    ``image_stack_to_HDRI`` on sRGB-decoded frames, colour-hdri with its own Debevec response
    (``camera_response_functions_Debevec1997``), OpenCV's Debevec calibrate + merge.
    Issue targets for damcap: median <= 0.025 and 90th percentile <= 0.08, without the curve.
-   A diagnostic row reads the response off the reference itself (a bound, not a method). The
-   LDR response knobs (samples, smoothness, flat fraction, sample phase) are measured on the
-   same stack.
+   Diagnostic rows read the response off the reference itself (bounds, not methods); diagnostic
+   sections say where damcap's error lies (by channel, code and the reference's stored RGBE
+   mantissa, with what the storage alone costs a perfect estimate) and whether one curve per
+   channel holds across the frames, in the reference and in the stack itself (each frame against
+   a merge of the others). The LDR response knobs (samples, smoothness, flat fraction, sample
+   phase) are measured on the same stack.
 2. **Simulated RAW brackets** (:mod:`damcap.capture.simulate`): real HDR environment maps
    (1024x512) through a camera model (RGGB Bayer, black level 512, 14 bits, 30000 e- full well,
    3 e- read noise, Poisson shot noise, a real camera's colour matrix) at 5 exposures 2 stops
@@ -125,6 +128,7 @@ def memorial_bench(stack: tuple[list[Path], list[float], np.ndarray], slow: bool
            "default: curve recovered from the stack, reliability-weighted merge")
     damcap_est = res.radiance_lin
     precision = reference_precision(res.radiance_lin, ref)
+    damcap_response = res.response
     damcap_weights = res.response.level_weight  # type: ignore[union-attr]
     res, wall, cpu = timed(lambda: merge_bracket_files(files, HdrOptions(exposures_s=t, response="srgb")))
     record("damcap (told: sRGB curve)", res.radiance_lin, wall, cpu, "--response srgb")
@@ -173,7 +177,7 @@ def memorial_bench(stack: tuple[list[Path], list[float], np.ndarray], slow: bool
     record("diagnostic: response read off the reference", est, wall, cpu,
            "not a method (uses the answer): per-frame curves and per-code weights fitted to the reference")
     return {"frames": len(files), "size": list(ref.shape[:2]), "rows": rows, "breakdown": breakdown,
-            "reference_precision": precision, "reference_by_frame": reference_by_frame(codes, t, ref)}
+            "reference_precision": precision, "reference_by_frame": reference_by_frame(codes, t, ref, damcap_response)}
 
 
 #: the LDR response knobs of ``damcap hdr`` measured on memorial (defaults: 2000 samples, smoothness 12, flat 0.1)
@@ -257,21 +261,28 @@ FRAME_PROBES = (("G", 32), ("G", 44), ("G", 64), ("G", 128), ("B", 32), ("B", 44
 """(channel, 8-bit code) at which the reference's exposure is compared across frames"""
 
 
-def reference_by_frame(codes: list[np.ndarray], times: list[float], ref: np.ndarray, min_values: int = 50) -> dict:
-    """Does one response curve per channel describe the reference? (A diagnostic; it reads it.)
+def exposure_by_frame(codes: list[np.ndarray], times: list[float], log_radiance, min_values: int = 50) -> dict:
+    """Does one response curve per channel hold across the frames? (A diagnostic.)
 
     Debevec & Malik's model, damcap's, says a code z means the same exposure ln(E t) in every
-    frame. For each probe (channel, code) and frame: the median of ln(reference x t) over the
-    values with that code in that frame, minus the same median pooled over all frames (None where
-    fewer than ``min_values`` values have the code). Under one curve per channel every entry
-    would be 0 up to noise; a trend with the exposure time is something one curve cannot follow.
+    frame. For each probe (channel, code) and frame j: the median of ln E + ln t_j over the values
+    with that code in that frame, minus the same median pooled over all frames (None where fewer
+    than ``min_values`` values have the code). Under one curve per channel every entry is 0 up to
+    noise; a trend with the exposure time is something one curve cannot follow.
+
+    Args:
+        codes: P frames of (H, W, 3) 8-bit codes.
+        times: (P,) exposure times in seconds.
+        log_radiance: j -> (H, W, 3) ln E to use for frame j (NaN where unknown).
     """
-    resolved = (ref > 0).all(axis=-1)
-    log_ref = np.log(np.where(ref > 0, ref, 1.0))
     rows = [{"time_s": float(times[j]), "deviation": []} for j in range(len(times))]
+    per_frame_log = [log_radiance(j) for j in range(len(times))]
     for name, z in FRAME_PROBES:
         c = CHANNELS.index(name)
-        per_frame = [log_ref[..., c][resolved & (codes[j][..., c] == z)] + np.log(times[j]) for j in range(len(times))]
+        per_frame = []
+        for j, lr in enumerate(per_frame_log):
+            v = lr[..., c][codes[j][..., c] == z]
+            per_frame.append(v[np.isfinite(v)] + np.log(times[j]))
         pooled = np.concatenate(per_frame)
         centre = float(np.median(pooled)) if pooled.size >= min_values else None
         for j, v in enumerate(per_frame):
@@ -279,6 +290,27 @@ def reference_by_frame(codes: list[np.ndarray], times: list[float], ref: np.ndar
             rows[j]["deviation"].append(round(float(np.median(v)) - centre, 3) if ok else None)
     rows.sort(key=lambda r: -r["time_s"])
     return {"probes": [list(p) for p in FRAME_PROBES], "rows": rows, "min_values": min_values}
+
+
+def reference_by_frame(codes: list[np.ndarray], times: list[float], ref: np.ndarray, response) -> dict:
+    """:func:`exposure_by_frame` twice: with the reference's radiance (it reads the reference), and
+    from the stack alone, each frame against damcap's merge of the other frames (the curve and
+    weights damcap recovered from the whole stack)."""
+    from damcap.capture.hdr import code_levels
+    from damcap.capture.merge import merge_ldr
+
+    log_ref = np.where(ref > 0, np.log(np.where(ref > 0, ref, 1.0)), np.nan)
+    levels_idx, _ = code_levels(np.stack(codes), 255)
+    lnh = np.log(np.asarray(times) / np.median(times))
+
+    def leave_out(j: int) -> np.ndarray:
+        keep = [k for k in range(len(times)) if k != j]
+        merged = merge_ldr(levels_idx[keep], lnh[keep], response.log_response, response.level_weight)
+        e = merged.radiance_lin.astype(np.float64)
+        return np.where(e > 0, np.log(np.where(e > 0, e, 1.0)), np.nan)
+
+    return {"reference": exposure_by_frame(codes, times, lambda j: log_ref),
+            "stack": exposure_by_frame(codes, times, leave_out)}
 
 
 MANTISSA_BANDS = ((1, 8), (8, 16), (16, 32), (32, 64), (64, 128), (128, 256))
@@ -498,27 +530,40 @@ def markdown(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def inner_spread(rows: list[dict], k: int) -> float | None:
+    """Largest - smallest deviation of probe ``k`` over the frames that see it, leaving out the
+    longest and the shortest of them (where a merge of the other frames extrapolates)."""
+    vals = [r["deviation"][k] for r in rows if r["deviation"][k] is not None][1:-1]
+    return max(vals) - min(vals) if len(vals) >= 2 else None
+
+
 def by_frame_lines(rf: dict) -> list[str]:
     """Markdown of :func:`reference_by_frame`."""
-    probes = [f"{c} {z}" for c, z in rf["probes"]]
-    lines = ["", "### Does one curve per channel describe the reference? (diagnostic: it reads the reference)", "",
+    ref, stack = rf["reference"], rf["stack"]
+    probes = [f"{c} {z}" for c, z in ref["probes"]]
+    lines = ["", "### Does one curve per channel hold across the frames? (diagnostic: the first table reads the reference)",
+             "",
              "One response curve per channel (Debevec & Malik's model, damcap's) means a code stands for the same exposure "
-             "ln(E t) in every frame. Per frame: the median of ln(reference x t) over the values with that code, minus the "
-             f"median over all frames (channel and code in the header; '.' where fewer than {rf['min_values']} values "
-             "have the code in that frame).", "",
-             "| exposure s | " + " | ".join(probes) + " |", "|---:|" + "---:|" * len(probes)]
-    for r in rf["rows"]:
-        if all(d is None for d in r["deviation"]):
-            continue
-        cells = ["." if d is None else f"{d:+.2f}" for d in r["deviation"]]
-        t = r["time_s"]
-        lines.append(f"| {f'1/{1 / t:.0f}' if t < 1 and abs(1 / t - round(1 / t)) < 1e-6 else f'{t:g}'} | " + " | ".join(cells) + " |")
+             "ln(E t) in every frame. Per frame: the median of ln(E x t) over the values with that code, minus the median "
+             f"over all frames (channel and code in the header; '.' where fewer than {ref['min_values']} values have the "
+             "code in that frame). First with E the reference; then from the stack alone, with E damcap's merge of the "
+             "other 15 frames (curve and weights recovered from the whole stack)."]
+    for title, part in (("E = the reference", ref), ("E = damcap's merge of the other frames", stack)):
+        lines += ["", f"{title}:", "", "| exposure s | " + " | ".join(probes) + " |", "|---:|" + "---:|" * len(probes)]
+        for r in part["rows"]:
+            if all(d is None for d in r["deviation"]):
+                continue
+            cells = ["." if d is None else f"{d:+.2f}" for d in r["deviation"]]
+            t = r["time_s"]
+            lines.append(f"| {f'1/{1 / t:.0f}' if t < 1 and abs(1 / t - round(1 / t)) < 1e-6 else f'{t:g}'} | "
+                         + " | ".join(cells) + " |")
     spread = []
     for k, name in enumerate(probes):
-        vals = [r["deviation"][k] for r in rf["rows"] if r["deviation"][k] is not None]
-        if len(vals) >= 2:
-            spread.append(f"{name}: {max(vals) - min(vals):.2f}")
-    lines += ["", "Spread over the frames (largest - smallest): " + ", ".join(spread) + "."]
+        a, b = inner_spread(ref["rows"], k), inner_spread(stack["rows"], k)
+        if a is not None and b is not None:
+            spread.append(f"{name} {a:.2f} / {b:.2f}")
+    lines += ["", "Spread over the frames (largest - smallest, without the longest and the shortest frame that see the "
+              "code, where a merge of the other frames extrapolates), reference / stack: " + ", ".join(spread) + "."]
     return lines
 
 
@@ -597,7 +642,8 @@ NOTES = [
     "it is not cross-talk between channels. Nor is it damcap's recovery of the curve: the merge with one curve per "
     "channel read off the reference has about the same signed error in the dark bands (after the slash in the "
     "code-band table). The reference does not follow one curve per channel there: the exposure it implies for one dark "
-    "code drifts with the exposure time (section \"Does one curve per channel describe the reference?\").",
+    "code drifts with the exposure time, more than the stack's own frames drift against each other where that can be "
+    "checked (section \"Does one curve per channel hold across the frames?\").",
     "The reference's own storage costs something too: it is an RGBE file, so a perfect estimate does not score 0 "
     "against it (section \"How finely the reference resolves each value\"). The cost is largest in blue, stored in the "
     "coarsest steps; where green is stored with mantissas 32-63, damcap's error is many times that cost, so there the "

@@ -177,7 +177,7 @@ def memorial_bench(stack: tuple[list[Path], list[float], np.ndarray], slow: bool
     record("diagnostic: response read off the reference", est, wall, cpu,
            "not a method (uses the answer): per-frame curves and per-code weights fitted to the reference")
     return {"frames": len(files), "size": list(ref.shape[:2]), "rows": rows, "breakdown": breakdown,
-            "reference_precision": precision, "reference_by_frame": reference_by_frame(codes, t, ref, damcap_response)}
+            "reference_precision": precision, "one_curve_by_frame": one_curve_by_frame(codes, t, ref, damcap_response)}
 
 
 #: the LDR response knobs of ``damcap hdr`` measured on memorial (defaults: 2000 samples, smoothness 12, flat 0.1)
@@ -258,7 +258,7 @@ def error_breakdown(est: np.ndarray, ref: np.ndarray, longest_codes: np.ndarray,
 
 
 FRAME_PROBES = (("G", 32), ("G", 44), ("G", 64), ("G", 128), ("B", 32), ("B", 44), ("B", 64), ("R", 64))
-"""(channel, 8-bit code) at which the reference's exposure is compared across frames"""
+"""(channel, 8-bit code) at which the exposure ln(E t) is compared across frames"""
 
 
 def exposure_by_frame(codes: list[np.ndarray], times: list[float], log_radiance, min_values: int = 50) -> dict:
@@ -292,7 +292,7 @@ def exposure_by_frame(codes: list[np.ndarray], times: list[float], log_radiance,
     return {"probes": [list(p) for p in FRAME_PROBES], "rows": rows, "min_values": min_values}
 
 
-def reference_by_frame(codes: list[np.ndarray], times: list[float], ref: np.ndarray, response) -> dict:
+def one_curve_by_frame(codes: list[np.ndarray], times: list[float], ref: np.ndarray, response) -> dict:
     """:func:`exposure_by_frame` twice: with the reference's radiance (it reads the reference), and
     from the stack alone, each frame against damcap's merge of the other frames (the curve and
     weights damcap recovered from the whole stack)."""
@@ -508,7 +508,7 @@ def markdown(doc: dict) -> str:
             lines += ["", "Green values whose longest-exposure green code is 34-49, by that frame's red code (quartiles): "
                       + ", ".join(f"red {r['red_codes'][0]}-{r['red_codes'][1]}: {r['signed_median']:+.3f}" for r in b["green_34_50_by_red_code"])
                       + "."]
-    rf = doc["memorial"].get("reference_by_frame")
+    rf = doc["memorial"].get("one_curve_by_frame")
     if rf:
         lines += by_frame_lines(rf)
     pr = doc["memorial"].get("reference_precision")
@@ -538,7 +538,7 @@ def inner_spread(rows: list[dict], k: int) -> float | None:
 
 
 def by_frame_lines(rf: dict) -> list[str]:
-    """Markdown of :func:`reference_by_frame`."""
+    """Markdown of :func:`one_curve_by_frame`."""
     ref, stack = rf["reference"], rf["stack"]
     probes = [f"{c} {z}" for c, z in ref["probes"]]
     lines = ["", "### Does one curve per channel hold across the frames? (diagnostic: the first table reads the reference)",
@@ -547,7 +547,7 @@ def by_frame_lines(rf: dict) -> list[str]:
              "ln(E t) in every frame. Per frame: the median of ln(E x t) over the values with that code, minus the median "
              f"over all frames (channel and code in the header; '.' where fewer than {ref['min_values']} values have the "
              "code in that frame). First with E the reference; then from the stack alone, with E damcap's merge of the "
-             "other 15 frames (curve and weights recovered from the whole stack)."]
+             f"other {len(ref['rows']) - 1} frames (curve and weights recovered from the whole stack)."]
     for title, part in (("E = the reference", ref), ("E = damcap's merge of the other frames", stack)):
         lines += ["", f"{title}:", "", "| exposure s | " + " | ".join(probes) + " |", "|---:|" + "---:|" * len(probes)]
         for r in part["rows"]:
@@ -646,8 +646,7 @@ NOTES = [
     "checked (section \"Does one curve per channel hold across the frames?\").",
     "The reference's own storage costs something too: it is an RGBE file, so a perfect estimate does not score 0 "
     "against it (section \"How finely the reference resolves each value\"). The cost is largest in blue, stored in the "
-    "coarsest steps; where green is stored with mantissas 32-63, damcap's error is many times that cost, so there the "
-    "green curve holds the error, not the reference.",
+    "coarsest steps; elsewhere (green stored with mantissas 32-63, for one) damcap's error is many times that cost.",
     "damcap's LDR merge is Debevec & Malik's log-domain weighted mean (Eq. 6) with per-code weights = inverse variance of "
     "the response residuals measured on the stack itself (iteratively reweighted; the first round uses the hat on "
     "linearised values). Response samples are taken from the flattest 10 % of pixels, evenly spread in brightness.",

@@ -92,7 +92,7 @@ def rgbe_step(rgb: np.ndarray) -> np.ndarray:
     RGBE (Ward 1991) keeps one 8-bit exponent per pixel, that of its largest channel, and an
     8-bit mantissa per channel: a pixel whose largest value is ``f 2^e`` (``f`` in [0.5, 1))
     stores every channel in steps of ``2^(e-8)``. The largest channel is known to within 1/128
-    to 1/256 of its value; a channel 20x smaller only to within 1/7 to 1/13. Writers in
+    to 1/256 of its value; a channel 20x smaller only to within 1/6 to 1/13. Writers in
     Radiance's lineage truncate (Ward's ``setcolr``, Walter's ``float2rgbe``), so a stored
     mantissa ``m`` stands for values in ``[m, m + 1)`` steps; OpenImageIO reads it back as
     ``m`` steps.

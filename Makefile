@@ -34,7 +34,8 @@ DEMO_OUT ?= demo_out
 
 # The main job, photos to appearance, on the bundled photos (24 JPEGs with masks): register and
 # reconstruct a capture folder, validate it, fit a DAM, predict one with the shipped predictor
-# (+100 refinement steps), render the fitted one into the novel views, evaluate both.
+# (+100 refinement steps), render the fitted one into the novel views, evaluate both, and export
+# the fitted appearance onto a new shape (a torus damcap generates) as a turntable.
 demo: venv
 	$(DAMCAP) reconstruct $(PHOTOS)/images -o $(DEMO_OUT)/capture --masks $(PHOTOS)/masks
 	$(DAMCAP) inspect $(DEMO_OUT)/capture
@@ -42,6 +43,8 @@ demo: venv
 	$(DAMCAP) predict $(DEMO_OUT)/capture -o $(DEMO_OUT)/predicted.dam --refine-steps 100
 	$(DAMCAP) render $(DEMO_OUT)/model.dam $(DEMO_OUT)/capture -o $(DEMO_OUT)/renders --split test
 	$(DAMCAP) evaluate $(DEMO_OUT)/capture --model $(DEMO_OUT)/model.dam --model $(DEMO_OUT)/predicted.dam --json $(DEMO_OUT)/evaluation.json
+	$(PY) -m damcap.export.shapes torus $(DEMO_OUT)/torus.obj
+	$(DAMCAP) export $(DEMO_OUT)/model.dam --mesh $(DEMO_OUT)/torus.obj -o $(DEMO_OUT)/export --views 24 --resolution 256 --video
 	@echo
 	@echo "demo results are in $(DEMO_OUT)/:"
 	@echo "  capture/           the capture folder reconstructed from $(PHOTOS)/images (cameras, geometry, linear radiance)"
@@ -50,6 +53,7 @@ demo: venv
 	@echo "  renders/*.exr      the fitted model rendered into the test (novel) views (linear EXR)"
 	@echo "  evaluation.json    mean and per-frame DSSIM of both models, RM++ and RM, same and novel view"
 	@echo "  evaluation.png     per-frame DSSIM sorted, one curve per method"
+	@echo "  export/            model.dam on a new shape (torus.obj): frames/*.exr linear, display/*.png sRGB, turntable.mp4"
 
 test: venv
 	$(PY) -m pytest -q

@@ -18,9 +18,9 @@ def _load_mesh(mesh: Optional[Path]):
     from damcap.reconstruct.raycast import Mesh, load_mesh, normalise_to_unit_sphere, vertex_normals_area_weighted
 
     if mesh is None:
-        import open3d as o3d
+        from damcap.export.shapes import shape_mesh
 
-        s = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=48)
+        s = shape_mesh("sphere")
         v, t = np.asarray(s.vertices, np.float32), np.asarray(s.triangles, np.int32)
         return Mesh(v, t, vertex_normals_area_weighted(v, t).astype(np.float32), np.zeros(len(t), np.int32))
     return normalise_to_unit_sphere(load_mesh(mesh))

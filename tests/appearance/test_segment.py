@@ -287,8 +287,10 @@ def _torus_obj(path, scale=1.0, shift=(0.0, 0.0, 0.0)):
     """The closed-form torus (axis y, radii 0.9 and 0.4) as an OBJ, optionally scaled and moved."""
     import open3d as o3d
 
-    m = o3d.geometry.TriangleMesh.create_torus(torus_radius=0.9, tube_radius=0.4, radial_resolution=60, tubular_resolution=24)
-    v = np.asarray(m.vertices)[:, [0, 2, 1]] * [1, 1, -1]  # Open3D's torus turns about z; the capture's about y
+    from damcap.export.shapes import torus_mesh
+
+    m = torus_mesh(0.9, 0.4)
+    v = np.asarray(m.vertices).copy()
     m.vertices = o3d.utility.Vector3dVector(v * scale + np.asarray(shift))
     o3d.io.write_triangle_mesh(str(path), m)
     return v

@@ -209,3 +209,27 @@ def test_several_dams_by_vertex_labels(model_file, bunny, tmp_path):
     np.save(tmp_path / "bad.npy", labels + 5)
     args[args.index(str(tmp_path / "labels.npy"))] = str(tmp_path / "bad.npy")
     assert main(args) == 2
+
+
+def test_procedural_shapes_are_the_closed_form_surfaces(tmp_path, capsys):
+    """The demo's new shapes: every torus vertex lies on (sqrt(x^2 + z^2) - 0.9)^2 + y^2 = 0.4^2
+    (axis y, as the capture contract's up), every sphere vertex on |v| = 1; both come back through
+    damcap's own mesh reader, and bad requests are refused with a message."""
+    from damcap.common.errors import DamcapError
+    from damcap.export.shapes import main as shapes_main
+    from damcap.export.shapes import torus_mesh, write_shape
+    from damcap.reconstruct.raycast import load_mesh
+
+    v = np.asarray(torus_mesh(0.9, 0.4).vertices)
+    assert np.allclose((np.hypot(v[:, 0], v[:, 2]) - 0.9) ** 2 + v[:, 1] ** 2, 0.16, atol=1e-9)
+    assert np.ptp(v[:, 1]) == pytest.approx(0.8, abs=1e-6)  # the tube's height along y
+    torus = load_mesh(write_shape("torus", tmp_path / "torus.obj"))
+    assert len(torus.vertices) == 60 * 24 and len(torus.triangles) == 2 * 60 * 24
+    sphere = load_mesh(write_shape("sphere", tmp_path / "sphere.ply"))
+    assert np.allclose(np.linalg.norm(sphere.vertices, axis=1), 1.0, atol=1e-5)
+    with pytest.raises(DamcapError, match="0 < minor < major"):
+        torus_mesh(0.4, 0.9)
+    with pytest.raises(DamcapError, match=r"\.obj or \.ply"):
+        write_shape("torus", tmp_path / "torus.stl")
+    assert shapes_main(["torus", str(tmp_path / "bad.txt")]) == 2
+    assert "error:" in capsys.readouterr().err and not (tmp_path / "bad.txt").exists()

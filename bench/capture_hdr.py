@@ -126,10 +126,8 @@ def memorial_bench(stack: tuple[list[Path], list[float], np.ndarray], slow: bool
     res, wall, cpu = timed(lambda: merge_bracket_files(files, HdrOptions(exposures_s=t)))
     record("damcap (Debevec response recovered)", res.radiance_lin, wall, cpu,
            "default: curve recovered from the stack, reliability-weighted merge")
-    damcap_est = res.radiance_lin
+    damcap = res
     precision = reference_precision(res.radiance_lin, ref)
-    damcap_response = res.response
-    damcap_weights = res.response.level_weight  # type: ignore[union-attr]
     res, wall, cpu = timed(lambda: merge_bracket_files(files, HdrOptions(exposures_s=t, response="srgb")))
     record("damcap (told: sRGB curve)", res.radiance_lin, wall, cpu, "--response srgb")
 
@@ -169,15 +167,16 @@ def memorial_bench(stack: tuple[list[Path], list[float], np.ndarray], slow: bool
     record("diagnostic: one response per channel read off the reference", est, wall, cpu,
            "not a method (uses the answer): one curve per channel (as damcap and Debevec & Malik model it) and per-code "
            "weights fitted to the reference")
-    est, wall, cpu = timed(lambda: oracle_merge(codes, t, ref, per_frame=False, weights=damcap_weights))
+    est, wall, cpu = timed(lambda: oracle_merge(codes, t, ref, per_frame=False,
+                                                weights=damcap.response.level_weight))  # type: ignore[union-attr]
     record("diagnostic: one response per channel read off the reference, damcap's weights", est, wall, cpu,
            "not a method (uses the answer): as above, but merged with the per-code weights damcap measured on the stack")
-    breakdown = error_breakdown(damcap_est, ref, codes[int(np.argmax(t))], read_off=est)
+    breakdown = error_breakdown(damcap.radiance_lin, ref, codes[int(np.argmax(t))], read_off=est)
     est, wall, cpu = timed(lambda: oracle_merge(codes, t, ref))
     record("diagnostic: response read off the reference", est, wall, cpu,
            "not a method (uses the answer): per-frame curves and per-code weights fitted to the reference")
     return {"frames": len(files), "size": list(ref.shape[:2]), "rows": rows, "breakdown": breakdown,
-            "reference_precision": precision, "one_curve_by_frame": one_curve_by_frame(codes, t, ref, damcap_response)}
+            "reference_precision": precision, "one_curve_by_frame": one_curve_by_frame(codes, t, ref, damcap)}
 
 
 #: the LDR response knobs of ``damcap hdr`` measured on memorial (defaults: 2000 samples, smoothness 12, flat 0.1)
@@ -275,14 +274,15 @@ def exposure_by_frame(codes: list[np.ndarray], times: list[float], log_radiance,
         times: (P,) exposure times in seconds.
         log_radiance: j -> (H, W, 3) ln E to use for frame j (NaN where unknown).
     """
-    rows = [{"time_s": float(times[j]), "deviation": []} for j in range(len(times))]
-    per_frame_log = [log_radiance(j) for j in range(len(times))]
-    for name, z in FRAME_PROBES:
-        c = CHANNELS.index(name)
-        per_frame = []
-        for j, lr in enumerate(per_frame_log):
+    values: list[list[np.ndarray]] = [[] for _ in FRAME_PROBES]  # [probe][frame]: ln(E t) at that code
+    for j in range(len(times)):
+        lr = log_radiance(j)  # one frame's ln E at a time
+        for k, (name, z) in enumerate(FRAME_PROBES):
+            c = CHANNELS.index(name)
             v = lr[..., c][codes[j][..., c] == z]
-            per_frame.append(v[np.isfinite(v)] + np.log(times[j]))
+            values[k].append(v[np.isfinite(v)] + np.log(times[j]))
+    rows = [{"time_s": float(times[j]), "deviation": []} for j in range(len(times))]
+    for per_frame in values:
         pooled = np.concatenate(per_frame)
         centre = float(np.median(pooled)) if pooled.size >= min_values else None
         for j, v in enumerate(per_frame):
@@ -292,20 +292,21 @@ def exposure_by_frame(codes: list[np.ndarray], times: list[float], log_radiance,
     return {"probes": [list(p) for p in FRAME_PROBES], "rows": rows, "min_values": min_values}
 
 
-def one_curve_by_frame(codes: list[np.ndarray], times: list[float], ref: np.ndarray, response) -> dict:
+def one_curve_by_frame(codes: list[np.ndarray], times: list[float], ref: np.ndarray, damcap) -> dict:
     """:func:`exposure_by_frame` twice: with the reference's radiance (it reads the reference), and
-    from the stack alone, each frame against damcap's merge of the other frames (the curve and
-    weights damcap recovered from the whole stack)."""
+    from the stack alone, each frame against damcap's merge of the other frames (``damcap``: the
+    ``HdrResult`` of the whole stack, whose curve, weights and exposures are reused)."""
     from damcap.capture.hdr import code_levels
     from damcap.capture.merge import merge_ldr
 
     log_ref = np.where(ref > 0, np.log(np.where(ref > 0, ref, 1.0)), np.nan)
     levels_idx, _ = code_levels(np.stack(codes), 255)
-    lnh = np.log(np.asarray(times) / np.median(times))
+    lnh = np.log(damcap.exposure_factors / damcap.reference_exposure)
+    curve = damcap.response
 
     def leave_out(j: int) -> np.ndarray:
         keep = [k for k in range(len(times)) if k != j]
-        merged = merge_ldr(levels_idx[keep], lnh[keep], response.log_response, response.level_weight)
+        merged = merge_ldr(levels_idx[keep], lnh[keep], curve.log_response, curve.level_weight)
         e = merged.radiance_lin.astype(np.float64)
         return np.where(e > 0, np.log(np.where(e > 0, e, 1.0)), np.nan)
 

@@ -561,11 +561,12 @@ def convention_table(runs: list[dict], chosen_options: dict) -> list[str]:
     principal-point setting (the runs that differ from the chosen options in those two only,
     features on the whole photo), which settings meet 0.1 deg on every set, and how far the
     photos' principal point moves with the camera model (in px and in its 1-sigma)."""
+    varied = ("camera_model", "refine_principal_point")
+
     def setting(r: dict) -> tuple | None:
         o = {**chosen_options, **r["options"]}
-        rest = {k: v for k, v in o.items() if k not in ("camera_model", "refine_principal_point")}
-        same = rest == {k: v for k, v in chosen_options.items() if k not in ("camera_model", "refine_principal_point")}
-        return (o["camera_model"], o["refine_principal_point"]) if same and not r["masks"] and r.get("agreement") else None
+        same = all(o[k] == v for k, v in chosen_options.items() if k not in varied)
+        return tuple(o[k] for k in varied) if same and not r["masks"] and r.get("agreement") else None
 
     cells: dict[tuple, dict[str, dict]] = {}
     for r in runs:

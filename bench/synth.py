@@ -702,6 +702,13 @@ def ratio_table(rows: list[dict], labels: list[str]) -> list[str]:
     return L
 
 
+def dev_table(rows: list[dict], fit_seeds: list[int], columns: str) -> list[str]:
+    """Markdown: the training-part captures' table of a stage (:func:`ratio_table` of every label
+    in ``rows``), after one sentence whose end, ``columns``, says what the columns are."""
+    return ([f"Training-part captures: novel-view DSSIM / RM++, mean over fit seeds {fit_seeds} (per seed in brackets)"
+             + columns, ""] + ratio_table(rows, list(rows[0]["ratio_novel"])))
+
+
 def with_columns_of(rows: list[dict], other: list[dict], columns: dict[str, str]) -> list[dict]:
     """Training-part rows with columns of another stage's rows on the same captures put first:
     ``columns`` maps the new label to the label in ``other``."""
@@ -867,11 +874,9 @@ def write_markdown(res: dict, path: Path) -> None:
         L += ["", "A ratio near 1 with identical seeds is a fit that collapsed to a black image (plain softplus under point lights).", ""]
     if "weight_decay" in res:
         w = res["weight_decay"]
-        labels = list(w["dev_rows"][0]["ratio_novel"])
-        L += ["## Weight decay (`FitOptions.weight_decay`; not the default)", "",
-              f"Training-part captures: novel-view DSSIM / RM++, mean over fit seeds {w['dev_fit_seeds']} (per seed in brackets), "
-              "by weight decay, with 2000 steps unless it says otherwise (0 = `FitOptions()`).", ""]
-        L += ratio_table(w["dev_rows"], labels)
+        L += ["## Weight decay (`FitOptions.weight_decay`; not the default)", ""]
+        L += dev_table(w["dev_rows"], w["dev_fit_seeds"], ", by weight decay, with 2000 steps unless it says otherwise "
+                       "(0 = `FitOptions()`).")
         if "table1" in res:
             d = res["table1"]["table"]
             ch = w["choices"]
@@ -884,16 +889,13 @@ def write_markdown(res: dict, path: Path) -> None:
     if "quantile" in res and "weight_decay" in res:
         q, w = res["quantile"], res["weight_decay"]
         rows = with_columns_of(q["dev_rows"], w["dev_rows"], {"0.5 (L1, default)": "0", "0.5, wd 0.1": "0.1"})
-        labels = list(rows[0]["ratio_novel"])
         L += ["## The data cost's quantile (`FitOptions.quantile`; not the default)", "",
               "Cast shadows and occlusion only darken a pixel, so at each (view, normal) the upper quantiles of the "
               "observed radiance are nearer the unshadowed appearance that a function of (V, N) can represent. The fit's "
               "L1 cost (quantile 0.5) is replaced by the pinball loss at quantile q (`damcap fit --quantile q`), and the "
-              "stopping rule scores the held-out training views with the same cost.", "",
-              f"Training-part captures: novel-view DSSIM / RM++, mean over fit seeds {q['dev_fit_seeds']} (per seed in "
-              "brackets), by quantile, alone and with weight decay (*wd*) 0.1, 2000 steps; the two L1 columns are the weight "
-              "decay stage's fits (same captures and seeds).", ""]
-        L += ratio_table(rows, labels)
+              "stopping rule scores the held-out training views with the same cost.", ""]
+        L += dev_table(rows, q["dev_fit_seeds"], ", by quantile, alone and with weight decay (*wd*) 0.1, 2000 steps; the "
+                       "two L1 columns are the weight decay stage's fits (same captures and seeds).")
         if "table1" in res:
             tables = {"default": res["table1"]["table"]}
             if "0.1" in w["heldout"]:
@@ -912,18 +914,16 @@ def write_markdown(res: dict, path: Path) -> None:
         rows = sp["dev_rows"]
         if "weight_decay" in res:  # the default's fits on the same captures and seeds, for comparison
             rows = with_columns_of(rows, res["weight_decay"]["dev_rows"], {"default (joint 32x4)": "0"})
-        labels = list(rows[0]["ratio_novel"])
         L += ["## A separable DAM (`FitOptions.separable`; not the default)", "",
               "The DAM's hidden units split into two halves, one seeing only the normal N and one only the mirrored view R, "
               "added before the output softplus: softplus(f(N) + g(R)), a diffuse-like term plus a specular-like term "
               "(`damcap fit --separable`; block-diagonal hidden layers, width counts both halves). A novel view pairs "
               "normals and mirror directions that the training views saw, but not together; a separable DAM needs only "
               "each on its own. Weights: " + ", ".join(f"{k} {n}" for k, n in sp["num_weights"].items()) + " (the default "
-              "joint 32x4: 3360).", "",
-              f"Training-part captures: novel-view DSSIM / RM++, mean over fit seeds {sp['dev_fit_seeds']} (per seed in "
-              "brackets); labels are width x depth, 2000 steps unless they say otherwise; *wd* = weight decay, *q* = the data "
-              "cost's quantile. The default column is the weight decay stage's fits (same captures and seeds).", ""]
-        L += ratio_table(rows, labels)
+              "joint 32x4: 3360).", ""]
+        L += dev_table(rows, sp["dev_fit_seeds"], "; labels are width x depth, 2000 steps unless they say otherwise; *wd* = "
+                       "weight decay, *q* = the data cost's quantile. The default column is the weight decay stage's fits "
+                       "(same captures and seeds).")
         if "table1" in res:
             tables = {"default": res["table1"]["table"]}
             if "quantile" in res:

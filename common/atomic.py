@@ -13,13 +13,21 @@ import numpy as np
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike, keep_name: bool = False) -> Iterator[Path]:
     """Yield a temporary path beside ``path`` (same suffix); on success rename it onto ``path``.
 
     A reader never sees a half-written file, and a crash leaves the previous file intact.
+    ``keep_name``: the temporary file has ``path``'s own name, inside a temporary folder beside
+    it, for formats that record their file's name (an OBJ names its object after it).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    if keep_name:
+        with tempfile.TemporaryDirectory(prefix=f".{path.stem}.", dir=path.parent) as folder:
+            staged = Path(folder) / path.name
+            yield staged
+            os.replace(staged, path)
+        return
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
     os.close(fd)
     umask = os.umask(0)

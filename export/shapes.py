@@ -55,22 +55,17 @@ def shape_mesh(name: str):
 
 def write_shape(name: str, path: str | os.PathLike) -> Path:
     """Write the named shape as an OBJ or PLY file (by ``path``'s suffix), atomically."""
-    import tempfile
-
     import open3d as o3d
+
+    from damcap.common.atomic import atomic_path
 
     path = Path(path)
     if path.suffix.lower() not in (".obj", ".ply"):
         raise DamcapError(f"{path}: write the shape as .obj or .ply")
     mesh = shape_mesh(name)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    # Written under its own name in a temporary folder beside it (an OBJ names its object after the
-    # file), then renamed into place: a reader never sees half a mesh.
-    with tempfile.TemporaryDirectory(prefix=f".{path.stem}.", dir=path.parent) as tmp:
-        staged = Path(tmp) / path.name
-        if not o3d.io.write_triangle_mesh(str(staged), mesh):
+    with atomic_path(path, keep_name=True) as tmp:  # an OBJ names its object after the file
+        if not o3d.io.write_triangle_mesh(str(tmp), mesh):
             raise DamcapError(f"{path}: Open3D could not write the mesh")
-        os.replace(staged, path)
     return path
 
 

@@ -43,7 +43,7 @@ demo: venv
 	$(DAMCAP) predict $(DEMO_OUT)/capture -o $(DEMO_OUT)/predicted.dam --refine-steps 100
 	$(DAMCAP) render $(DEMO_OUT)/model.dam $(DEMO_OUT)/capture -o $(DEMO_OUT)/renders --split test
 	$(DAMCAP) evaluate $(DEMO_OUT)/capture --model $(DEMO_OUT)/model.dam --model $(DEMO_OUT)/predicted.dam --json $(DEMO_OUT)/evaluation.json
-	$(PY) -m damcap.export.shapes torus $(DEMO_OUT)/torus.obj
+	$(PY) -m damcap.common.shapes torus $(DEMO_OUT)/torus.obj
 	$(DAMCAP) export $(DEMO_OUT)/model.dam --mesh $(DEMO_OUT)/torus.obj -o $(DEMO_OUT)/export --views 24 --resolution 256 --video
 	@echo
 	@echo "demo results are in $(DEMO_OUT)/:"

@@ -9,29 +9,13 @@ DSSIM (an oracle). Evaluated on the training frames themselves, both leave the f
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from damcap.common.capture_folder import FrameData
-
-from .pixels import FOREGROUND_COVERAGE, normal_cam
-
-
-@dataclass
-class ViewData:
-    """A frame's arrays plus its camera (what the baselines need)."""
-
-    name: str
-    data: FrameData
-    world_from_cam: np.ndarray
-    """(4, 4) camera-to-world"""
-
-    @property
-    def centre_world(self) -> np.ndarray:
-        return self.world_from_cam[:3, 3]
+from damcap.appearance.pixels import FOREGROUND_COVERAGE, normal_cam
+from damcap.appearance.views import ViewData
 
 
 class ReflectanceMap:

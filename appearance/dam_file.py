@@ -21,7 +21,7 @@ from safetensors.torch import save as st_save
 from damcap.common.atomic import atomic_path
 from damcap.common.errors import DamcapError
 
-from .dam import DamArchitecture, DeepAppearanceMap
+from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
 
 DAM_FORMAT_VERSION = 1
 METADATA_KEY = "damcap"

@@ -7,10 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .baselines import ViewData, rm_oracle, rm_plus_plus
-from .dam import DeepAppearanceMap
-from .metrics import dssim
-from .render import render_frame
+from damcap.appearance.views import ViewData
+from damcap.appearance.baselines import rm_oracle, rm_plus_plus
+from damcap.appearance.dam import DeepAppearanceMap
+from damcap.appearance.metrics import dssim
+from damcap.appearance.render import render_frame
 
 
 @dataclass

@@ -28,15 +28,17 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, ContextManager, Literal
 
+import numpy as np
 import torch
 
 from damcap.common.atomic import atomic_path
 from damcap.common.device import resolve_device
 from damcap.common.errors import DamcapError, require_options
 
-from .adversarial import PatchDiscriminator, discriminator_loss, generator_loss
-from .dam import Activation, DamArchitecture, DeepAppearanceMap, Encoding, dam_forward, encode_inputs
-from .pixels import PixelSamples
+from damcap.appearance.adversarial import PatchDiscriminator, discriminator_loss, generator_loss
+from damcap.appearance.dam import Activation, DamArchitecture, DeepAppearanceMap, Encoding, dam_forward, encode_inputs
+from damcap.appearance.pixels import FOREGROUND_COVERAGE, PixelSamples, view_dir_world
+from damcap.appearance.views import ViewData, radiance_scale_of
 
 Precision = Literal["float32", "bfloat16"]
 PRECISIONS: tuple[str, ...] = ("float32", "bfloat16")
@@ -144,20 +146,6 @@ class FitResult:
     best_step: int = 0
     seconds: float = 0.0
     resumed_from: int = 0
-
-
-def radiance_scale_of(radiance_lin: torch.Tensor, weight: torch.Tensor | None = None) -> float:
-    """95th percentile of the pooled channels of (N, 3) radiance over samples with weight > 0
-    (1 if that is 0)."""
-    if weight is not None:
-        radiance_lin = radiance_lin[weight > 0]
-    if radiance_lin.numel() == 0:
-        return 1.0
-    x = radiance_lin.reshape(-1).float()
-    if x.numel() > 1_000_000:
-        x = x[torch.linspace(0, x.numel() - 1, 1_000_000).long()]
-    p = float(torch.quantile(x, 0.95))
-    return p if p > 0 and math.isfinite(p) else 1.0
 
 
 def holdout_frames(n_frames: int, k: int) -> list[int]:
@@ -419,3 +407,24 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
 
         warnings.warn(f"{path}: ignoring unreadable checkpoint ({e.__class__.__name__})", stacklevel=2)
         return {}
+
+
+def training_frames(views: list[ViewData], encoding: Encoding, radiance_scale: float) -> list[TrainingFrame]:
+    """Whole frames for the adversarial cost."""
+    out = []
+    for v in views:
+        fg = v.data.coverage > FOREGROUND_COVERAGE
+        vd = torch.from_numpy(view_dir_world(v.data.position_world, v.centre_world))
+        nd = torch.from_numpy(v.data.normal_world)
+        x = torch.where(torch.from_numpy(fg)[..., None], encode_inputs(vd, nd, encoding), torch.zeros(()))
+        rad = torch.from_numpy(np.where(fg[..., None], v.data.radiance_lin, 0) / radiance_scale).float().permute(2, 0, 1)
+        out.append(TrainingFrame(rad, x, torch.from_numpy(fg)))
+    return out
+
+
+def adversarial_frames(views: list[ViewData], samples: PixelSamples, opts: FitOptions) -> list[TrainingFrame] | None:
+    """The whole frames ``fit_dam`` needs for ``opts``' adversarial cost (None when it is off):
+    :func:`training_frames` of ``views`` at the radiance scale of their pixels ``samples``."""
+    if not opts.adversarial:
+        return None
+    return training_frames(views, opts.encoding, radiance_scale_of(samples.radiance_lin))

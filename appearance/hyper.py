@@ -28,10 +28,9 @@ from torch import nn
 
 from damcap.common.errors import DamcapError
 
-from .baselines import ViewData
-from .dam import DamArchitecture, DeepAppearanceMap, dam_forward, encode_inputs, init_weights
-from .fit import radiance_scale_of
-from .pixels import FOREGROUND_COVERAGE, view_dir_world
+from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap, dam_forward, encode_inputs, init_weights
+from damcap.appearance.views import ViewData, radiance_scale_of
+from damcap.appearance.pixels import FOREGROUND_COVERAGE, view_dir_world
 
 IN_CHANNELS = 9
 """RGB (log1p of radiance / scale), normal_world, view_dir_world"""

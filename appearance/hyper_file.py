@@ -20,8 +20,8 @@ from safetensors.torch import save as st_save
 from damcap.common.atomic import atomic_path
 from damcap.common.errors import DamcapError
 
-from .dam_file import METADATA_KEY, read_damcap_safetensors
-from .hyper import HyperArchitecture, HyperNet
+from damcap.appearance.dam_file import METADATA_KEY, read_damcap_safetensors
+from damcap.appearance.hyper import HyperArchitecture, HyperNet
 
 PREDICTOR_FORMAT_VERSION = 1
 KIND = "dam-predictor"

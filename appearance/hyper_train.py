@@ -30,10 +30,11 @@ from damcap.common.capture_folder import read_capture, read_frame
 from damcap.common.device import resolve_device
 from damcap.common.errors import DamcapError, require_options
 
-from .dam import DamArchitecture, Encoding
-from .fit import load_checkpoint, radiance_scale_of, save_checkpoint
-from .hyper import HyperArchitecture, HyperNet, predicted_loss, predictor_image, rotation_y, view_crop
-from .pixels import FOREGROUND_COVERAGE, view_dir_world
+from damcap.appearance.dam import DamArchitecture, Encoding
+from damcap.appearance.fit import load_checkpoint, save_checkpoint
+from damcap.appearance.views import radiance_scale_of
+from damcap.appearance.hyper import HyperArchitecture, HyperNet, predicted_loss, predictor_image, rotation_y, view_crop
+from damcap.appearance.pixels import FOREGROUND_COVERAGE, view_dir_world
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,7 @@ import kornia
 import numpy as np
 import torch
 
-from .pixels import FOREGROUND_COVERAGE
+from damcap.appearance.pixels import FOREGROUND_COVERAGE
 
 #: percentile of the reference's foreground values that maps to 1 before SSIM
 NORMALISE_PERCENTILE = 95.0

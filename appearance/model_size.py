@@ -26,12 +26,12 @@ from typing import Any, Callable
 
 from damcap.common.errors import DamcapError
 
-from .baselines import ViewData
-from .dam import DamArchitecture, DeepAppearanceMap
-from .evaluate import score_view
-from .fit import FitOptions, fit_dam, holdout_frames, load_checkpoint, save_checkpoint
-from .render import render_frame
-from .views import samples_of
+from damcap.appearance.views import ViewData
+from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
+from damcap.appearance.evaluate import score_view
+from damcap.appearance.fit import FitOptions, fit_dam, holdout_frames, load_checkpoint, save_checkpoint
+from damcap.appearance.render import render_frame
+from damcap.appearance.views import samples_of
 
 #: (width, depth) candidates; tried in order of weight count. (32, 4) is the paper's 3360 weights.
 SIZE_LADDER: tuple[tuple[int, int], ...] = ((8, 2), (16, 2), (16, 3), (32, 3), (32, 4), (64, 4))

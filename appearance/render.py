@@ -7,8 +7,8 @@ import torch
 
 from damcap.common.capture_folder import FrameData
 
-from .dam import DeepAppearanceMap
-from .pixels import view_dir_world
+from damcap.appearance.dam import DeepAppearanceMap
+from damcap.appearance.pixels import view_dir_world
 
 
 @torch.no_grad()

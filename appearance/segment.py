@@ -38,12 +38,11 @@ from torch import nn
 
 from damcap.common.device import resolve_device
 from damcap.common.errors import DamcapError
-from damcap.reconstruct.normalize import bounding_sphere
+from damcap.common.mesh import bounding_sphere
 
-from .baselines import ViewData
-from .dam import DamArchitecture, DeepAppearanceMap, Encoding, dam_forward, encode_inputs, init_weights
-from .fit import radiance_scale_of
-from .pixels import FOREGROUND_COVERAGE, view_dir_world
+from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap, Encoding, dam_forward, encode_inputs, init_weights
+from damcap.appearance.views import ViewData, radiance_scale_of
+from damcap.appearance.pixels import FOREGROUND_COVERAGE, view_dir_world
 
 # --------------------------------------------------------------------------------------------
 # Options
@@ -685,8 +684,8 @@ def mesh_material_weights(model: SegmentationModel, vertices: np.ndarray, align:
 
 def kmeans_baseline(views: list[ViewData], materials: int, steps: int = 1500, seed: int = 0, encoding: Encoding = "nr") -> SegmentationModel:
     """The paper's baseline as a :class:`SegmentationModel` (hard weights; Psi unused)."""
-    from .fit import FitOptions, fit_dam
-    from .pixels import PixelSamples
+    from damcap.appearance.fit import FitOptions, fit_dam
+    from damcap.appearance.pixels import PixelSamples
 
     t0 = time.perf_counter()
     fgs = [v.data.coverage > FOREGROUND_COVERAGE for v in views]
@@ -761,8 +760,8 @@ def novel_view_dssim(model: SegmentationModel, views: list[ViewData], seen_only:
             weights are extrapolated by nearest neighbour and the DAMs' inputs were never
             observed, so errors there mostly measure extrapolation luck, not the materials.
     """
-    from .evaluate import score_view
-    from .metrics import dssim
+    from damcap.appearance.evaluate import score_view
+    from damcap.appearance.metrics import dssim
 
     scores = []
     tree = model.point_tree() if seen_only else None
@@ -885,7 +884,7 @@ def segmentation_scores(model: SegmentationModel, train: list[ViewData], targets
         ``same_view``), plus ``{"true weights": {...}}`` when the targets carry ground-truth
         weights (materials matched to the truth on the training frames by IoU).
     """
-    from .evaluate import score_view
+    from damcap.appearance.evaluate import score_view
 
     out: dict[str, dict[str, float | None]] = {"estimated weights": {}}
     for v in targets:

@@ -21,8 +21,8 @@ from safetensors.torch import save as st_save
 from damcap.common.atomic import atomic_path
 from damcap.common.errors import DamcapError
 
-from .dam_file import load_dam, read_safetensors_metadata, save_dam
-from .segment import SegmentationModel, SegmentationNet
+from damcap.appearance.dam_file import load_dam, read_safetensors_metadata, save_dam
+from damcap.appearance.segment import SegmentationModel, SegmentationNet
 
 SEGMENTER_FILE = "segmenter.safetensors"
 SEGMENT_FORMAT_VERSION = 1

@@ -1,16 +1,45 @@
-"""Loading a capture's frames into the arrays the appearance tasks work on (the I/O edge)."""
+"""A capture's frames as the appearance tasks see them: :class:`ViewData` (the I/O edge loads
+them) and the radiance scale every model works in."""
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from damcap.common.capture_folder import Capture, Split, read_frame
+from damcap.common.capture_folder import Capture, FrameData, Split, read_frame
 
-from .baselines import ViewData
-from .dam import Encoding, encode_inputs
-from .fit import FitOptions, TrainingFrame, radiance_scale_of
-from .pixels import FOREGROUND_COVERAGE, PixelSamples, gather_samples, view_dir_world
+from damcap.appearance.pixels import PixelSamples, gather_samples
+
+
+@dataclass
+class ViewData:
+    """A frame's arrays plus its camera (what the baselines need)."""
+
+    name: str
+    data: FrameData
+    world_from_cam: np.ndarray
+    """(4, 4) camera-to-world"""
+
+    @property
+    def centre_world(self) -> np.ndarray:
+        return self.world_from_cam[:3, 3]
+
+
+def radiance_scale_of(radiance_lin: torch.Tensor, weight: torch.Tensor | None = None) -> float:
+    """95th percentile of the pooled channels of (N, 3) radiance over samples with weight > 0
+    (1 if that is 0)."""
+    if weight is not None:
+        radiance_lin = radiance_lin[weight > 0]
+    if radiance_lin.numel() == 0:
+        return 1.0
+    x = radiance_lin.reshape(-1).float()
+    if x.numel() > 1_000_000:
+        x = x[torch.linspace(0, x.numel() - 1, 1_000_000).long()]
+    p = float(torch.quantile(x, 0.95))
+    return p if p > 0 and math.isfinite(p) else 1.0
 
 
 def load_views(capture: Capture, split: Split) -> list[ViewData]:
@@ -21,24 +50,3 @@ def load_views(capture: Capture, split: Split) -> list[ViewData]:
 def samples_of(views: list[ViewData]) -> PixelSamples:
     """Foreground pixels of the views (frame_index = position in ``views``)."""
     return gather_samples([v.data for v in views], [v.centre_world for v in views])
-
-
-def training_frames(views: list[ViewData], encoding: Encoding, radiance_scale: float) -> list[TrainingFrame]:
-    """Whole frames for the adversarial cost."""
-    out = []
-    for v in views:
-        fg = v.data.coverage > FOREGROUND_COVERAGE
-        vd = torch.from_numpy(view_dir_world(v.data.position_world, v.centre_world))
-        nd = torch.from_numpy(v.data.normal_world)
-        x = torch.where(torch.from_numpy(fg)[..., None], encode_inputs(vd, nd, encoding), torch.zeros(()))
-        rad = torch.from_numpy(np.where(fg[..., None], v.data.radiance_lin, 0) / radiance_scale).float().permute(2, 0, 1)
-        out.append(TrainingFrame(rad, x, torch.from_numpy(fg)))
-    return out
-
-
-def adversarial_frames(views: list[ViewData], samples: PixelSamples, opts: FitOptions) -> list[TrainingFrame] | None:
-    """The whole frames ``fit_dam`` needs for ``opts``' adversarial cost (None when it is off):
-    :func:`training_frames` of ``views`` at the radiance scale of their pixels ``samples``."""
-    if not opts.adversarial:
-        return None
-    return training_frames(views, opts.encoding, radiance_scale_of(samples.radiance_lin))

@@ -15,7 +15,7 @@ Two parts, every method measured side by side in one run:
    channel holds across the frames, in the reference and in the stack itself (each frame against
    a merge of the others). The LDR response knobs (samples, smoothness, flat fraction, sample
    phase) are measured on the same stack.
-2. **Simulated RAW brackets** (:mod:`damcap.capture.simulate`): real HDR environment maps
+2. **Simulated RAW brackets** (:mod:`damcap.synth.brackets`): real HDR environment maps
    (1024x512) through a camera model (RGGB Bayer, black level 512, 14 bits, 30000 e- full well,
    3 e- read noise, Poisson shot noise, a real camera's colour matrix) at 5 exposures 2 stops
    apart, written as DNG files. The same files go to damcap (``merge_bracket_files``: raw counts,
@@ -56,7 +56,7 @@ from _common import cpu_model  # noqa: E402
 from damcap.capture.exif import read_exposure, read_hdr_image_list
 from damcap.capture.hdr import HdrOptions, merge_bracket_files, read_ldr_codes
 from damcap.capture.metrics import abs_log_ratio_error, centred_log_ratio, rgbe_step
-from damcap.capture.simulate import bracket_times, simulate_raw_bracket
+from damcap.synth.brackets import bracket_times, simulate_raw_bracket
 from damcap.common.atomic import write_json_atomic, write_text_atomic
 from damcap.common.exr import read_exr
 from damcap.common.version import damcap_version

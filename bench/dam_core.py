@@ -75,15 +75,16 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import NCPU, CpuMeter, log, machine_info, own_cpu_s, system_busy_s  # noqa: E402
 
-from damcap.appearance.baselines import ViewData
+from damcap.appearance.views import ViewData
 from damcap.appearance.evaluate import evaluate_split
 from damcap.appearance.fit import FitOptions, fit_dam, refine_dam
 from damcap.appearance.hyper import predict_dam, predictor_input
 from damcap.appearance.hyper_file import load_predictor, shipped_predictor_path
 from damcap.appearance.render import render_frame
-from damcap.appearance.views import adversarial_frames, load_views, samples_of
+from damcap.appearance.fit import adversarial_frames
+from damcap.appearance.views import load_views, samples_of
 from damcap.common.capture_folder import read_capture
-from damcap.reconstruct.closed_form import ClosedFormOptions, make_closed_form_capture
+from damcap.synth.closed_form import ClosedFormOptions, make_closed_form_capture
 
 THREADS = 2
 BENCH = Path(__file__).resolve().parent

@@ -32,8 +32,9 @@ def main() -> None:
     from damcap.export.turntable import shade_buffers
     from damcap.export.viewer import viewer_html
     from damcap.export.display import exposure_scale_for
-    from damcap.reconstruct.cameras import focal_px_from_fov, orbit_world_from_cam
-    from damcap.reconstruct.raycast import MeshRaycaster, load_mesh, normalise_to_unit_sphere
+    from damcap.common.cameras import focal_px_from_fov, orbit_world_from_cam
+    from damcap.common.mesh import load_mesh, normalise_to_unit_sphere
+    from damcap.common.raycast import MeshRaycaster
 
     torch.set_num_threads(2)
     load_before = os.getloadavg()[0]

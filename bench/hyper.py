@@ -231,7 +231,7 @@ def main() -> int:
     pred_path = args.predictor or shipped_predictor_path()
     net, meta = load_predictor(pred_path)
     if not (args.corpus / "corpus.json").is_file():
-        from damcap.reconstruct.synth_set import make_corpus
+        from damcap.synth.corpus import make_corpus
 
         log(f"rendering the small preset's corpus into {args.corpus} (about 8 minutes)")
         make_corpus(args.corpus, "small", BENCH.parents[1] / "shared" / "data", jobs=2)

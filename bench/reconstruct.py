@@ -12,7 +12,7 @@ Parts (``--part``, default all; each part's numbers are merged into the JSON):
   median agreement <= 0.1 deg, cape <= 4 min.
 * ``geometry``: median normal error (degrees) of every ``--geometry`` mode on synthetic photo
   sets with known geometry (a bumpy blob and a sphere, textured, rendered by
-  :mod:`damcap.reconstruct.textured_photos`), cameras from SfM on those photos.
+  :mod:`damcap.synth.photos`), cameras from SfM on those photos.
 * ``realworld``: a DAM fitted on a few cape views (``--train-views``, spread) and evaluated on
   the others against RM++ and RM (DSSIM, capture-format.md). Target: DAM < RM++ < RM. A PNG of
   novel views (photo | DAM | RM++ | RM) goes to ``bench/reconstruct_novel_views*.png``; the
@@ -220,7 +220,7 @@ def normal_errors(capture_dir: Path, gt_mesh, gt_cams: np.ndarray, photo_index: 
     ground-truth mesh's normals, over pixels covered in both (A > 0.5)."""
     from damcap.common.capture_folder import read_capture, read_frame
     from damcap.reconstruct.normalize import similarity_scale, transform_world_from_cam, umeyama_similarity
-    from damcap.reconstruct.raycast import MeshRaycaster
+    from damcap.common.raycast import MeshRaycaster
 
     cap = read_capture(capture_dir)
     cams = np.stack([f.world_from_cam for f in cap.frames])
@@ -247,8 +247,8 @@ def normal_errors(capture_dir: Path, gt_mesh, gt_cams: np.ndarray, photo_index: 
 def part_geometry(fresh: bool) -> dict:
     from damcap.reconstruct.geometry import icosphere_mesh
     from damcap.reconstruct.pipeline import ReconstructOptions, reconstruct_capture
-    from damcap.reconstruct.raycast import Mesh
-    from damcap.reconstruct.textured_photos import bumpy_blob, default_intrinsics, orbit_cameras, write_photo_set
+    from damcap.common.mesh import Mesh
+    from damcap.synth.photos import bumpy_blob, default_intrinsics, orbit_cameras, write_photo_set
 
     import open3d as o3d
 
@@ -300,7 +300,7 @@ def part_geometry(fresh: bool) -> dict:
 # --------------------------------------------------------------------------------------------
 
 def display(img: np.ndarray, scale: float) -> np.ndarray:
-    from damcap.reconstruct.textured_photos import linear_to_srgb
+    from damcap.synth.photos import linear_to_srgb
 
     return (linear_to_srgb(img / scale) * 255).round().astype(np.uint8)
 

@@ -42,7 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import CpuMeter, log, machine_info  # noqa: E402
 
 from damcap.appearance.segment import SegmentOptions, choose_materials, segment_materials  # noqa: E402
-from damcap.appearance.tables import PAPER, TableOptions, heldout_entries, mean_iou, segmentation_rows  # noqa: E402
+from damcap.paper.tables import PAPER, TableOptions, heldout_entries, mean_iou, segmentation_rows  # noqa: E402
 from damcap.appearance.views import load_views  # noqa: E402
 from damcap.common.atomic import write_json_atomic, write_text_atomic  # noqa: E402
 from damcap.common.capture_folder import read_capture  # noqa: E402
@@ -86,7 +86,7 @@ CLOSED_FORM = [
 
 def stage_closed_form(restarts: int) -> list[dict]:
     """--materials auto (default options) on closed-form captures of known n: 12 views, 5 train."""
-    from damcap.reconstruct.closed_form import ClosedFormOptions, make_closed_form_capture
+    from damcap.synth.closed_form import ClosedFormOptions, make_closed_form_capture
 
     out = []
     for name, true_n, kw in CLOSED_FORM:
@@ -116,7 +116,7 @@ def ensure_corpus(folder: Path, preset: str) -> None:
     if corpus.is_file() and all(e.get("status") == "done" for e in json.loads(corpus.read_text())["captures"]):
         return
     from damcap.cli.synth_cmds import default_data_dir
-    from damcap.reconstruct.synth_set import make_corpus
+    from damcap.synth.corpus import make_corpus
 
     log(f"rendering the {preset} preset into {folder} (resumable)")
     make_corpus(folder, preset, default_data_dir())

@@ -74,17 +74,18 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import CpuMeter, cpu_model, log  # noqa: E402
 
-from damcap.appearance.baselines import ViewData
+from damcap.appearance.views import ViewData
 from damcap.appearance.evaluate import evaluate_split
 from damcap.appearance.fit import FitOptions, fit_dam
 from damcap.appearance.metrics import dssim
 from damcap.appearance.pixels import PixelSamples
-from damcap.appearance.views import adversarial_frames, load_views, samples_of
+from damcap.appearance.fit import adversarial_frames
+from damcap.appearance.views import load_views, samples_of
 from damcap.common.capture_folder import read_capture, read_frame
-from damcap.reconstruct.synth import SynthOptions, compose_frame, make_synthetic_capture, render_seeds, resolve_scene
-from damcap.reconstruct.synth_geometry import GeometryBuffers, RayCaster, frame_geometry
-from damcap.reconstruct.synth_render import build_scene, pass_sample_counts, render_view, select_variant
-from damcap.reconstruct.synth_set import plan_corpus, preset
+from damcap.synth.mitsuba_capture import SynthOptions, compose_frame, make_synthetic_capture, render_seeds, resolve_scene
+from damcap.synth.geometry import GeometryBuffers, RayCaster, frame_geometry
+from damcap.synth.mitsuba_render import build_scene, pass_sample_counts, render_view, select_variant
+from damcap.synth.corpus import plan_corpus, preset
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -138,7 +139,7 @@ class SceneRenderer:
     """A capture's scene, ready to re-render any of its views with any seed."""
 
     def __init__(self, opts: SynthOptions) -> None:
-        from damcap.reconstruct.synth import camera_setup
+        from damcap.synth.mitsuba_capture import camera_setup
 
         select_variant(opts.variant)
         self.opts = opts
@@ -593,7 +594,7 @@ def stage_anchor(fit_seeds: list[int], floor_every: int) -> dict:
 def _local_lighting(record: dict):
     """The capture's light as distant lighting for closed_form.shade (no shadows)."""
     from damcap.common.exr import read_exr
-    from damcap.reconstruct.closed_form import Lighting, directional_lighting
+    from damcap.synth.closed_form import Lighting, directional_lighting
 
     light = record["light"]
     if light["kind"] == "point":
@@ -619,7 +620,7 @@ def local_shading_copy(src: Path, dst: Path) -> None:
     interreflection) with the capture's light and an equivalent Lambert + GGX material."""
     from damcap.common.capture_folder import RADIANCE_CHANNELS
     from damcap.common.exr import write_exr
-    from damcap.reconstruct.closed_form import Material, shade
+    from damcap.synth.closed_form import Material, shade
 
     cap = read_capture(src)
     rec = cap.extra["damcap_source"]

@@ -21,10 +21,10 @@ import numpy as np
 
 from damcap.common.errors import DamcapError
 
-from .align import chain_shifts, preview_u8, shift_image
-from .exif import Exposure, is_raw_path, read_exposure, resolve_exposure_factors
-from .merge import PoissonAccumulator, merge_ldr
-from .raw import (
+from damcap.capture.align import chain_shifts, preview_u8, shift_image
+from damcap.capture.exif import Exposure, is_raw_path, read_exposure, resolve_exposure_factors
+from damcap.capture.merge import PoissonAccumulator, merge_ldr
+from damcap.capture.raw import (
     SATURATION_FRACTION,
     CaptureWarning,
     RawMosaic,
@@ -34,8 +34,8 @@ from .raw import (
     read_raw,
     to_rec709,
 )
-from .response import ResponseCurve, recover_response, sample_pixels_for_response
-from .working_space import CAMERA_RGB, COLORSPACES, rec709_to_working
+from damcap.capture.response import ResponseCurve, recover_response, sample_pixels_for_response
+from damcap.capture.working_space import CAMERA_RGB, COLORSPACES, rec709_to_working
 
 #: largest finite half-float value
 HALF_MAX = 65504.0

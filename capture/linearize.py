@@ -17,9 +17,9 @@ import numpy as np
 
 from damcap.common.errors import DamcapError
 
-from .exif import Exposure, exposure_factor, is_raw_path, read_exposure, resolve_exposure_factors
-from .response import srgb_to_linear
-from .working_space import CAMERA_RGB, COLORSPACES, rec709_to_working
+from damcap.capture.exif import Exposure, exposure_factor, is_raw_path, read_exposure, resolve_exposure_factors
+from damcap.capture.response import srgb_to_linear
+from damcap.capture.working_space import CAMERA_RGB, COLORSPACES, rec709_to_working
 
 #: file extensions ``damcap linearize`` picks up in a folder (RAW files too)
 PHOTO_EXTENSIONS = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff"})
@@ -155,7 +155,7 @@ def linearize_files(photos: Sequence[Path], out_dir: Path, opts: LinearizeOption
     """
     from damcap.common.exr import write_exr
 
-    from .hdr import HALF_MAX, read_ldr_codes
+    from damcap.capture.hdr import HALF_MAX, read_ldr_codes
 
     opts.validate()
     stems = [p.stem for p in photos]
@@ -200,7 +200,7 @@ def _linear_raw(path: Path) -> tuple[np.ndarray, np.ndarray, bool]:
     """One RAW photo as linear Rec.709 (or camera RGB), clipped mask, whether a matrix was applied."""
     import warnings
 
-    from .raw import CaptureWarning, apply_flip, camera_rgb_from_mosaic, dilate_mask, read_raw, to_rec709
+    from damcap.capture.raw import CaptureWarning, apply_flip, camera_rgb_from_mosaic, dilate_mask, read_raw, to_rec709
 
     m = read_raw(path)
     floor = 1.0 / (m.white_level - max(m.black_level))

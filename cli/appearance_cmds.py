@@ -1,4 +1,4 @@
-"""Commands of the appearance stage: inspect, closed-form, fit, render, evaluate."""
+"""Commands of the appearance stage: inspect, fit, render, evaluate."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import typer
 
 from damcap.common.errors import DamcapError
 
-from .app import app, progress_bar, refuse_input_overlap
+from damcap.cli.app import app, progress_bar, refuse_input_overlap
 
 
 @app.command()
@@ -39,30 +39,6 @@ def inspect(capture: Path = typer.Argument(..., help="capture folder")) -> None:
     typer.echo("valid capture")
 
 
-@app.command("closed-form")
-def closed_form(
-    out: Path = typer.Argument(..., help="new capture folder"),
-    shape: str = typer.Option("sphere", help="sphere | torus"),
-    light: str = typer.Option("directional", help="directional | env"),
-    materials: int = typer.Option(1, help="1 or 2"),
-    views: int = typer.Option(32, min=3),
-    resolution: int = typer.Option(128, "--res", min=8),
-    elevation: float = typer.Option(25.0, help="camera elevation, degrees"),
-    train_views: int = typer.Option(10, help="consecutive training views"),
-    seed: int = typer.Option(0),
-    dtype: str = typer.Option("half", help="radiance storage: half | float"),
-) -> None:
-    """Write a capture whose appearance is known in closed form (Lambert + GGX, distant light)."""
-    from damcap.reconstruct.closed_form import ClosedFormOptions, make_closed_form_capture
-
-    if shape not in ("sphere", "torus") or light not in ("directional", "env") or dtype not in ("half", "float"):
-        raise DamcapError(f"--shape sphere|torus, --light directional|env, --dtype half|float; got {shape}, {light}, {dtype}")
-    opts = ClosedFormOptions(shape=shape, light=light, materials=materials, views=views, resolution=resolution,  # type: ignore[arg-type]
-                             elevation_deg=elevation, train_views=train_views, seed=seed, dtype=dtype)  # type: ignore[arg-type]
-    cap = make_closed_form_capture(out, opts)
-    typer.echo(f"wrote {len(cap.frames)} frames to {out}")
-
-
 @app.command()
 def fit(
     capture: Path = typer.Argument(..., help="capture folder"),
@@ -89,7 +65,8 @@ def fit(
     """Fit a deep appearance map to a capture (L1 or quantile data cost, optional adversarial cost)."""
     from damcap.appearance.dam_file import save_dam
     from damcap.appearance.fit import FitOptions, fit_dam
-    from damcap.appearance.views import adversarial_frames, load_views, samples_of
+    from damcap.appearance.fit import adversarial_frames
+    from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import read_capture
     from damcap.common.version import damcap_version
 
@@ -213,7 +190,7 @@ def evaluate(
     """Mean DSSIM, same view (train) and novel view (test), for the model, RM and RM++
     (and segmentations: ours and the k-means baseline); or the paper's Table 1 / Table 2."""
     if table1 or table2:
-        from .tables_cmds import run_table1, run_table2
+        from damcap.cli.tables_cmds import run_table1, run_table2
 
         if capture is not None or model or segmentation or kmeans is not None or json_path or plot:
             raise DamcapError("--table1 / --table2 run every method themselves: give no CAPTURE, --model, --segmentation, --kmeans, --json or --plot")

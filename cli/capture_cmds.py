@@ -10,7 +10,7 @@ import typer
 
 from damcap.common.errors import DamcapError
 
-from .app import app, refuse_input_overlap
+from damcap.cli.app import app, refuse_input_overlap
 
 
 def _echo_warning(message, category, filename, lineno, file=None, line=None) -> None:

@@ -11,14 +11,14 @@ import typer
 
 from damcap.common.errors import DamcapError
 
-from .app import app, refuse_input_overlap
+from damcap.cli.app import app, refuse_input_overlap
 
 
 def _load_mesh(mesh: Optional[Path]):
-    from damcap.reconstruct.raycast import Mesh, load_mesh, normalise_to_unit_sphere, vertex_normals_area_weighted
+    from damcap.common.mesh import Mesh, load_mesh, normalise_to_unit_sphere, vertex_normals_area_weighted
 
     if mesh is None:
-        from damcap.export.shapes import shape_mesh
+        from damcap.common.shapes import shape_mesh
 
         s = shape_mesh("sphere")
         v, t = np.asarray(s.vertices, np.float32), np.asarray(s.triangles, np.int32)

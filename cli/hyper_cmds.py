@@ -12,7 +12,7 @@ import typer
 
 from damcap.common.errors import DamcapError
 
-from .app import app, progress_bar, refuse_input_overlap
+from damcap.cli.app import app, progress_bar, refuse_input_overlap
 
 
 @app.command("train-hyper")

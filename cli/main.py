@@ -13,14 +13,14 @@ import typer
 
 from damcap.common.errors import DamcapError
 
-from . import appearance_cmds  # noqa: F401  (registers inspect, closed-form, fit, render, evaluate)
-from . import capture_cmds  # noqa: F401
-from . import synth_cmds  # noqa: F401
-from . import reconstruct_cmds  # noqa: F401
-from . import export_cmds  # noqa: F401  (registers export, view)
-from . import segment_cmds  # noqa: F401  (registers segment)
-from . import hyper_cmds  # noqa: F401  (registers train-hyper, predict)
-from .app import app
+from damcap.cli import appearance_cmds  # noqa: F401  (registers inspect, fit, render, evaluate)
+from damcap.cli import capture_cmds  # noqa: F401
+from damcap.cli import synth_cmds  # noqa: F401  (registers closed-form, synth, synth-set)
+from damcap.cli import reconstruct_cmds  # noqa: F401
+from damcap.cli import export_cmds  # noqa: F401  (registers export, view)
+from damcap.cli import segment_cmds  # noqa: F401  (registers segment)
+from damcap.cli import hyper_cmds  # noqa: F401  (registers train-hyper, predict)
+from damcap.cli.app import app
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -9,7 +9,7 @@ import typer
 
 from damcap.common.errors import DamcapError
 
-from .app import app
+from damcap.cli.app import app
 
 def stage_progress():
     """A ``(stage, done, total)`` callback: one tqdm bar per stage (silent when not a terminal)."""

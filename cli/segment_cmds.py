@@ -10,7 +10,7 @@ import typer
 
 from damcap.common.errors import DamcapError
 
-from .app import app, progress_bar, refuse_input_overlap
+from damcap.cli.app import app, progress_bar, refuse_input_overlap
 
 
 @app.command()
@@ -99,7 +99,7 @@ def segment_labels(
     from damcap.appearance.segment import mesh_material_weights
     from damcap.appearance.segment_file import load_segmentation
     from damcap.common.atomic import write_npy_atomic, write_text_atomic
-    from damcap.reconstruct.raycast import load_mesh
+    from damcap.common.mesh import load_mesh
 
     refuse_input_overlap(output, segmentation, mesh)
     if output.suffix not in (".npy", ".txt"):

@@ -1,4 +1,5 @@
-"""Commands of the synthetic data set: synth (one capture), synth-set (the corpus)."""
+"""Commands of the synthetic data: closed-form (a capture known in closed form), synth (one
+Mitsuba capture), synth-set (the corpus)."""
 
 from __future__ import annotations
 
@@ -10,13 +11,37 @@ import typer
 
 from damcap.common.errors import DamcapError
 
-from .app import app, progress_bar
+from damcap.cli.app import app, progress_bar
 
 
 def default_data_dir() -> Path:
     """``$DAMCAP_SHARED_DATA`` or ``../shared/data`` next to the repository."""
     env = os.environ.get("DAMCAP_SHARED_DATA")
     return Path(env) if env else Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+@app.command("closed-form")
+def closed_form(
+    out: Path = typer.Argument(..., help="new capture folder"),
+    shape: str = typer.Option("sphere", help="sphere | torus"),
+    light: str = typer.Option("directional", help="directional | env"),
+    materials: int = typer.Option(1, help="1 or 2"),
+    views: int = typer.Option(32, min=3),
+    resolution: int = typer.Option(128, "--res", min=8),
+    elevation: float = typer.Option(25.0, help="camera elevation, degrees"),
+    train_views: int = typer.Option(10, help="consecutive training views"),
+    seed: int = typer.Option(0),
+    dtype: str = typer.Option("half", help="radiance storage: half | float"),
+) -> None:
+    """Write a capture whose appearance is known in closed form (Lambert + GGX, distant light)."""
+    from damcap.synth.closed_form import ClosedFormOptions, make_closed_form_capture
+
+    if shape not in ("sphere", "torus") or light not in ("directional", "env") or dtype not in ("half", "float"):
+        raise DamcapError(f"--shape sphere|torus, --light directional|env, --dtype half|float; got {shape}, {light}, {dtype}")
+    opts = ClosedFormOptions(shape=shape, light=light, materials=materials, views=views, resolution=resolution,  # type: ignore[arg-type]
+                             elevation_deg=elevation, train_views=train_views, seed=seed, dtype=dtype)  # type: ignore[arg-type]
+    cap = make_closed_form_capture(out, opts)
+    typer.echo(f"wrote {len(cap.frames)} frames to {out}")
 
 
 @app.command()
@@ -37,7 +62,7 @@ def synth(
     dtype: str = typer.Option("half", help="radiance storage: half | float"),
 ) -> None:
     """Render one synthetic capture with Mitsuba 3 (the paper's data set), validated."""
-    from damcap.reconstruct.synth import SynthOptions, make_synthetic_capture
+    from damcap.synth.mitsuba_capture import SynthOptions, make_synthetic_capture
 
     opts = SynthOptions(object=object_, light=light, materials=materials, views=views, resolution=resolution, spp=spp,
                         seed=seed, train_views=train_views, elevation_deg=elevation, max_depth=max_depth,
@@ -59,7 +84,7 @@ def synth_set(
     """Render the synthetic corpus: resumable, parallel, with a held-out part listed in corpus.json."""
     from tqdm import tqdm
 
-    from damcap.reconstruct.synth_set import PRESETS, make_corpus
+    from damcap.synth.corpus import PRESETS, make_corpus
 
     if preset not in PRESETS:
         raise DamcapError(f"--preset must be one of {', '.join(PRESETS)}, got {preset!r}")

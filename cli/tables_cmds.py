@@ -36,7 +36,7 @@ def _options_record(opts, predictor: Optional[Path]) -> dict:
 
 
 def run_table1(corpora: list[Path], out: Path, predictor_path: Optional[Path], fresh: bool) -> None:
-    from damcap.appearance.tables import TableOptions, plot_table1, summarise, table1_markdown, table1_rows
+    from damcap.paper.tables import TableOptions, plot_table1, summarise, table1_markdown, table1_rows
     from damcap.common.atomic import write_json_atomic, write_text_atomic
     from damcap.common.version import damcap_version
 
@@ -77,7 +77,7 @@ def run_table1(corpora: list[Path], out: Path, predictor_path: Optional[Path], f
 
 def run_table2(capture: Path, out: Path, predictor_path: Optional[Path], materials: str) -> None:
     from damcap.appearance.evaluate import plot_sorted_dssim
-    from damcap.appearance.tables import TableOptions, false_colour_figure, table2_markdown, table2_rows
+    from damcap.paper.tables import TableOptions, false_colour_figure, table2_markdown, table2_rows
     from damcap.appearance.views import load_views
     from damcap.common.atomic import write_json_atomic, write_text_atomic
     from damcap.common.capture_folder import read_capture

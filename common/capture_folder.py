@@ -18,9 +18,9 @@ from typing import Any, Iterable, Literal
 
 import numpy as np
 
-from .atomic import write_json_atomic
-from .errors import DamcapError
-from .exr import read_exr_channels, write_exr
+from damcap.common.atomic import write_json_atomic
+from damcap.common.errors import DamcapError
+from damcap.common.exr import read_exr_channels, write_exr
 
 FORMAT_VERSION = 1
 RADIANCE_CHANNELS = ("R", "G", "B")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from .errors import DamcapError
+from damcap.common.errors import DamcapError
 
 
 def resolve_device(name: str = "auto") -> torch.device:

@@ -9,8 +9,8 @@ from typing import Literal, Mapping, Sequence
 import numpy as np
 import OpenImageIO as oiio
 
-from .atomic import atomic_path
-from .errors import DamcapError
+from damcap.common.atomic import atomic_path
+from damcap.common.errors import DamcapError
 
 
 def _one_line(message: str, path: Path) -> str:

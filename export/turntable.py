@@ -10,8 +10,9 @@ import torch
 
 from damcap.appearance.dam import DeepAppearanceMap
 from damcap.common.errors import DamcapError
-from damcap.reconstruct.cameras import focal_px_from_fov, orbit_world_from_cam
-from damcap.reconstruct.raycast import Mesh, MeshRaycaster, SurfaceBuffers
+from damcap.common.cameras import focal_px_from_fov, orbit_world_from_cam
+from damcap.common.mesh import Mesh
+from damcap.common.raycast import MeshRaycaster, SurfaceBuffers
 
 
 @dataclass(frozen=True)

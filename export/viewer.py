@@ -11,9 +11,9 @@ from importlib import resources
 import numpy as np
 
 from damcap.appearance.dam import DeepAppearanceMap
-from damcap.reconstruct.raycast import Mesh
+from damcap.common.mesh import Mesh
 
-from .glsl import glsl_source
+from damcap.export.glsl import glsl_source
 
 
 @dataclass(frozen=True)

@@ -30,8 +30,9 @@ import numpy as np
 from damcap.common.capture_folder import Intrinsics
 from damcap.common.errors import DamcapError
 
-from .normalize import transform_points
-from .raycast import Mesh, MeshRaycaster, load_mesh, vertex_normals_area_weighted
+from damcap.reconstruct.normalize import transform_points
+from damcap.common.mesh import Mesh, load_mesh, vertex_normals_area_weighted
+from damcap.common.raycast import MeshRaycaster
 
 GeometryMode = Literal["auto", "visual-hull", "poisson", "sphere", "mesh"]
 MeshAlign = Literal["auto", "none", "icp"]

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from damcap.common.errors import DamcapError
+from damcap.common.mesh import bounding_sphere
 
 
 def similarity(scale: float, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
@@ -177,20 +178,6 @@ def normalization_transform(world_from_cams: np.ndarray, points_world: np.ndarra
                           "they look at)")
     s = target_radius / radius
     return similarity(s, rot, -s * rot @ focus)
-
-
-def bounding_sphere(vertices: np.ndarray) -> tuple[np.ndarray, float]:
-    """Centre (of the bounding box) and radius (farthest vertex) of a vertex set.
-
-    Args:
-        vertices: (V, 3).
-
-    Returns:
-        centre: (3,); radius: scene units.
-    """
-    v = np.asarray(vertices, dtype=np.float64)
-    centre = (v.min(0) + v.max(0)) / 2
-    return centre, float(np.linalg.norm(v - centre, axis=1).max())
 
 
 def recentre_transform(vertices: np.ndarray, target_radius: float = 1.0) -> np.ndarray:

@@ -33,13 +33,14 @@ from damcap.common.capture_folder import Capture, Frame, FrameData, Intrinsics, 
 from damcap.common.errors import DamcapError
 from damcap.common.version import damcap_version
 
-from .geometry import GeometryInputs, GeometryOptions, GeometryResult, build_geometry
-from .normalize import normalization_transform, recentre_transform, similarity_scale, transform_points, transform_world_from_cam
-from .photos import exposure_factors, list_photos, match_masks, read_mask, read_photo_linear
-from .poses import Registration, load_known_poses
-from .raycast import Mesh, MeshRaycaster
-from .sfm import SfmOptions, StageProgress, register_photos, triangulate_known
-from .undistort import pinhole_for, resample_to_pinhole
+from damcap.reconstruct.geometry import GeometryInputs, GeometryOptions, GeometryResult, build_geometry
+from damcap.reconstruct.normalize import normalization_transform, recentre_transform, similarity_scale, transform_points, transform_world_from_cam
+from damcap.reconstruct.photos import exposure_factors, list_photos, match_masks, read_mask, read_photo_linear
+from damcap.reconstruct.poses import Registration, load_known_poses
+from damcap.common.mesh import Mesh
+from damcap.common.raycast import MeshRaycaster
+from damcap.reconstruct.sfm import SfmOptions, StageProgress, register_photos, triangulate_known
+from damcap.reconstruct.undistort import pinhole_for, resample_to_pinhole
 
 SplitKind = Literal["consecutive", "spread"]
 WORK_FOLDER = "reconstruction"
@@ -255,7 +256,7 @@ def _registration(photos_dir: Path, names: list[str], sizes: dict[str, tuple[int
 def _needs_points(opts: ReconstructOptions, has_masks: bool) -> bool:
     """Whether the geometry mode needs sparse points (Poisson; auto/sphere without masks;
     aligning a user mesh without masks)."""
-    from .geometry import parse_mode
+    from damcap.reconstruct.geometry import parse_mode
 
     mode, _ = parse_mode(opts.geometry)
     if mode == "poisson":
@@ -309,7 +310,7 @@ def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, o
     masks = match_masks(names, masks_dir) if masks_dir is not None else None
     if poses and not poses.startswith("colmap:") and Path(poses).suffix.lower() not in (".json", ".npy"):
         raise DamcapError(f"--poses {poses!r}: use a transforms.json, a poses_bounds.npy or colmap:DIR")
-    from .geometry import parse_mode
+    from damcap.reconstruct.geometry import parse_mode
 
     mode, mesh_path = parse_mode(opts.geometry)
     if mesh_path is not None and not mesh_path.is_file():
@@ -317,7 +318,7 @@ def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, o
     _prepare_output(out, [photos_dir] + ([Path(masks_dir)] if masks_dir is not None else []))
     work = out / WORK_FOLDER
     work.mkdir(exist_ok=True)
-    from .photos import image_size
+    from damcap.reconstruct.photos import image_size
 
     sizes = {n: image_size(photos_dir / n) for n in names}
 

@@ -28,7 +28,7 @@ import numpy as np
 from damcap.common.capture_folder import rigid_problem
 from damcap.common.errors import DamcapError
 
-from .undistort import PhotoCamera, camera_from_colmap
+from damcap.reconstruct.undistort import PhotoCamera, camera_from_colmap
 
 #: OpenGL camera axes from COLMAP's (and back): flip y and z. Its own inverse.
 GL_FROM_CV_CAM = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -367,7 +367,7 @@ def read_colmap_model(folder: str | os.PathLike, photo_names: list[str]) -> Regi
     Raises:
         DamcapError: the folder is missing or holds no readable model.
     """
-    from .sfm import import_pycolmap
+    from damcap.reconstruct.sfm import import_pycolmap
 
     folder = Path(folder)
     if not folder.is_dir():

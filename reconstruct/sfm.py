@@ -42,7 +42,7 @@ import numpy as np
 from damcap.common.atomic import write_json_atomic
 from damcap.common.errors import DamcapError
 
-from .poses import Registration, registration_of_reconstruction
+from damcap.reconstruct.poses import Registration, registration_of_reconstruction
 
 #: progress callback: (stage, done, total)
 StageProgress = Callable[[str, int, int], None]
@@ -355,7 +355,7 @@ def write_colmap_masks(masks: dict[str, Path], out_dir: Path, erode_fraction: fl
     """Feature masks (:func:`feature_mask`) in COLMAP's naming (``IMG_1.JPG`` -> ``IMG_1.JPG.png``)."""
     from damcap.common.exr import write_png
 
-    from .photos import read_mask
+    from damcap.reconstruct.photos import read_mask
 
     out_dir.mkdir(parents=True, exist_ok=True)
     for name, path in masks.items():
@@ -456,7 +456,7 @@ def _features_and_matches(photo_dir: Path, names: list[str], work_dir: Path, opt
     Returns:
         database path, number of matched pairs, the pairing used.
     """
-    from .photos import image_size
+    from damcap.reconstruct.photos import image_size
 
     pycolmap = import_pycolmap()
     n = len(names)
@@ -765,7 +765,7 @@ def triangulate_known(photo_dir: str | Path, registration: Registration, work_di
     Returns:
         the same registration with ``points_world`` / ``points_seen_from`` filled in.
     """
-    from .poses import colmap_of_world_from_cam
+    from damcap.reconstruct.poses import colmap_of_world_from_cam
 
     pycolmap = import_pycolmap()
     photo_dir, work_dir = Path(photo_dir), Path(work_dir)

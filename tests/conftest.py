@@ -41,7 +41,7 @@ def sample_capture() -> Path:
 @pytest.fixture(scope="session")
 def small_capture(tmp_path_factory) -> Path:
     """A tiny closed-form capture: sphere, directional light, 12 views at 32x32, 4 train."""
-    from damcap.reconstruct.closed_form import ClosedFormOptions, make_closed_form_capture
+    from damcap.synth.closed_form import ClosedFormOptions, make_closed_form_capture
 
     out = tmp_path_factory.mktemp("cap") / "sphere"
     make_closed_form_capture(out, ClosedFormOptions(views=12, resolution=32, train_views=4, seed=1, dtype="float"))

@@ -5,12 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from damcap.appearance.baselines import ReflectanceMap, ViewData, nearest_source, rm_oracle, rm_plus_plus
+from damcap.appearance.baselines import ReflectanceMap, nearest_source, rm_oracle, rm_plus_plus
+from damcap.appearance.views import ViewData
 from damcap.appearance.evaluate import score_view
 from damcap.appearance.pixels import normal_cam
 from damcap.common.capture_folder import FrameData
-from damcap.reconstruct.cameras import focal_px_from_fov, orbit_world_from_cam, pixel_rays_world
-from damcap.reconstruct.closed_form import intersect_sphere
+from damcap.common.cameras import focal_px_from_fov, orbit_world_from_cam, pixel_rays_world
+from damcap.synth.closed_form import intersect_sphere
 
 
 def sphere_view(name, world_from_cam, shade, res=40):

@@ -12,7 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap, encode_inputs
-from damcap.appearance.fit import FitOptions, fit_dam, radiance_scale_of, training_l1
+from damcap.appearance.fit import FitOptions, fit_dam, training_l1
+from damcap.appearance.views import radiance_scale_of
 from damcap.appearance.metrics import dssim
 from damcap.appearance.pixels import PixelSamples
 

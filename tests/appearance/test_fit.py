@@ -9,8 +9,10 @@ import pytest
 import torch
 
 from damcap.appearance.evaluate import evaluate_split
-from damcap.appearance.fit import FitOptions, fit_dam, holdout_frames, radiance_scale_of, weighted_quantile_cost
-from damcap.appearance.views import load_views, samples_of, training_frames
+from damcap.appearance.fit import FitOptions, fit_dam, holdout_frames, weighted_quantile_cost
+from damcap.appearance.views import radiance_scale_of
+from damcap.appearance.views import load_views, samples_of
+from damcap.appearance.fit import training_frames
 from damcap.common.capture_folder import read_capture
 from damcap.common.errors import DamcapError
 

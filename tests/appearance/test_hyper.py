@@ -38,7 +38,7 @@ def _crop_of(capture: Path, k: int = 0) -> torch.Tensor:
 @pytest.fixture(scope="module")
 def tiny_corpus(tmp_path_factory) -> Path:
     """A corpus.json over three tiny closed-form captures (train split), as synth-set writes it."""
-    from damcap.reconstruct.closed_form import ClosedFormOptions, make_closed_form_capture
+    from damcap.synth.closed_form import ClosedFormOptions, make_closed_form_capture
 
     root = tmp_path_factory.mktemp("corpus")
     entries = []

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from damcap.appearance.fit import radiance_scale_of
+from damcap.appearance.views import radiance_scale_of
 from damcap.appearance.segment import (
     SegmentOptions, choose_materials, chromaticity_features, darkest_observation, illumination_aware_kmeans, initial_labels, kmeans,
     kmeans_baseline, match_materials, pixel_spacing, segment_materials, segmentation_scores,
@@ -18,7 +18,7 @@ from damcap.appearance.views import load_views
 from damcap.cli.main import main
 from damcap.common.capture_folder import read_capture
 from damcap.common.exr import read_exr
-from damcap.reconstruct.closed_form import ClosedFormOptions, make_closed_form_capture
+from damcap.synth.closed_form import ClosedFormOptions, make_closed_form_capture
 
 from ..conftest import assert_one_line_error, run_cli
 
@@ -287,7 +287,7 @@ def _torus_obj(path, scale=1.0, shift=(0.0, 0.0, 0.0)):
     """The closed-form torus (axis y, radii 0.9 and 0.4) as an OBJ, optionally scaled and moved."""
     import open3d as o3d
 
-    from damcap.export.shapes import torus_mesh
+    from damcap.common.shapes import torus_mesh
 
     m = torus_mesh(0.9, 0.4)
     v = np.asarray(m.vertices).copy()
@@ -300,8 +300,8 @@ def test_segmentation_carries_onto_meshes(two_materials, segmented, tmp_path, ca
     from scipy.spatial import cKDTree
 
     from damcap.appearance.segment_file import save_segmentation
-    from damcap.reconstruct.closed_form import two_material_weights
-    from damcap.reconstruct.raycast import load_mesh
+    from damcap.synth.closed_form import two_material_weights
+    from damcap.common.mesh import load_mesh
 
     seg = tmp_path / "seg"
     save_segmentation(seg, segmented, colorspace="lin_rec709", provenance={})

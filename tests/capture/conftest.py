@@ -30,7 +30,7 @@ def sim_bracket(shared_data, tmp_path_factory):
     """A 5-frame simulated DNG bracket (2 stops apart) of a real HDR environment map, 256x128."""
     import cv2
 
-    from damcap.capture.simulate import bracket_times, simulate_raw_bracket
+    from damcap.synth.brackets import bracket_times, simulate_raw_bracket
     from damcap.common.exr import read_exr
 
     env, _ = read_exr(shared_data / "envmaps" / "sunset.hdr")

@@ -9,7 +9,7 @@ import pytest
 
 from damcap.capture.hdr import HALF_MAX, HdrOptions, merge_bracket_files, read_ldr_codes, write_hdr
 from damcap.capture.metrics import abs_log_ratio_error
-from damcap.capture.simulate import CameraModel, bracket_times, simulate_raw_bracket
+from damcap.synth.brackets import CameraModel, bracket_times, simulate_raw_bracket
 from damcap.common.errors import DamcapError
 from damcap.common.exr import read_exr
 
@@ -281,7 +281,7 @@ def test_raw_alignment_recovers_a_known_shift(tmp_path, shared_data):
     import rawpy
 
     from damcap.capture.align import shift_image
-    from damcap.capture.simulate import write_dng
+    from damcap.synth.brackets import write_dng
 
     env = cv2.resize(read_exr(shared_data / "envmaps" / "sunset.hdr")[0][..., :3], (512, 256), interpolation=cv2.INTER_AREA)
     sb = simulate_raw_bracket(np.maximum(env, 0), tmp_path, bracket_times(3, 2.0, 1 / 60), seed=1)

@@ -20,7 +20,7 @@ from damcap.capture.raw import (
     rgb_from_camera_matrix,
     to_rec709,
 )
-from damcap.capture.simulate import CANON_550D_CAMERA_FROM_XYZ, XYZ_FROM_REC709, cfa_map, mosaic
+from damcap.synth.brackets import CANON_550D_CAMERA_FROM_XYZ, XYZ_FROM_REC709, cfa_map, mosaic
 from damcap.common.errors import DamcapError
 
 

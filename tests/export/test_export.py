@@ -186,7 +186,7 @@ def test_exposure_scale_rule():
 
 def test_several_dams_by_vertex_labels(model_file, bunny, tmp_path):
     from damcap.appearance.dam_file import load_dam
-    from damcap.reconstruct.raycast import load_mesh
+    from damcap.common.mesh import load_mesh
 
     dam, meta = load_dam(model_file)
     brighter = DeepAppearanceMap(dam.arch, dam.radiance_scale * 2, dam.get_flat_weights())
@@ -216,9 +216,9 @@ def test_procedural_shapes_are_the_closed_form_surfaces(tmp_path, capsys):
     (axis y, as the capture contract's up), every sphere vertex on |v| = 1; both come back through
     damcap's own mesh reader, and bad requests are refused with a message."""
     from damcap.common.errors import DamcapError
-    from damcap.export.shapes import main as shapes_main
-    from damcap.export.shapes import torus_mesh, write_shape
-    from damcap.reconstruct.raycast import load_mesh
+    from damcap.common.shapes import main as shapes_main
+    from damcap.common.shapes import torus_mesh, write_shape
+    from damcap.common.mesh import load_mesh
 
     v = np.asarray(torus_mesh(0.9, 0.4).vertices)
     assert np.allclose((np.hypot(v[:, 0], v[:, 2]) - 0.9) ** 2 + v[:, 1] ** 2, 0.16, atol=1e-9)

@@ -7,7 +7,7 @@ import pytest
 
 from damcap.common.capture_folder import Intrinsics
 from damcap.common.errors import DamcapError
-from damcap.reconstruct.cameras import focal_px_from_fov, look_at_world_from_cam
+from damcap.common.cameras import focal_px_from_fov, look_at_world_from_cam
 from damcap.reconstruct.geometry import (
     GeometryInputs,
     GeometryOptions,
@@ -20,7 +20,8 @@ from damcap.reconstruct.geometry import (
     project_points,
     visual_hull,
 )
-from damcap.reconstruct.raycast import Mesh, MeshRaycaster
+from damcap.common.mesh import Mesh
+from damcap.common.raycast import MeshRaycaster
 
 SIZE = 64
 RADIUS = 0.8
@@ -86,7 +87,7 @@ def test_sphere_fit_from_silhouettes_and_auto_picks_it(sphere_scene):
 
 
 def test_auto_picks_the_visual_hull_for_a_non_sphere():
-    from damcap.reconstruct.textured_photos import bumpy_blob
+    from damcap.synth.photos import bumpy_blob
 
     cams, intr = _cameras()
     blob = bumpy_blob(subdivisions=4)
@@ -126,7 +127,7 @@ def test_poisson_needs_points():
 
 def test_align_mesh_recovers_a_similarity():
     from damcap.reconstruct.normalize import similarity, transform_points
-    from damcap.reconstruct.textured_photos import bumpy_blob
+    from damcap.synth.photos import bumpy_blob
 
     blob = bumpy_blob(subdivisions=4)
     a = np.radians(35)

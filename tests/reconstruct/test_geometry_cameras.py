@@ -7,7 +7,7 @@ import pytest
 
 from damcap.common.capture_folder import Intrinsics, rigid_problem
 from damcap.common.errors import DamcapError
-from damcap.reconstruct.cameras import look_at_world_from_cam
+from damcap.common.cameras import look_at_world_from_cam
 from damcap.reconstruct.normalize import (
     normalization_transform,
     optical_axes_focus,

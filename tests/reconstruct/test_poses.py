@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from damcap.common.errors import DamcapError
-from damcap.reconstruct.cameras import look_at_world_from_cam
+from damcap.common.cameras import look_at_world_from_cam
 from damcap.reconstruct.poses import (
     colmap_of_world_from_cam,
     llff_of_world_from_cam,

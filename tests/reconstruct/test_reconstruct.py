@@ -1,7 +1,7 @@
 """``damcap reconstruct`` end to end on a synthetic photo set with known cameras, geometry and radiance.
 
 The photos are 8-bit sRGB JPEGs with EXIF exposure (auto-exposure-like, varying per photo) of a
-textured bumpy blob, made by :mod:`damcap.reconstruct.textured_photos`.
+textured bumpy blob, made by :mod:`damcap.synth.photos`.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from damcap.common.capture_folder import inspect_capture, read_capture, read_fra
 from damcap.common.errors import DamcapError
 from damcap.reconstruct.normalize import rotation_agreement_deg, similarity_scale, transform_world_from_cam, umeyama_similarity
 from damcap.reconstruct.pipeline import ReconstructOptions, reconstruct_capture, split_indices
-from damcap.reconstruct.raycast import MeshRaycaster
-from damcap.reconstruct.textured_photos import (
+from damcap.common.raycast import MeshRaycaster
+from damcap.synth.photos import (
     bumpy_blob,
     default_intrinsics,
     exposure_series,

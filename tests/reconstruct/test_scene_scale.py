@@ -1,7 +1,7 @@
 """``damcap reconstruct`` with known poses in any unit: the capture does not depend on the scene's scale.
 
 Users' poses come in millimetres, metres or kilometres. The same photos (a textured blob made by
-:mod:`damcap.reconstruct.textured_photos`) are reconstructed with the ground-truth poses'
+:mod:`damcap.synth.photos`) are reconstructed with the ground-truth poses'
 translations, and the user mesh, multiplied by k from 1e-20 to 1e20 (1e-3 / 1e3 are millimetres /
 kilometres against metres lie within 1e-4..1e4; the decades beyond show that no absolute
 epsilon is left).
@@ -35,8 +35,8 @@ from damcap.common.errors import DamcapError
 from damcap.reconstruct.normalize import normalization_transform, similarity_scale, transform_points
 from damcap.reconstruct.pipeline import ReconstructOptions, reconstruct_capture
 from damcap.reconstruct.poses import llff_of_world_from_cam
-from damcap.reconstruct.raycast import vertex_normals_area_weighted
-from damcap.reconstruct.textured_photos import bumpy_blob, default_intrinsics, orbit_cameras, write_photo_set
+from damcap.common.mesh import vertex_normals_area_weighted
+from damcap.synth.photos import bumpy_blob, default_intrinsics, orbit_cameras, write_photo_set
 
 from tests.conftest import assert_one_line_error, run_cli
 

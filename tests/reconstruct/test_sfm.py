@@ -75,7 +75,7 @@ def test_fingerprint_is_stable_and_sensitive():
 
 
 def test_unmatchable_photos_fail_clearly(tmp_path):
-    from damcap.reconstruct.textured_photos import write_jpeg
+    from damcap.synth.photos import write_jpeg
 
     rng = np.random.default_rng(3)
     photos = tmp_path / "photos"
@@ -105,7 +105,7 @@ def test_refine_principal_point_is_one_more_adjustment_on_the_same_matches(tmp_p
     direction but understates the error); photos filled with texture, like the fox's, pin it down
     (bench/reconstruct.md)."""
     from damcap.common.capture_folder import Intrinsics
-    from damcap.reconstruct.textured_photos import bumpy_blob, default_intrinsics, exposure_series, orbit_cameras, write_photo_set
+    from damcap.synth.photos import bumpy_blob, default_intrinsics, exposure_series, orbit_cameras, write_photo_set
 
     size, n = 256, 28
     centred = default_intrinsics(size)

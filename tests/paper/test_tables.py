@@ -10,12 +10,12 @@ import pytest
 from damcap.appearance.fit import FitOptions
 from damcap.appearance.hyper_file import load_predictor, shipped_predictor_path
 from damcap.appearance.segment import SegmentOptions
-from damcap.appearance.tables import (
+from damcap.paper.tables import (
     TableOptions, heldout_entries, rows_from_json, summarise, table1_markdown, table1_rows, table2_markdown, table2_rows,
 )
 from damcap.appearance.views import load_views
 from damcap.common.capture_folder import read_capture
-from damcap.reconstruct.closed_form import ClosedFormOptions, make_closed_form_capture
+from damcap.synth.closed_form import ClosedFormOptions, make_closed_form_capture
 
 from ..conftest import assert_one_line_error, run_cli
 
@@ -89,7 +89,7 @@ def test_cells_are_means_over_captures_and_markdown_quotes_the_paper(rows):
 def test_rows_round_trip_through_json_and_resume_skips_done_captures(corpus, rows, predictor, monkeypatch):
     again = [rows_from_json(json.loads(json.dumps(r.as_json()))) for r in rows]
     assert summarise(again) == summarise(rows)
-    import damcap.appearance.tables as tables
+    import damcap.paper.tables as tables
 
     def boom(*a, **k):
         raise AssertionError("a finished capture was recomputed")

@@ -53,13 +53,13 @@ from damcap.common.capture_folder import (
 from damcap.common.errors import DamcapError
 from damcap.common.exr import read_exr, write_exr
 
-from .cameras import focal_px_from_fov, orbit_world_from_cam, pixel_rays_world
-from .synth_geometry import GeometryBuffers, RayCaster, SceneGeometry, frame_geometry
-from .synth_mesh import (
+from damcap.common.cameras import focal_px_from_fov, orbit_world_from_cam, pixel_rays_world
+from damcap.synth.geometry import GeometryBuffers, RayCaster, SceneGeometry, frame_geometry
+from damcap.synth.mesh import (
     TriangleMesh, face_normals_area, icosphere, material_labels, normalise_to_unit_sphere, read_mesh, submesh,
     vertex_normals,
 )
-from .synth_render import EnvLight, LayeredMaterial, SphereLight, Variant
+from damcap.synth.mitsuba_render import EnvLight, LayeredMaterial, SphereLight, Variant
 
 #: channel of images/*.exr holding the renderer's alpha (fraction of samples hitting the object)
 RENDER_ALPHA_CHANNEL = "render.A"
@@ -718,7 +718,7 @@ def make_synthetic_capture(out: str | os.PathLike, opts: SynthOptions, *, progre
     """
     from damcap.common.version import damcap_version
 
-    from . import synth_render
+    from damcap.synth import mitsuba_render as synth_render
 
     opts.validate()
     out = Path(out)

@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 
 from damcap.common.errors import DamcapError
-from damcap.reconstruct import synth_set
-from damcap.reconstruct.synth import validate_synthetic_capture
-from damcap.reconstruct.synth_set import (
+from damcap.synth import corpus as synth_set
+from damcap.synth.mitsuba_capture import validate_synthetic_capture
+from damcap.synth.corpus import (
     HELDOUT_OBJECTS, OBJECTS, CorpusPreset, env_illuminations, make_corpus, plan_corpus, point_illuminations, preset,
 )
 

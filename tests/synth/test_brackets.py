@@ -7,7 +7,7 @@ import pytest
 
 from damcap.capture.exif import read_exposure
 from damcap.capture.raw import read_raw
-from damcap.capture.simulate import (
+from damcap.synth.brackets import (
     CameraModel,
     bracket_times,
     camera_rgb_from_rec709,

@@ -31,14 +31,14 @@ import numpy as np
 
 from damcap.common.errors import DamcapError
 
-from .baselines import ViewData
-from .evaluate import MethodScores, evaluate_split
-from .fit import FitOptions, fit_dam, refine_dam
-from .pixels import FOREGROUND_COVERAGE
-from .segment import (
+from damcap.appearance.views import ViewData
+from damcap.appearance.evaluate import MethodScores, evaluate_split
+from damcap.appearance.fit import FitOptions, fit_dam, refine_dam
+from damcap.appearance.pixels import FOREGROUND_COVERAGE
+from damcap.appearance.segment import (
     SegmentOptions, chromaticity_features, kmeans_baseline, match_materials, segment_materials, segmentation_scores,
 )
-from .views import samples_of
+from damcap.appearance.views import samples_of
 
 #: the paper's published figures, for the side-by-side columns (Table 1 ratios and Table 2)
 PAPER = {
@@ -101,7 +101,7 @@ def learning_to_learn_rows(train: list[ViewData], test: list[ViewData], net, fit
     ``fitted`` when the predictor's architecture is the fit's, else a fit of the predictor's (the
     paper compares a predicted DAM with the same DAM fitted; the shipped predictor emits leaky-ReLU
     DAMs, ``damcap fit`` defaults to shifted softplus)."""
-    from .hyper import predict_dam, predictor_input
+    from damcap.appearance.hyper import predict_dam, predictor_input
 
     k, crop, scale = predictor_input(train)
     t = time.perf_counter()
@@ -196,7 +196,7 @@ def table1_rows(corpora: list[Path], opts: TableOptions, predictor, tasks: tuple
     capture name, reused as they are: the evaluation resumes)."""
     from damcap.common.capture_folder import read_capture
 
-    from .views import load_views
+    from damcap.appearance.views import load_views
 
     rows = []
     for path, entry in heldout_entries(corpora):
@@ -329,7 +329,7 @@ def iou_lines(rows: list[CaptureRows]) -> list[str]:
 
 def plot_table1(rows: list[CaptureRows], folder: Path) -> list[Path]:
     """One sorted-DSSIM plot per task and light kind (PNG)."""
-    from .evaluate import plot_sorted_dssim
+    from damcap.appearance.evaluate import plot_sorted_dssim
 
     paths = []
     for task in TASKS:
@@ -351,7 +351,7 @@ def table2_rows(train: list[ViewData], test: list[ViewData], opts: TableOptions,
                 materials: int | str = "auto", log: Callable[[str], None] = lambda m: None) -> tuple[CaptureRows, Any]:
     """All three tasks on one (real) capture. ``materials``: n for the segmentation, or 'auto'
     (:func:`.segment.choose_materials` on the test split). Returns (rows, our segmentation)."""
-    from .segment import choose_materials
+    from damcap.appearance.segment import choose_materials
 
     row = CaptureRows(name, "real", 0)
     t = time.perf_counter()
@@ -410,7 +410,7 @@ def false_colour_figure(model, views: list[ViewData], path: Path, max_frames: in
 
     from damcap.common.atomic import atomic_path
 
-    from .segment import false_colour
+    from damcap.appearance.segment import false_colour
 
     pick = views[:: max(1, math.ceil(len(views) / max_frames))][:max_frames]
     fig, axes = plt.subplots(2, len(pick), figsize=(3 * len(pick), 6), squeeze=False)

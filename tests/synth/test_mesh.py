@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from damcap.common.errors import DamcapError
-from damcap.reconstruct.synth_mesh import (
+from damcap.synth.mesh import (
     TriangleMesh, icosphere, material_labels, normalise_to_unit_sphere, read_mesh, signed_volume,
     smooth_noise_fields, submesh, vertex_normals,
 )

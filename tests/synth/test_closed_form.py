@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from damcap.common.capture_folder import inspect_capture, read_capture, read_frame
-from damcap.reconstruct.cameras import orbit_world_from_cam, pixel_rays_world
-from damcap.reconstruct.closed_form import (
+from damcap.common.cameras import orbit_world_from_cam, pixel_rays_world
+from damcap.synth.closed_form import (
     ClosedFormOptions, Material, brdf_lambert_ggx, directional_lighting, equirect_directions,
     intersect_sphere, intersect_torus, make_closed_form_capture, render_closed_form, shade, torus_sdf,
 )
@@ -88,7 +88,7 @@ def test_radiance_depends_on_view_and_normal_only():
     cams, intr, data, mats = render_closed_form(ClosedFormOptions(views=4, resolution=16, train_views=2, light="env", env_grid=8))
     n = torch.tensor([[0.0, 1.0, 0.0]])
     v = torch.tensor([[0.0, 0.6, 0.8]])
-    from damcap.reconstruct.closed_form import environment_lighting
+    from damcap.synth.closed_form import environment_lighting
     a = shade(n, v, environment_lighting(8), mats[0])
     b = shade(n.repeat(3, 1), v.repeat(3, 1), environment_lighting(8), mats[0])
     torch.testing.assert_close(b, a.repeat(3, 1))

@@ -1,6 +1,6 @@
 """Procedural shapes to put appearance on: ``make demo`` exports its DAM onto one of them.
 
-Run ``python -m damcap.export.shapes torus OUT.obj`` (or ``sphere``) to write one as an OBJ that
+Run ``python -m damcap.common.shapes torus OUT.obj`` (or ``sphere``) to write one as an OBJ that
 ``damcap export --mesh`` reads like any user mesh.
 """
 

@@ -33,7 +33,7 @@ from typing import Any, Callable, Literal
 from damcap.common.atomic import write_json_atomic
 from damcap.common.errors import DamcapError
 
-from .synth import SynthOptions, make_synthetic_capture
+from damcap.synth.mitsuba_capture import SynthOptions, make_synthetic_capture
 
 Preset = Literal["small", "paper", "hyper", "segment", "segment-dev"]
 PRESETS = ("small", "paper", "hyper", "segment", "segment-dev")

@@ -22,8 +22,9 @@ from damcap.common.atomic import write_json_atomic
 from damcap.common.capture_folder import Intrinsics
 from damcap.common.exr import write_image_u8
 
-from .cameras import focal_px_from_fov, look_at_world_from_cam
-from .raycast import Mesh, MeshRaycaster, vertex_normals_area_weighted
+from damcap.common.cameras import focal_px_from_fov, look_at_world_from_cam
+from damcap.common.mesh import Mesh, vertex_normals_area_weighted
+from damcap.common.raycast import MeshRaycaster
 
 
 def _hash3(ijk: np.ndarray, seed: int) -> np.ndarray:
@@ -221,7 +222,7 @@ def default_intrinsics(size: int, fov_deg: float = 45.0) -> Intrinsics:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m damcap.reconstruct.textured_photos OUT``: write a textured photo set (samples/)."""
+    """``python -m damcap.synth.photos OUT``: write a textured photo set (samples/)."""
     import argparse
 
     ap = argparse.ArgumentParser(description="Write JPEG photos (EXIF exposure), masks and ground-truth cameras of a textured synthetic object.")

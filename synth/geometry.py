@@ -27,9 +27,9 @@ import numpy as np
 
 from damcap.common.capture_folder import Intrinsics
 
-from .cameras import pixel_rays_world
-from .closed_form import intersect_sphere
-from .synth_mesh import TriangleMesh
+from damcap.common.cameras import pixel_rays_world
+from damcap.synth.closed_form import intersect_sphere
+from damcap.synth.mesh import TriangleMesh
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ import numpy as np
 from damcap.common.capture_folder import Intrinsics
 from damcap.common.errors import DamcapError
 
-from .synth_mesh import TriangleMesh
+from damcap.synth.mesh import TriangleMesh
 
 Variant = Literal["auto", "llvm_ad_rgb", "scalar_rgb"]
 #: most camera samples (pixels x samples) traced per Mitsuba call; more passes above it

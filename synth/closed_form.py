@@ -25,7 +25,7 @@ from damcap.common.capture_folder import Capture, Frame, FrameData, Intrinsics, 
 from damcap.common.errors import DamcapError
 from damcap.common.numerics import dot, safe_div, safe_normalize
 
-from .cameras import focal_px_from_fov, orbit_world_from_cam, pixel_rays_world
+from damcap.common.cameras import focal_px_from_fov, orbit_world_from_cam, pixel_rays_world
 
 # --------------------------------------------------------------------------------------------
 # BRDF (pure, torch)

@@ -11,14 +11,14 @@ import pytest
 from damcap.common.capture_folder import GEOMETRY_CHANNELS, Intrinsics, inspect_capture, read_capture, read_frame, weight_channels
 from damcap.common.errors import DamcapError
 from damcap.common.exr import read_exr, write_exr
-from damcap.reconstruct.cameras import orbit_world_from_cam, pixel_rays_world
-from damcap.reconstruct.synth import (
+from damcap.common.cameras import orbit_world_from_cam, pixel_rays_world
+from damcap.synth.mitsuba_capture import (
     PARTIAL_MARKER, RENDER_ALPHA_CHANNEL, SynthOptions, camera_setup, compose_frame, coverage_agreement,
     env_mean_luminance, fd_normal_cosines, make_synthetic_capture, parse_light_spec, point_light, resolve_scene,
     train_split, validate_synthetic_capture,
 )
-from damcap.reconstruct.synth_geometry import RayCaster, SceneGeometry, frame_geometry, subpixel_offsets
-from damcap.reconstruct.synth_render import (
+from damcap.synth.geometry import RayCaster, SceneGeometry, frame_geometry, subpixel_offsets
+from damcap.synth.mitsuba_render import (
     EnvLight, LayeredMaterial, build_scene, pass_sample_counts, render_view, sampler_count_ok, select_variant,
 )
 
@@ -330,7 +330,7 @@ def test_an_exr_environment_map_renders_with_one_requested_thread(shared_data, t
     import subprocess
     import sys
 
-    code = ("from damcap.reconstruct.synth import SynthOptions, make_synthetic_capture; "
+    code = ("from damcap.synth.mitsuba_capture import SynthOptions, make_synthetic_capture; "
             f"make_synthetic_capture({str(tmp_path / 'c')!r}, SynthOptions(object='sphere', "
             f"light='env:{shared_data / 'envmaps' / 'museum.exr'}:0', views=3, train_views=2, resolution=16, spp=2), threads=1)")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180)

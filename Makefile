@@ -6,7 +6,7 @@ PIP := $(PY) -m pip
 STAMP := $(VENV)/.installed
 APT_PACKAGES := libusb-1.0-0 libllvm19 libgomp1 chromium
 
-.PHONY: demo test bench tables system venv clean
+.PHONY: demo test wheel-check bench tables system venv clean
 
 # System packages the stack needs (open3d: libusb; mitsuba llvm_ad_rgb: libLLVM 19; the viewer's
 # browser test: chromium).
@@ -19,10 +19,12 @@ system:
 	    || { echo "error: could not install system packages:$$missing (run as root or with sudo)"; exit 1; }; \
 	fi
 
-$(STAMP): constraints.txt pyproject.toml
+# Everything: the core, every optional extra (synth: Mitsuba, pidng; onnx) and the test tools.
+# setuptools >= 77 in the venv too: wheel-check builds the wheel with it, offline.
+$(STAMP): constraints.txt pyproject.toml setup.py
 	@test -x $(PY) || python3 -m venv $(VENV)
-	$(PIP) install -q --upgrade pip -c constraints.txt
-	$(PIP) install -q -c constraints.txt -e '.[test]'
+	$(PIP) install -q --upgrade pip 'setuptools>=77' -c constraints.txt
+	$(PIP) install -q -c constraints.txt -e '.[all,test]'
 	@$(PY) -c "import torch; assert torch.__version__.startswith('2.13.0'), torch.__version__"
 	@touch $(STAMP)
 
@@ -43,7 +45,7 @@ demo: venv
 	$(DAMCAP) predict $(DEMO_OUT)/capture -o $(DEMO_OUT)/predicted.dam --refine-steps 100
 	$(DAMCAP) render $(DEMO_OUT)/model.dam $(DEMO_OUT)/capture -o $(DEMO_OUT)/renders --split test
 	$(DAMCAP) evaluate $(DEMO_OUT)/capture --model $(DEMO_OUT)/model.dam --model $(DEMO_OUT)/predicted.dam --json $(DEMO_OUT)/evaluation.json
-	$(PY) -m damcap.common.shapes torus $(DEMO_OUT)/torus.obj
+	$(DAMCAP) shape torus $(DEMO_OUT)/torus.obj
 	$(DAMCAP) export $(DEMO_OUT)/model.dam --mesh $(DEMO_OUT)/torus.obj -o $(DEMO_OUT)/export --views 24 --resolution 256 --video
 	@echo
 	@echo "demo results are in $(DEMO_OUT)/:"
@@ -58,10 +60,14 @@ demo: venv
 test: venv
 	$(PY) -m pytest -q
 
+# The wheel as users get it: build, install into a scratch venv, run damcap from outside the tree
+wheel-check: venv
+	bash .ci/wheel_check.sh $(VENV)
+
 # Slow studies (never in CI): results in bench/results/*.json and bench/*.md
 BENCHES ?= dam_core export hyper segment
 bench: venv
-	@set -e; for b in $(BENCHES); do echo "== bench/$$b.py"; $(PY) bench/$$b.py; done
+	@set -e; for b in $(BENCHES); do echo "== python -m bench.$$b"; $(PY) -m bench.$$b; done
 
 # The paper's Tables 1 and 2 (renders the held-out corpora first when missing; resumable)
 SMALL := bench/.cache/synth_small
@@ -71,7 +77,7 @@ tables: venv
 	$(VENV)/bin/damcap synth-set $(SMALL) --preset small
 	$(VENV)/bin/damcap synth-set $(SEGMENT) --preset segment
 	$(VENV)/bin/damcap evaluate --table1 $(SMALL) --table1 $(SEGMENT) --out bench/tables
-	@test -f $(CAPE)/transforms.json || $(PY) bench/reconstruct.py --part realworld
+	@test -f $(CAPE)/transforms.json || $(PY) -m bench.reconstruct --part realworld
 	$(VENV)/bin/damcap evaluate --table2 $(CAPE) --out bench/tables
 
 clean:

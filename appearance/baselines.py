@@ -1,4 +1,4 @@
-"""The paper's reflectance-map baselines, as capture-format.md defines them.
+"""The paper's reflectance-map baselines, as docs/capture-format.md defines them.
 
 RM++: for each target frame, the training view with the nearest camera centre; every covered
 target pixel copies the colour of the covered source pixel (A > 0.5) whose camera-space normal

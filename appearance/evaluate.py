@@ -1,4 +1,4 @@
-"""Evaluation: mean DSSIM per split for a model, RM and RM++ (capture-format.md), and the plot."""
+"""Evaluation: mean DSSIM per split for a model, RM and RM++ (docs/capture-format.md), and the plot."""
 
 from __future__ import annotations
 

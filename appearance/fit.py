@@ -63,7 +63,7 @@ class FitOptions:
     more smoothly than 'leaky_relu': on seven training-part Mitsuba captures, novel-view
     DSSIM / RM++ 0.47 vs 0.57, better on each (bench/synth.md); plain 'softplus' collapses
     to black on point-light captures"""
-    encoding: Encoding = "nr"
+    encoding: Encoding = field(default="nr", metadata={"cli_what": "DAM input encoding"})
     """DAM input: 'vn' (paper), 'nr' (normal + mirrored view), 'vnr'"""
     separable: bool = False
     """DAM = softplus(f(N) + g(R)), two half-width branches (``DamArchitecture.separable``; an

@@ -1,4 +1,4 @@
-"""DSSIM exactly as capture-format.md defines it (the number every result in damcap reports)."""
+"""DSSIM exactly as docs/capture-format.md defines it (the number every result in damcap reports)."""
 
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ def normalise_pair(reference_lin: np.ndarray, prediction_lin: np.ndarray, foregr
 
 
 def dssim(reference_lin: np.ndarray, prediction_lin: np.ndarray, coverage: np.ndarray, threshold: float = FOREGROUND_COVERAGE) -> float | None:
-    """DSSIM = (1 - SSIM) / 2 over the foreground of one frame (capture-format.md).
+    """DSSIM = (1 - SSIM) / 2 over the foreground of one frame (docs/capture-format.md).
 
     SSIM per channel with an 11x11 Gaussian window (kornia.metrics.ssim), averaged over the
     channels and over the pixels whose window centre is foreground.

@@ -118,7 +118,7 @@ def fit_to_target(train: list[ViewData], target_dssim: float, opts: FitOptions,
 
     Args:
         train: the training views (at least 3, so that some can be held out).
-        target_dssim: the accuracy asked for (mean DSSIM, capture-format.md).
+        target_dssim: the accuracy asked for (mean DSSIM, docs/capture-format.md).
         opts: fit options; width and depth are chosen here, the rest is used as given
             (``holdout_views`` >= 1 is required).
         progress: called with one line per size tried (and one when a record is discarded).

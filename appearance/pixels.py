@@ -9,7 +9,7 @@ import torch
 
 from damcap.common.capture_folder import FrameData
 
-#: coverage above which a pixel counts as foreground (capture-format.md: A > 0.5)
+#: coverage above which a pixel counts as foreground (docs/capture-format.md: A > 0.5)
 FOREGROUND_COVERAGE = 0.5
 
 

@@ -29,7 +29,7 @@ Two parts, every method measured side by side in one run:
 
 Run (from the repository root)::
 
-    .venv/bin/python bench/capture_hdr.py
+    .venv/bin/python -m bench.capture_hdr
 
 Outputs: ``bench/results/capture_hdr.json`` and ``bench/capture_hdr.md``.
 """
@@ -50,8 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import cpu_model  # noqa: E402
+from bench.common import BENCH, REPO, RESULTS, command_line, cpu_model, shared_data_dir
 
 from damcap.capture.exif import read_exposure, read_hdr_image_list
 from damcap.capture.hdr import HdrOptions, merge_bracket_files, read_ldr_codes
@@ -61,9 +60,6 @@ from damcap.common.atomic import write_json_atomic, write_text_atomic
 from damcap.common.exr import read_exr
 from damcap.common.version import damcap_version
 
-BENCH = Path(__file__).resolve().parent
-REPO = BENCH.parent
-RESULTS = BENCH / "results"
 TARGETS = {"memorial_median": 0.025, "memorial_p90": 0.08, "raw_speedup": 2.0}
 
 
@@ -661,12 +657,13 @@ NOTES = [
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
+    ap.add_argument("--data", type=Path, default=shared_data_dir())
     ap.add_argument("--envmaps", default="sunset,forest,studio", help="comma-separated envmaps/*.hdr names")
     ap.add_argument("--frames", type=int, default=5)
     ap.add_argument("--stops", type=float, default=2.0)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--skip-slow", action="store_true", help="skip colour-hdri's own Debevec response (minutes)")
+    ap.add_argument("--skip-knobs", action="store_true", help="skip the LDR response knobs on memorial (smoke runs)")
     ap.add_argument("--json", type=Path, default=RESULTS / "capture_hdr.json")
     ap.add_argument("--md", type=Path, default=BENCH / "capture_hdr.md")
     args = ap.parse_args(argv)
@@ -674,15 +671,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: shared data not found at {args.data}", file=sys.stderr)
         return 2
     start = time.time()
-    doc = {"command": "cd " + shlex.quote(str(REPO)) + " && .venv/bin/python bench/capture_hdr.py "
-                      + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:])),
+    doc = {"command": "cd " + shlex.quote(str(REPO)) + " && " + command_line("capture_hdr", argv if argv is not None else sys.argv[1:]),
            "date": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC"), "machine": machine(),
            "load_before": load_avg(), "targets": TARGETS}
     doc["command"] = doc["command"].rstrip()
     memorial = memorial_stack(args.data)
     doc["memorial"] = memorial_bench(memorial, slow=not args.skip_slow)
     print(json.dumps(doc["memorial"], indent=1), flush=True)
-    doc["memorial_knobs"] = memorial_knobs(memorial)
+    if not args.skip_knobs:
+        doc["memorial_knobs"] = memorial_knobs(memorial)
     doc["raw_setup"] = (f"{args.frames} exposures {args.stops:g} stops apart, longest 1/15 s, ISO 100, f/8; RGGB, 14 bit, "
                         "black 512, full well 30000 e-, read noise 3 e-; 1024x512")
     with tempfile.TemporaryDirectory(prefix="capture_bench_") as work:

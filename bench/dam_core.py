@@ -41,15 +41,17 @@ and a clean-window estimate (disturbed windows re-timed at the clean windows' sp
 
 Run (from the repository root)::
 
-    .venv/bin/python bench/dam_core.py
+    .venv/bin/python -m bench.dam_core
 
 Options (``--help``): ``--only NAME ...`` runs only these settings, ``--seeds 0 1 2`` the fit
 seeds, ``--captures sphere_env torus_env``, ``--resume``, ``--render-runs N`` (0 = no render
 timing), ``--budget-minutes``, ``--max-aborts``, ``--quiet-wait S`` (0 = do not wait for a quiet
 machine) and ``--out DIR``: write the JSON, plot, markdown and run log into DIR instead of the
-committed ``bench/results/``, ``bench/dam_core.md`` and ``bench/.cache/`` (for smoke runs), e.g.::
+committed ``bench/results/``, ``bench/dam_core.md`` and ``bench/.cache/`` (for smoke runs);
+``--cache DIR`` holds the generated captures, ``--resolution`` and ``--steps`` shrink them and every
+fit, e.g.::
 
-    .venv/bin/python bench/dam_core.py --only predict_k100 input32 --seeds 0 --captures sphere_env \
+    .venv/bin/python -m bench.dam_core --only predict_k100 input32 --seeds 0 --captures sphere_env \
         --render-runs 0 --quiet-wait 0 --out /tmp/dam_core_smoke
 """
 
@@ -72,14 +74,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import NCPU, CpuMeter, log, machine_info, own_cpu_s, system_busy_s  # noqa: E402
+
+from bench.common import BENCH, CACHE, NCPU, REPO, RESULTS, CpuMeter, command_line, log, machine_info, own_cpu_s, system_busy_s
 
 from damcap.appearance.views import ViewData
 from damcap.appearance.evaluate import evaluate_split
 from damcap.appearance.fit import FitOptions, fit_dam, refine_dam
-from damcap.appearance.hyper import predict_dam, predictor_input
-from damcap.appearance.hyper_file import load_predictor, shipped_predictor_path
+from damcap.appearance.hyper.model import predict_dam, predictor_input
+from damcap.appearance.hyper.file import load_predictor, shipped_predictor_path
 from damcap.appearance.render import render_frame
 from damcap.appearance.fit import adversarial_frames
 from damcap.appearance.views import load_views, samples_of
@@ -87,9 +89,6 @@ from damcap.common.capture_folder import read_capture
 from damcap.synth.closed_form import ClosedFormOptions, make_closed_form_capture
 
 THREADS = 2
-BENCH = Path(__file__).resolve().parent
-CACHE = BENCH / ".cache"
-RESULTS = BENCH / "results"
 RUNS_LOG = CACHE / "dam_core_runs.jsonl"
 
 CAPTURES: dict[str, ClosedFormOptions] = {
@@ -160,8 +159,8 @@ STUDIES: dict[str, list[str]] = {
 # --------------------------------------------------------------------------------------------
 
 
-def ensure_capture(name: str, opts: ClosedFormOptions) -> Path:
-    path = CACHE / name
+def ensure_capture(name: str, opts: ClosedFormOptions, cache: Path = CACHE) -> Path:
+    path = cache / name
     if (path / "transforms.json").exists():
         log(f"capture {name}: cached at {path}")
         return path
@@ -450,9 +449,9 @@ def predict_once(data: dict, predictor, refine_steps: int, seed: int, *, max_abo
     }
 
 
-def time_render(model_opts: FitOptions, runs: int, quiet_wait_s: float) -> dict:
+def time_render(model_opts: FitOptions, runs: int, quiet_wait_s: float, cache: Path = CACHE) -> dict:
     """Median wall time of render_frame on one 256x256 frame (default architecture)."""
-    path = ensure_capture(*RENDER_CAPTURE)
+    path = ensure_capture(*RENDER_CAPTURE, cache)
     cap = read_capture(path)
     train, test = load_views(cap, "train"), load_views(cap, "test")
     # a (briefly) fitted model: render time does not depend on the weights' values
@@ -612,7 +611,7 @@ def pareto_plot(result: dict, path: Path) -> None:
 def _shown(path: Path) -> str:
     """A path as the report shows it: relative to the repository root when inside it."""
     try:
-        return str(path.resolve().relative_to(BENCH.parent))
+        return str(path.resolve().relative_to(REPO))
     except ValueError:
         return str(path)
 
@@ -642,7 +641,9 @@ def write_markdown(result: dict, path: Path, plot_path: Path) -> None:
     L.append(f"- torch {m['torch']} with `torch.set_num_threads({THREADS})`, numpy {m['numpy']}, Python {m['python']}, {m['platform']}")
     L.append(f"- seeds: {result['seeds']} (`FitOptions.seed`; the captures themselves use seed 0)")
     L.append(f"- raw numbers (per seed, with training histories): `{_shown(plot_path.with_name('dam_core.json'))}`; plot: `{_shown(plot_path)}`\n")
-    L.append("Captures: `ClosedFormOptions(shape=..., light='env', views=32, resolution=128, train_views=10, seed=0)`: "
+    co = next(iter(result["captures"].values()), {}).get("capture_options", {})
+    L.append(f"Captures: `ClosedFormOptions(shape=..., light='env', views={co.get('views', 32)}, resolution={co.get('resolution', 128)}, "
+             f"train_views={co.get('train_views', 10)}, seed=0)`: "
              "10 consecutive train views, 22 test views. **Novel-view** = the 22 test views; **same-view** = the 10 train views "
              "(RM/RM++ leave the frame itself out; the DAM saw them). Time = wall seconds of the `fit_dam` call (adversarial: "
              "building its whole-frame inputs, ~0.1 s, is not included; it is in the JSON). Ratio = DAM novel-view DSSIM / RM++ "
@@ -773,6 +774,8 @@ def predictor_options(predictor: dict, refine_steps: int) -> dict:
 def measure_setting(result: dict, data: dict, args, name: str, overrides: dict, cached_runs: dict, budget_left,
                     predictor: dict | None = None) -> None:
     fit_ov, bench_ov = split_overrides(overrides)
+    if args.steps is not None and "predict_refine_steps" not in bench_ov:
+        fit_ov = {**fit_ov, "steps": args.steps}
     k_refine = bench_ov.get("predict_refine_steps")
     for cap_name in args.captures:
         cap_data = setting_data(data[cap_name], bench_ov)
@@ -819,11 +822,11 @@ def measure_setting(result: dict, data: dict, args, name: str, overrides: dict, 
             result["notes"].append(f"{cap_name} `{name}`: non-finite weights or DSSIM for seeds {row['diverged_seeds']}")
     if name == "default" and args.render_runs > 0:
         log("render timing")
-        result["render"] = time_render(FitOptions(), args.render_runs, args.quiet_wait)
+        result["render"] = time_render(FitOptions(), args.render_runs, args.quiet_wait, args.cache)
         log(f"render: median {result['render']['median_ms']:.2f} ms (others {result['render']['foreign_cpu_frac']:.0%})")
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--only", nargs="*", default=None, help="setting names to run (default: all); see SETTINGS")
@@ -839,7 +842,13 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=None,
                     help="write dam_core.json, dam_core_pareto.png, dam_core.md and the run log here instead of "
                          "bench/results/, bench/ and bench/.cache/ (smoke runs)")
-    args = ap.parse_args()
+    ap.add_argument("--cache", type=Path, default=CACHE, help="where the generated captures are kept (default bench/.cache/)")
+    ap.add_argument("--resolution", type=int, default=128, help="the captures' image size, px (smoke runs: smaller)")
+    ap.add_argument("--views", type=int, default=32, help="the captures' views (smoke runs: fewer)")
+    ap.add_argument("--train-views", type=int, default=10, help="the captures' consecutive training views")
+    ap.add_argument("--steps", type=int, default=None,
+                    help="fit steps of every fit setting, replacing its own (smoke runs; default: each setting's)")
+    args = ap.parse_args(argv)
     unknown = sorted(set(args.only or []) - {n for n, _ in SETTINGS})
     if unknown:
         ap.error(f"--only: unknown setting(s) {unknown}; choose from {[n for n, _ in SETTINGS]}")
@@ -851,10 +860,10 @@ def main() -> int:
     args.runs_log = RUNS_LOG if args.out is None else args.out / "dam_core_runs.jsonl"
 
     torch.set_num_threads(THREADS)
-    CACHE.mkdir(parents=True, exist_ok=True)
+    args.cache.mkdir(parents=True, exist_ok=True)
     results_dir.mkdir(parents=True, exist_ok=True)
     t_start = time.time()
-    command = "cd /work/main && .venv/bin/python bench/dam_core.py" + "".join(" " + a for a in sys.argv[1:])
+    command = f"cd {REPO} && " + command_line("dam_core", sys.argv[1:] if argv is None else argv)
     result: dict = {"command": command, "machine": machine_info(), "seeds": args.seeds, "captures": {}, "notes": [],
                     "quiet_wait_s": args.quiet_wait, "max_aborts": args.max_aborts, "budget_minutes": args.budget_minutes}
     cached_runs = load_run_log(args.runs_log) if args.resume else {}
@@ -862,8 +871,9 @@ def main() -> int:
 
     data: dict[str, dict] = {}
     for cap_name in args.captures:
-        cap_opts = CAPTURES[cap_name]
-        cap = read_capture(ensure_capture(cap_name + "_128", cap_opts))
+        cap_opts = replace(CAPTURES[cap_name], resolution=args.resolution, views=args.views, train_views=args.train_views)
+        size = "" if (args.views, args.train_views) == (32, 10) else f"_{args.views}v{args.train_views}t"
+        cap = read_capture(ensure_capture(f"{cap_name}_{args.resolution}{size}", cap_opts, args.cache))
         train, test = load_views(cap, "train"), load_views(cap, "test")
         samples = samples_of(train)
         t = time.perf_counter()

@@ -1,50 +1,70 @@
 """Export benchmark: CPU render time of a 512x512 frame of a 100k-triangle mesh (ray cast + DAM),
 and the viewer's frame rate in headless Chromium (software WebGL).
 
-Run: .venv/bin/python bench/export.py   (writes bench/results/export.json and bench/export.md)
+Run (from the repository root): .venv/bin/python -m bench.export   (writes bench/results/export.json
+and bench/export.md; ``--out DIR`` writes both into DIR instead, and the size options make a smoke
+run: ``--resolution 32 --frames 2 --fit-steps 20 --fps-sizes``)
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import cpu_model  # noqa: E402
+
+from bench.common import BENCH, REPO, RESULTS, command_line, cpu_model, shared_data_dir
+
+SAMPLE = REPO / "samples" / "torus_env"
 
 
-ROOT = Path(__file__).resolve().parents[1]
-MESH = ROOT.parent / "shared" / "data" / "meshes" / "armadillo.obj"
-SAMPLE = ROOT / "samples" / "torus_env"
+def _shown(path: Path) -> str:
+    """A path as the report names it: relative to the repository when inside it."""
+    try:
+        return str(path.resolve().relative_to(REPO))
+    except ValueError:
+        return str(path)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--mesh", type=Path, default=shared_data_dir() / "meshes" / "armadillo.obj", help="the mesh rendered")
+    ap.add_argument("--capture", type=Path, default=SAMPLE, help="the capture whose train split the DAM is fitted to")
+    ap.add_argument("--resolution", type=int, default=512, help="CPU render: frame size, px")
+    ap.add_argument("--frames", type=int, default=24, help="CPU render: orbit frames timed")
+    ap.add_argument("--fit-steps", type=int, default=None, help="DAM fit steps (default: FitOptions' default)")
+    ap.add_argument("--fps-sizes", type=int, nargs="*", default=[256, 512], help="viewer canvas sizes, px (none: skip the browser)")
+    ap.add_argument("--fps-frames", type=int, default=20, help="viewer frames timed per canvas")
+    ap.add_argument("--out", type=Path, default=None, help="write export.json and export.md here instead of bench/results/ and bench/")
+    args = ap.parse_args(argv)
     from damcap.appearance.fit import FitOptions, fit_dam
     from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import read_capture
     from damcap.export.browser import frame_rate
     from damcap.export.turntable import shade_buffers
     from damcap.export.viewer import viewer_html
-    from damcap.export.display import exposure_scale_for
+    from damcap.common.colour import exposure_scale_for
     from damcap.common.cameras import focal_px_from_fov, orbit_world_from_cam
     from damcap.common.mesh import load_mesh, normalise_to_unit_sphere
     from damcap.common.raycast import MeshRaycaster
 
     torch.set_num_threads(2)
     load_before = os.getloadavg()[0]
-    model = fit_dam(samples_of(load_views(read_capture(SAMPLE), "train")), FitOptions()).model
-    mesh = normalise_to_unit_sphere(load_mesh(MESH))
+    fit_opts = FitOptions() if args.fit_steps is None else replace(FitOptions(), steps=args.fit_steps)
+    model = fit_dam(samples_of(load_views(read_capture(args.capture), "train")), fit_opts).model
+    mesh = normalise_to_unit_sphere(load_mesh(args.mesh))
     caster = MeshRaycaster(mesh)
-    res = 512
+    res = args.resolution
     f = focal_px_from_fov(45.0, res)
     part = np.zeros(len(mesh.triangles), np.int64)
-    cams = orbit_world_from_cam(24, 3.0, 20.0)
+    cams = orbit_world_from_cam(args.frames, 3.0, 20.0)
     cast_ms, dam_ms, total_ms, covered = [], [], [], []
     caster.buffers(cams[0], f, f, res / 2, res / 2, res, res, supersample=1)  # warm-up
     for m in cams:
@@ -61,32 +81,34 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         page = Path(tmp) / "view.html"
         page.write_text(viewer_html(model, mesh, exposure_scale_for(rad, b.coverage > 0.5)))
-        for size in (256, 512):
-            fps[size] = frame_rate(page, size, frames=20)
+        for size in args.fps_sizes:
+            fps[size] = frame_rate(page, size, frames=args.fps_frames)
+    out = RESULTS / "export.json" if args.out is None else args.out / "export.json"
+    md_path = BENCH / "export.md" if args.out is None else args.out / "export.md"
     result = {
-        "command": "make bench  (.venv/bin/python bench/export.py)",
+        "command": f"make bench  ({command_line('export', sys.argv[1:] if argv is None else argv)})",
         "machine": {"cpu": cpu_model(), "cores": torch.get_num_threads(), "python": sys.version.split()[0], "torch": torch.__version__,
                     "load_average_1min": [load_before, os.getloadavg()[0]]},
-        "mesh": {"file": str(MESH.name), "triangles": int(len(mesh.triangles)), "vertices": int(len(mesh.vertices))},
+        "mesh": {"file": str(args.mesh.name), "triangles": int(len(mesh.triangles)), "vertices": int(len(mesh.vertices))},
         "cpu_render_512": {
-            "frames": len(cams), "covered_pixels_median": int(np.median(covered)),
+            "resolution": res, "frames": len(cams), "covered_pixels_median": int(np.median(covered)),
             "raycast_ms_median": float(np.median(cast_ms)), "dam_ms_median": float(np.median(dam_ms)),
             "total_ms_median": float(np.median(total_ms)), "total_ms_p90": float(np.percentile(total_ms, 90)),
             "target_ms": 100.0,
         },
         "viewer_fps_headless_chromium_swiftshader": {str(k): v for k, v in fps.items()},
     }
-    out = ROOT / "bench" / "results" / "export.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
     r = result["cpu_render_512"]
     md = f"""# Export benchmark
 
 Command: `{result['command']}`. Machine: {result['machine']['cpu']}, {result['machine']['cores']} threads, torch {result['machine']['torch']}.
-Date: {time.strftime('%Y-%m-%d')}. Raw results: `bench/results/export.json`.
+Date: {time.strftime('%Y-%m-%d')}. Raw results: `{_shown(out)}`.
 Load average (1 min) at start and end: {result['machine']['load_average_1min'][0]:.1f}, {result['machine']['load_average_1min'][1]:.1f}
 (above ~2 on this 2-core machine, other processes shared the CPUs and the times are inflated).
 
-## CPU render of a 512x512 frame (ray cast with Open3D + DAM), {result['mesh']['file']} ({result['mesh']['triangles']} triangles)
+## CPU render of a {res}x{res} frame (ray cast with Open3D + DAM), {result['mesh']['file']} ({result['mesh']['triangles']} triangles)
 
 | step | median ms over {r['frames']} orbit frames |
 |---|---|
@@ -102,9 +124,10 @@ Load average (1 min) at start and end: {result['machine']['load_average_1min'][0
 Software rasterisation on 2 CPU cores evaluates the 3360-weight network per fragment; a GPU
 browser runs the same page at interactive rates (not measurable on this machine).
 """
-    (ROOT / "bench" / "export.md").write_text(md)
+    md_path.write_text(md)
     print(md)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -8,9 +8,18 @@ Targets: predict alone <= 1.15x the SGD DSSIM; predict + refine within 2 s <= 1.
 under 100 ms on CPU and >= 100x faster than the fit. Also: DSSIM vs refinement steps K, and (with
 ``--size-predictors``) vs training-set size.
 
+The rows come from the paper-table harness's own loops: the held-out captures are
+:func:`damcap.paper.tables.heldout_entries` (one-material ones), the predict + refine rows
+:func:`damcap.paper.tables.learning_to_learn_rows` next to this study's seed-0 SGD fit; this
+study adds the prediction's median time over ``--timing-runs``, the SGD fit over several seeds
+(timed) and ``damcap fit``'s default architecture beside it.
+
 Run (from the repository root; the held-out captures are the ``small`` preset's)::
 
-    .venv/bin/python bench/hyper.py --corpus bench/.cache/synth_small
+    .venv/bin/python -m bench.hyper --corpus bench/.cache/synth_small
+
+``--out DIR`` writes hyper.json and hyper.md into DIR instead of bench/results/ and bench/;
+``--fit-steps N`` shortens every SGD fit (smoke runs).
 """
 
 from __future__ import annotations
@@ -25,23 +34,20 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import CpuMeter, log, machine_info  # noqa: E402
+from bench.common import BENCH, CACHE, RESULTS, CpuMeter, command_line, log, machine_info, shared_data_dir
 
-from damcap.appearance.evaluate import evaluate_split  # noqa: E402
-from damcap.appearance.fit import FitOptions, fit_dam, refine_dam  # noqa: E402
-from damcap.appearance.hyper import predict_dam, predictor_input  # noqa: E402
-from damcap.appearance.hyper_file import load_predictor, shipped_predictor_path  # noqa: E402
-from damcap.appearance.views import load_views, samples_of  # noqa: E402
-from damcap.common.capture_folder import read_capture  # noqa: E402
-
-BENCH = Path(__file__).resolve().parent
-RESULTS = BENCH / "results"
+from damcap.appearance.evaluate import evaluate_split
+from damcap.appearance.fit import FitOptions, fit_dam, refine_dam
+from damcap.appearance.hyper.file import load_predictor, shipped_predictor_path
+from damcap.appearance.hyper.model import predict_dam, predictor_input
+from damcap.appearance.views import load_views, samples_of
+from damcap.common.capture_folder import read_capture
+from damcap.paper.tables import TableOptions, heldout_entries, learning_to_learn_rows
 
 
-def heldout_captures(corpus: Path) -> list[dict]:
-    entries = json.loads((corpus / "corpus.json").read_text())["captures"]
-    return [e for e in entries if e["split"] == "heldout" and e["materials"] == 1 and (corpus / e["path"] / "transforms.json").is_file()]
+def heldout_captures(corpus: Path) -> list[tuple[Path, dict]]:
+    """The corpus's rendered one-material held-out captures: (folder, corpus entry)."""
+    return [(path, e) for path, e in heldout_entries([corpus]) if int(e.get("materials", 1)) == 1]
 
 
 def novel_and_same(train, test, model) -> tuple[float, float]:
@@ -49,7 +55,11 @@ def novel_and_same(train, test, model) -> tuple[float, float]:
             evaluate_split(train, train, {"m": model}, baselines=False)["m"].mean)
 
 
-def bench_capture(path: Path, net, refine_steps: list[int], fit_seeds: list[int], timing_runs: int) -> dict:
+def bench_capture(path: Path, net, refine_steps: list[int], fit_seeds: list[int], timing_runs: int,
+                  fit: FitOptions = FitOptions(checkpoint_every=0)) -> dict:
+    """One capture: RM++ / RM, the prediction's time, predict + K refine steps (the paper table's
+    rows), and SGD fits of the predictor's DAM architecture over ``fit_seeds`` (``fit``, at that
+    architecture; ``damcap fit``'s default architecture beside it when it differs)."""
     cap = read_capture(path)
     train, test = load_views(cap, "train"), load_views(cap, "test")
     samples = samples_of(train)
@@ -64,31 +74,39 @@ def bench_capture(path: Path, net, refine_steps: list[int], fit_seeds: list[int]
     rec: dict = {"capture": path.name, "input_view": view, "rmpp_novel": base["RM++"].mean, "rm_novel": base["RM"].mean,
                  "predict_ms_median": 1000 * statistics.median(times), "predict_ms_all": [1000 * t for t in times]}
     refine_dam(model, samples, 5)  # warm-up (first-call allocations), not timed
-    rows = []
-    for k in refine_steps:
-        t = time.perf_counter()
-        m, before, after = refine_dam(model, samples, k)
-        secs = time.perf_counter() - t
-        novel, same = novel_and_same(train, test, m)
-        rows.append({"refine_steps": k, "refine_seconds": secs, "total_seconds": secs + rec["predict_ms_median"] / 1000,
-                     "train_l1_before": before, "train_l1_after": after, "novel": novel, "same": same})
-        log(f"  {path.name}: predict + {k} refine steps ({secs:.2f} s): novel {novel:.4f}, same {same:.4f}")
-    rec["refine"] = rows
     # SGD = the predictor's own DAM architecture fitted (the paper's comparison); damcap fit's
     # default architecture, when it differs, is reported beside it
-    same_arch = FitOptions(checkpoint_every=0).for_architecture(model.arch)
-    if FitOptions().architecture != model.arch:
-        rec["default_fit_novel"] = [novel_and_same(train, test, fit_dam(samples, FitOptions(seed=seed, checkpoint_every=0)).model)[0]
-                                    for seed in fit_seeds]
-        log(f"  {path.name}: damcap fit default ({FitOptions().activation}): novel {statistics.mean(rec['default_fit_novel']):.4f}")
-    fits = []
+    same_arch = fit.for_architecture(model.arch)
+    if fit.architecture != model.arch:
+        rec["default_fit_novel"] = [novel_and_same(train, test, fit_dam(samples, replace(fit, seed=seed)).model)[0] for seed in fit_seeds]
+        log(f"  {path.name}: damcap fit default ({fit.activation}): novel {statistics.mean(rec['default_fit_novel']):.4f}")
+    fits, models = [], []
     for seed in fit_seeds:
         with CpuMeter() as meter:
             res = fit_dam(samples, replace(same_arch, seed=seed))
         others = meter.foreign_frac
         novel, same = novel_and_same(train, test, res.model)
         fits.append({"seed": seed, "seconds": res.seconds, "others": others, "novel": novel, "same": same})
+        models.append(res.model)
         log(f"  {path.name}: SGD fit seed {seed} ({res.seconds:.1f} s, others {others:.0%}): novel {novel:.4f}, same {same:.4f}")
+    # predict + K refine steps: the paper table's loop (refine_dam seed 0, all training pixels),
+    # next to the first seed's fit (same architecture: nothing is refitted there)
+    ks = [k for k in refine_steps if k > 0]
+    scores, extra = learning_to_learn_rows(train, test, net, models[0] if models else None,
+                                           TableOptions(fit=same_arch, refine_steps=tuple(ks)))
+    t = time.perf_counter()
+    _, l1, _ = refine_dam(model, samples, 0)  # K = 0: the predicted DAM as it is (its training L1)
+    extra["seconds"]["refine 0"], extra["train_l1"]["refine 0"] = time.perf_counter() - t, [l1, l1]
+    rows = []
+    for k in refine_steps:
+        key = "predicted" if k == 0 else f"predicted + {k} refine"
+        secs = extra["seconds"][f"refine {k}"]
+        before, after = extra["train_l1"][f"refine {k}"]
+        novel, same = scores[key]["novel"].mean, scores[key]["same"].mean
+        rows.append({"refine_steps": k, "refine_seconds": secs, "total_seconds": secs + rec["predict_ms_median"] / 1000,
+                     "train_l1_before": before, "train_l1_after": after, "novel": novel, "same": same})
+        log(f"  {path.name}: predict + {k} refine steps ({secs:.2f} s): novel {novel:.4f}, same {same:.4f}")
+    rec["refine"] = rows
     rec["sgd"] = fits
     rec["sgd_novel_mean"] = statistics.mean(f["novel"] for f in fits)
     rec["sgd_same_mean"] = statistics.mean(f["same"] for f in fits)
@@ -133,20 +151,19 @@ def summarise(per_capture: list[dict], refine_steps: list[int]) -> dict:
     return out
 
 
-def size_curve(paths: list[Path], captures: list[dict], corpus: Path, refine: int) -> list[dict]:
+def size_curve(paths: list[Path], captures: list[tuple[Path, dict]], refine: int) -> list[dict]:
+    """Novel-view DSSIM of each predictor alone and refined ``refine`` steps (the paper table's loop)."""
     rows = []
     for p in paths:
         net, meta = load_predictor(p)
         n_train = len(meta["training"]["train_captures"])
         per = []
-        for c in captures:
-            cap = read_capture(corpus / c["path"])
+        for path, c in captures:
+            cap = read_capture(path)
             train, test = load_views(cap, "train"), load_views(cap, "test")
-            _, crop, scale = predictor_input(train)
-            m = predict_dam(net, crop, scale)
-            novel0 = novel_and_same(train, test, m)[0]
-            mr = refine_dam(m, samples_of(train), refine)[0]
-            per.append({"capture": c["name"], "novel_predict": novel0, f"novel_refine{refine}": novel_and_same(train, test, mr)[0]})
+            scores, _ = learning_to_learn_rows(train, test, net, None, TableOptions(refine_steps=(refine,)))
+            per.append({"capture": c["name"], "novel_predict": scores["predicted"]["novel"].mean,
+                        f"novel_refine{refine}": scores[f"predicted + {refine} refine"]["novel"].mean})
         rows.append({"predictor": str(p), "train_captures": n_train, "steps": meta["training"]["options"]["steps"],
                      "novel_predict": statistics.mean(r["novel_predict"] for r in per),
                      f"novel_refine{refine}": statistics.mean(r[f"novel_refine{refine}"] for r in per), "per_capture": per})
@@ -218,40 +235,45 @@ def write_markdown(res: dict, path: Path) -> None:
     path.write_text("\n".join(L) + "\n")
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--corpus", type=Path, default=BENCH / ".cache" / "synth_small")
+    ap.add_argument("--corpus", type=Path, default=CACHE / "synth_small")
     ap.add_argument("--predictor", type=Path, default=None)
     ap.add_argument("--refine-steps", type=int, nargs="+", default=[0, 10, 30, 100, 300, 1000])
     ap.add_argument("--fit-seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--fit-steps", type=int, default=None, help="SGD fit steps (default: FitOptions' default)")
     ap.add_argument("--timing-runs", type=int, default=20)
     ap.add_argument("--size-predictors", type=Path, nargs="*", default=[])
-    args = ap.parse_args()
+    ap.add_argument("--out", type=Path, default=None, help="write hyper.json and hyper.md here instead of bench/results/ and bench/")
+    args = ap.parse_args(argv)
     torch.set_num_threads(2)
+    fit = FitOptions(checkpoint_every=0) if args.fit_steps is None else FitOptions(checkpoint_every=0, steps=args.fit_steps)
     pred_path = args.predictor or shipped_predictor_path()
     net, meta = load_predictor(pred_path)
     if not (args.corpus / "corpus.json").is_file():
         from damcap.synth.corpus import make_corpus
 
         log(f"rendering the small preset's corpus into {args.corpus} (about 8 minutes)")
-        make_corpus(args.corpus, "small", BENCH.parents[1] / "shared" / "data", jobs=2)
+        make_corpus(args.corpus, "small", shared_data_dir(), jobs=2)
     caps = heldout_captures(args.corpus)
-    res: dict = {"command": ".venv/bin/python bench/hyper.py" + "".join(f" {a}" for a in sys.argv[1:]), "machine": machine_info(),
+    res: dict = {"command": command_line("hyper", sys.argv[1:] if argv is None else argv), "machine": machine_info(),
                  "predictor": {"path": str(pred_path), "size_mb": pred_path.stat().st_size / 1e6, "training": meta["training"]},
                  "refine_steps": args.refine_steps, "fit_seeds": args.fit_seeds, "sgd_activation": net.arch.dam.activation,
                  "per_capture": []}
-    for c in caps:
+    for path, c in caps:
         log(f"{c['name']} ({c['light_kind']})")
-        rec = bench_capture(args.corpus / c["path"], net, args.refine_steps, args.fit_seeds, args.timing_runs)
+        rec = bench_capture(path, net, args.refine_steps, args.fit_seeds, args.timing_runs, fit)
         rec["light_kind"] = c["light_kind"]
         res["per_capture"].append(rec)
     res["summary"] = summarise(res["per_capture"], args.refine_steps)
     if args.size_predictors:
-        res["size_curve"] = size_curve(args.size_predictors + [pred_path], caps, args.corpus, 100)
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "hyper.json").write_text(json.dumps(res, indent=1) + "\n")
-    write_markdown(res, BENCH / "hyper.md")
-    log(f"wrote {RESULTS / 'hyper.json'} and {BENCH / 'hyper.md'}")
+        res["size_curve"] = size_curve(args.size_predictors + [pred_path], caps, 100)
+    out_json = RESULTS / "hyper.json" if args.out is None else args.out / "hyper.json"
+    out_md = BENCH / "hyper.md" if args.out is None else args.out / "hyper.md"
+    out_json.parent.mkdir(parents=True, exist_ok=True)
+    out_json.write_text(json.dumps(res, indent=1) + "\n")
+    write_markdown(res, out_md)
+    log(f"wrote {out_json} and {out_md}")
     return 0
 
 

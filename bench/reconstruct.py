@@ -14,7 +14,7 @@ Parts (``--part``, default all; each part's numbers are merged into the JSON):
   sets with known geometry (a bumpy blob and a sphere, textured, rendered by
   :mod:`damcap.synth.photos`), cameras from SfM on those photos.
 * ``realworld``: a DAM fitted on a few cape views (``--train-views``, spread) and evaluated on
-  the others against RM++ and RM (DSSIM, capture-format.md). Target: DAM < RM++ < RM. A PNG of
+  the others against RM++ and RM (DSSIM, docs/capture-format.md). Target: DAM < RM++ < RM. A PNG of
   novel views (photo | DAM | RM++ | RM) goes to ``bench/reconstruct_novel_views*.png``; the
   report adds a table of the runs by their number of training views.
 
@@ -28,7 +28,10 @@ a finished registration there is reused unless ``--fresh``).
 
 Run (from the repository root)::
 
-    .venv/bin/python bench/reconstruct.py [--part registration|geometry|realworld|all] [--fresh]
+    .venv/bin/python -m bench.reconstruct [--part registration|geometry|realworld|all] [--fresh]
+
+``--out DIR`` writes the JSON, the report and the figures into DIR, ``--cache DIR`` keeps the work
+folders there, and the ``--geometry-*`` options shrink the geometry part (smoke runs).
 """
 
 from __future__ import annotations
@@ -46,17 +49,16 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import NCPU, cpu_model, log  # noqa: E402
+
+from bench.common import BENCH, NCPU, REPO, RESULTS as RESULTS_DIR, command_line, cpu_model, log, shared_data_dir
 
 
 BENCH = Path(__file__).resolve().parent
-REPO = BENCH.parent
 CACHE = BENCH / ".cache" / "reconstruct"
-RESULTS = BENCH / "results" / "reconstruct.json"
+RESULTS = RESULTS_DIR / "reconstruct.json"
 REPORT = BENCH / "reconstruct.md"
 FIGURE = BENCH / "reconstruct_novel_views.png"
-DATA = Path(os.environ.get("DAMCAP_SHARED_DATA", REPO.parent / "shared" / "data")) / "real"
+DATA = shared_data_dir() / "real"
 
 
 def machine_info() -> dict:
@@ -84,26 +86,34 @@ class Timer:
         return {"wall_s": round(self.wall, 1), "cpu_s": round(self.cpu, 1), "loadavg_1min_start_end": self.load}
 
 
-def load_results() -> dict:
-    return json.loads(RESULTS.read_text()) if RESULTS.is_file() else {}
+def load_results(path: Path = RESULTS) -> dict:
+    return json.loads(path.read_text()) if path.is_file() else {}
 
 
-def save_results(res: dict) -> None:
+def save_results(res: dict, path: Path = RESULTS) -> None:
     from damcap.common.atomic import write_json_atomic
 
-    write_json_atomic(RESULTS, res)
+    write_json_atomic(path, res)
+
+
+def _shown(path: Path) -> str:
+    """A path as the results name it: relative to the repository when inside it."""
+    try:
+        return str(path.resolve().relative_to(REPO))
+    except ValueError:
+        return str(path)
 
 
 # --------------------------------------------------------------------------------------------
 # Registration
 # --------------------------------------------------------------------------------------------
 
-def reference_registration(name: str, photo_names: list[str]):
+def reference_registration(name: str, photo_names: list[str], data: Path = DATA):
     """The data set's own reference cameras (a Registration), or None where it ships none."""
     from damcap.reconstruct.photos import image_size
-    from damcap.reconstruct.poses import load_known_poses
+    from damcap.reconstruct.known_poses import load_known_poses
 
-    root = DATA / name
+    root = data / name
     sizes = {n: image_size(root / "images" / n) for n in photo_names}
     if name == "mold_gold_cape":
         return load_known_poses(str(root / "poses_bounds.npy"), sizes)
@@ -134,20 +144,20 @@ def agreement(reg, ref: dict[str, np.ndarray] | None) -> dict:
 
 
 def run_registration(name: str, variant: str, opts, use_masks: bool, fresh: bool, work_name: str | None = None,
-                     copy_from: str | None = None) -> dict:
+                     copy_from: str | None = None, data: Path = DATA, cache: Path = CACHE) -> dict:
     """One registration run and its agreement with the reference. ``copy_from``: start from a copy
     of that run's work folder (its features and matches are reused; the original stays intact)."""
     from damcap.reconstruct.photos import list_photos, match_masks
-    from damcap.reconstruct.sfm import register_photos
+    from damcap.reconstruct.colmap.register import register_photos
 
-    root = DATA / name
+    root = data / name
     names = list_photos(root / "images")
     masks = match_masks(names, root / "masks") if use_masks else None
-    work = CACHE / "sfm" / (work_name or f"{name}-{variant}")
+    work = cache / "sfm" / (work_name or f"{name}-{variant}")
     if (fresh or copy_from) and work.exists():
         shutil.rmtree(work)
     if copy_from:
-        shutil.copytree(CACHE / "sfm" / copy_from, work)
+        shutil.copytree(cache / "sfm" / copy_from, work)
     last = {"stage": None}
 
     def progress(stage: str, done: int, total: int) -> None:
@@ -165,7 +175,7 @@ def run_registration(name: str, variant: str, opts, use_masks: bool, fresh: bool
            "unregistered": rep.unregistered, **t.record()}
     if rep.resumed:
         out["note"] = f"stages {rep.resumed} reused from an earlier run; their time is in that run's record"
-    ref = reference_registration(name, names)
+    ref = reference_registration(name, names, data)
     out["agreement"] = agreement(reg, {p.name: p.world_from_cam for p in ref.photos} if ref else None)
     out["principal_offset_px"] = principal_offset_px(reg)
     out["principal_point_estimate"] = rep.principal_point
@@ -179,33 +189,36 @@ def run_registration(name: str, variant: str, opts, use_masks: bool, fresh: bool
     return out
 
 
-def part_registration(fresh: bool) -> dict:
-    from damcap.reconstruct.sfm import SfmOptions
+def part_registration(fresh: bool, data: Path = DATA, cache: Path = CACHE) -> dict:
+    from damcap.reconstruct.colmap.register import SfmOptions
+
+    def run(*a, **kw) -> dict:
+        return run_registration(*a, data=data, cache=cache, **kw)
 
     chosen = SfmOptions()  # the defaults are the measured choice
     runs = []
     # cape: the chosen setting first (features on the whole photo; the pairing variant reuses them)
-    runs.append(run_registration("mold_gold_cape", "chosen", chosen, False, fresh, "cape-chosen"))
-    runs.append(run_registration("mold_gold_cape", "ring-only", replace(chosen, pairing="sequential", sequential_overlap=8,
+    runs.append(run("mold_gold_cape", "chosen", chosen, False, fresh, "cape-chosen"))
+    runs.append(run("mold_gold_cape", "ring-only", replace(chosen, pairing="sequential", sequential_overlap=8,
                                                                        transitive_neighbours=0), False, False, "cape-ring",
                                  copy_from="cape-chosen"))
-    runs.append(run_registration("mold_gold_cape", "masked-features", chosen, True, fresh, "cape-masked"))
-    runs.append(run_registration("fox", "chosen", chosen, False, fresh))
+    runs.append(run("mold_gold_cape", "masked-features", chosen, True, fresh, "cape-masked"))
+    runs.append(run("fox", "chosen", chosen, False, fresh))
     # The references fix the principal point differently: LLFF (cape) keeps COLMAP's image centre;
     # instant-ngp's colmap2nerf (fox) runs an OPENCV model and a last bundle adjustment that refines
     # it. Every camera model x principal-point setting on both sets shows what that choice alone does.
     fox_opencv = replace(chosen, camera_model="OPENCV")
-    runs.append(run_registration("fox", "refined-principal-point", replace(chosen, refine_principal_point=True), False, False,
+    runs.append(run("fox", "refined-principal-point", replace(chosen, refine_principal_point=True), False, False,
                                  "fox-refined-pp", copy_from="fox-chosen"))
-    runs.append(run_registration("fox", "opencv", fox_opencv, False, fresh))
-    runs.append(run_registration("fox", "reference-convention", replace(fox_opencv, refine_principal_point=True), False, False,
+    runs.append(run("fox", "opencv", fox_opencv, False, fresh))
+    runs.append(run("fox", "reference-convention", replace(fox_opencv, refine_principal_point=True), False, False,
                                  copy_from="fox-opencv"))
-    runs.append(run_registration("mold_gold_cape", "refined-principal-point", replace(chosen, refine_principal_point=True), False,
+    runs.append(run("mold_gold_cape", "refined-principal-point", replace(chosen, refine_principal_point=True), False,
                                  False, "cape-refined-pp", copy_from="cape-chosen"))
-    runs.append(run_registration("mold_gold_cape", "opencv", fox_opencv, False, fresh, "cape-opencv"))
-    runs.append(run_registration("mold_gold_cape", "fox-convention", replace(fox_opencv, refine_principal_point=True), False,
+    runs.append(run("mold_gold_cape", "opencv", fox_opencv, False, fresh, "cape-opencv"))
+    runs.append(run("mold_gold_cape", "fox-convention", replace(fox_opencv, refine_principal_point=True), False,
                                  False, "cape-fox-convention", copy_from="cape-opencv"))
-    runs.append(run_registration("sceaux_castle", "chosen", chosen, False, fresh))
+    runs.append(run("sceaux_castle", "chosen", chosen, False, fresh))
     return {"runs": runs, "chosen_options": asdict(chosen),
             "anchor": {"what": "plain pycolmap (SIFT defaults, exhaustive, incremental) on the 119 cape photos, measured by the issue",
                        "registered": "119/119", "median_agreement_deg": 0.03, "wall_s": {"extraction": 62, "matching": 655, "mapping": 80, "total": 797}}}
@@ -244,44 +257,53 @@ def normal_errors(capture_dir: Path, gt_mesh, gt_cams: np.ndarray, photo_index: 
             "pixels": int(len(e)), "coverage_ratio_est_over_gt": covered_est / max(covered_gt, 1)}
 
 
-def part_geometry(fresh: bool) -> dict:
-    from damcap.reconstruct.geometry import icosphere_mesh
+GEOMETRY_MODES = ("visual-hull", "poisson", "sphere", "mesh (align none)", "mesh (align icp)")
+"""the geometry part's modes run with the true cameras (after ``auto``, which registers the photos)"""
+
+
+def part_geometry(fresh: bool, cache: Path = CACHE, objects: tuple[str, ...] = ("blob", "sphere"), photos_n: int = 36,
+                  photo_size: int = 320, capture_size: int = 256, modes: tuple[str, ...] = ("auto",) + GEOMETRY_MODES) -> dict:
+    from damcap.common.shapes import sphere_mesh as icosphere_mesh
     from damcap.reconstruct.pipeline import ReconstructOptions, reconstruct_capture
     from damcap.common.mesh import Mesh
-    from damcap.synth.photos import bumpy_blob, default_intrinsics, orbit_cameras, write_photo_set
+    from damcap.common.shapes import bumpy_blob
+    from damcap.synth.photos import default_intrinsics, orbit_cameras, write_photo_set
 
     import open3d as o3d
 
     out = {}
-    for obj in ("blob", "sphere"):
-        root = CACHE / "geometry" / obj
+    for obj in objects:
+        root = cache / "geometry" / obj
         photos = root / "photos"
         mesh: Mesh = bumpy_blob() if obj == "blob" else icosphere_mesh(np.zeros(3), 0.8, 5)
-        cams = orbit_cameras(36, 3.2, (10.0, 35.0, 60.0), jitter_deg=3, seed=1)
+        cams = orbit_cameras(photos_n, 3.2, (10.0, 35.0, 60.0), jitter_deg=3, seed=1)
         if fresh and root.exists():
             shutil.rmtree(root)
         if not (photos / "transforms.json").is_file():
-            log(f"geometry {obj}: rendering 36 photos")
-            write_photo_set(photos, mesh, cams, default_intrinsics(320), seed=2)
+            log(f"geometry {obj}: rendering {photos_n} photos")
+            write_photo_set(photos, mesh, cams, default_intrinsics(photo_size), seed=2)
         gt_path = root / "gt_mesh.ply"
         m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices.astype(np.float64)),
                                       o3d.utility.Vector3iVector(mesh.triangles))
         o3d.io.write_triangle_mesh(str(gt_path), m)
         names = sorted(p.name for p in (photos / "images").iterdir())
         index = {n: k for k, n in enumerate(names)}
-        base = ReconstructOptions(capture_size=256, train_views=10)
+        base = ReconstructOptions(capture_size=capture_size, train_views=10)
         res = {}
         # SfM once (geometry auto); the other modes reuse its cameras and points via colmap:DIR
         first = root / "capture-auto"
-        with Timer() as t:
-            _, rep = reconstruct_capture(photos / "images", first, base, masks_dir=photos / "masks", log=log)
-        res["auto"] = {"picked": rep.geometry_mode, "reason": rep.geometry_reason, "registered": f"{rep.registered}/{rep.photos}",
-                       **normal_errors(first, mesh, cams, index), **t.record()}
-        log(f"  {obj}/auto: {res['auto']}")
+        if "auto" in modes:
+            with Timer() as t:
+                _, rep = reconstruct_capture(photos / "images", first, base, masks_dir=photos / "masks", log=log)
+            res["auto"] = {"picked": rep.geometry_mode, "reason": rep.geometry_reason, "registered": f"{rep.registered}/{rep.photos}",
+                           **normal_errors(first, mesh, cams, index), **t.record()}
+            log(f"  {obj}/auto: {res['auto']}")
         # every mode with the true cameras (geometry error alone; Poisson triangulates with them held fixed)
         for mode, align in (("visual-hull", "auto"), ("poisson", "auto"), ("sphere", "auto"), (f"mesh:{gt_path}", "none"),
                             (f"mesh:{gt_path}", "icp")):
             key = mode.split(":")[0] + (f" (align {align})" if mode.startswith("mesh") else "")
+            if key not in modes:
+                continue
             cap_dir = root / f"capture-{key.replace(' ', '_').replace('(', '').replace(')', '')}"
             try:
                 with Timer() as t:
@@ -300,7 +322,7 @@ def part_geometry(fresh: bool) -> dict:
 # --------------------------------------------------------------------------------------------
 
 def display(img: np.ndarray, scale: float) -> np.ndarray:
-    from damcap.synth.photos import linear_to_srgb
+    from damcap.common.colour import linear_to_srgb
 
     return (linear_to_srgb(img / scale) * 255).round().astype(np.uint8)
 
@@ -337,7 +359,8 @@ def by_nearest_view_angle(train, test, scores: dict) -> list[dict]:
     return out
 
 
-def part_realworld(train_views: int, steps: int, fresh: bool, capture_size: int = 256, geometry: str = "auto") -> dict:
+def part_realworld(train_views: int, steps: int, fresh: bool, capture_size: int = 256, geometry: str = "auto",
+                   data: Path = DATA, cache: Path = CACHE, figure: Path = FIGURE) -> dict:
     import torch
 
     from damcap.appearance.baselines import rm_oracle, rm_plus_plus
@@ -350,10 +373,10 @@ def part_realworld(train_views: int, steps: int, fresh: bool, capture_size: int 
     from damcap.reconstruct.pipeline import ReconstructOptions, reconstruct_capture
 
     torch.set_num_threads(2)
-    root = DATA / "mold_gold_cape"
-    model = CACHE / "sfm" / "cape-chosen" / "model"
+    root = data / "mold_gold_cape"
+    model = cache / "sfm" / "cape-chosen" / "model"
     suffix = "" if geometry == "auto" else f"-{geometry}"
-    cap_dir = CACHE / "realworld" / f"cape-{train_views}-{capture_size}{suffix}"
+    cap_dir = cache / "realworld" / f"cape-{train_views}-{capture_size}{suffix}"
     if fresh and cap_dir.exists():
         shutil.rmtree(cap_dir)
     poses = f"colmap:{model}" if model.is_dir() else None
@@ -383,13 +406,13 @@ def part_realworld(train_views: int, steps: int, fresh: bool, capture_size: int 
         scale = float(np.percentile(v.data.radiance_lin[fg], 99)) if fg.any() else 1.0
         dam = render_frame(fit.model, v.data, v.centre_world)
         rows.append(np.concatenate([display(x, scale) for x in (v.data.radiance_lin, dam, a, b)], axis=1))
-    figure = FIGURE.with_name(FIGURE.stem + realworld_tag(capture_size, geometry, train_views) + ".png")
+    figure = figure.with_name(figure.stem + realworld_tag(capture_size, geometry, train_views) + ".png")
     write_png(figure, np.concatenate(rows, axis=0))
     return {"capture": {"frames": rep.frames, "train": len(train), "test": len(test), "split": "spread",
                         "capture_size": opts.capture_size, "geometry": rep.geometry_mode, "geometry_reason": rep.geometry_reason,
                         "cameras": rep.registration.get("source"), "linearisation": rep.linearisation, **t_rec.record()},
             "fit": {"options": asdict(fit_opts), "best_step": fit.best_step, "seconds": fit.seconds, **t_fit.record()},
-            "dssim": table, "notes": notes, "rm_per_source": rm_sources, "by_nearest_view": by_angle, "eval": t_eval.record(), "figure": str(figure.relative_to(REPO)),
+            "dssim": table, "notes": notes, "rm_per_source": rm_sources, "by_nearest_view": by_angle, "eval": t_eval.record(), "figure": _shown(figure),
             "figure_columns": ["photo (linearised)", "DAM", "RM++", f"RM (source {chosen})"],
             "paper_reference": {"what": "Maximov et al. 2019, own spheres, novel view", "DAM": 0.079, "RM++": 0.090, "RM": 0.127}}
 
@@ -398,13 +421,13 @@ def part_realworld(train_views: int, steps: int, fresh: bool, capture_size: int 
 # Report
 # --------------------------------------------------------------------------------------------
 
-def write_report(res: dict, command: str) -> None:
+def write_report(res: dict, command: str, path: Path = REPORT, results: Path = RESULTS) -> None:
     from damcap.appearance.evaluate import rm_source_spread
     from damcap.common.atomic import write_text_atomic
 
     m = res.get("machine", {})
     L = ["# Benchmark: damcap reconstruct", "",
-         f"Commands (from the repository root; each merges its parts into the results): `{command}`. Results: `bench/results/reconstruct.json`.", "",
+         f"Commands (from the repository root; each merges its parts into the results): `{command}`. Results: `{_shown(results)}`.", "",
          f"Software of the last measuring command: Python {m.get('python')}, pycolmap {m.get('pycolmap')}, {m.get('platform')}. "
          "Each section says on which machine and when it was measured.", "",
          "Caveat: the machine is shared with other engineers' jobs; every wall time below was measured under that "
@@ -504,7 +527,7 @@ def write_report(res: dict, command: str) -> None:
                   "of RM++ and RM is decided by which of the near-equal single sources RM's oracle picks."]
         L += ["", rw.get("verdict", ""), "", f"![novel views]({Path(rw['figure']).name})", "",
               "Columns: " + ", ".join(rw["figure_columns"]) + ".", ""]
-    write_text_atomic(REPORT, "\n".join(L) + "\n")
+    write_text_atomic(path, "\n".join(L) + "\n")
 
 
 def measured_on(res: dict, part: str) -> str:
@@ -613,7 +636,7 @@ def convention_table(runs: list[dict], chosen_options: dict) -> list[str]:
 def pp_determined_text(runs: list[dict]) -> str:
     """Where each set's photos put the principal point (the chosen runs) and what that says about
     the references' conventions, or '' before any run recorded the estimate."""
-    from damcap.reconstruct.sfm import offset_in_sigmas
+    from damcap.reconstruct.colmap.principal_point import offset_in_sigmas
 
     parts, ref_sigmas, sceaux = [], [], None
     for r in runs:
@@ -679,7 +702,7 @@ def keep_timed_runs(new: dict, old: dict | None) -> dict:
     the same run (same data set, variant and options) that timed every stage (its measurements of
     the result, which the resumed run recomputed from the same model, are the new ones). Options
     added since that record count as their defaults."""
-    from damcap.reconstruct.sfm import SfmOptions
+    from damcap.reconstruct.colmap.register import SfmOptions
 
     def key(r: dict) -> tuple:
         return r["dataset"], r["variant"], json.dumps({**asdict(SfmOptions()), **r["options"]}, sort_keys=True)
@@ -693,6 +716,20 @@ def keep_timed_runs(new: dict, old: dict | None) -> dict:
     return {**new, "runs": runs}
 
 
+OLD_BASE = ".venv/bin/python bench/reconstruct.py"
+"""how the commands recorded before bench/ became a package start"""
+BASE = command_line("reconstruct", [])
+
+
+def _options_of(command: str) -> str | None:
+    """A recorded command's options ('' for a plain run), whichever way it ran the study; None
+    for another command."""
+    for base in (BASE, OLD_BASE):
+        if command == base or command.startswith(base + " "):
+            return command[len(base):].strip()
+    return None
+
+
 def drop_covered_commands(commands: list[str]) -> list[str]:
     """The command list without single-part default runs that a later plain run (every part at its
     defaults) has redone.
@@ -700,13 +737,14 @@ def drop_covered_commands(commands: list[str]) -> list[str]:
     >>> base = ".venv/bin/python bench/reconstruct.py"
     >>> drop_covered_commands([base + " --part registration", base + " --part realworld --train-views 5", base])
     ['.venv/bin/python bench/reconstruct.py --part realworld --train-views 5', '.venv/bin/python bench/reconstruct.py']
+    >>> drop_covered_commands([base + " --part geometry", ".venv/bin/python -m bench.reconstruct"])
+    ['.venv/bin/python -m bench.reconstruct']
     """
-    base = ".venv/bin/python bench/reconstruct.py"
-    if base not in commands:
+    plain = [k for k, c in enumerate(commands) if _options_of(c) == ""]
+    if not plain:
         return commands
-    last_all = len(commands) - 1 - commands[::-1].index(base)
-    covered = {f"{base} --part {p}" for p in ("registration", "geometry", "realworld")}
-    return [c for k, c in enumerate(commands) if not (k < last_all and c in covered)]
+    covered = {f"--part {p}" for p in ("registration", "geometry", "realworld")}
+    return [c for k, c in enumerate(commands) if not (k < plain[-1] and _options_of(c) in covered)]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -717,41 +755,59 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=2000, help="realworld: DAM fit steps")
     ap.add_argument("--capture-size", type=int, default=256, help="realworld: capture resolution (longest side, px)")
     ap.add_argument("--geometry", default="auto", help="realworld: reconstruct --geometry (auto picks the visual hull on the cape)")
+    ap.add_argument("--geometry-objects", nargs="+", default=["blob", "sphere"], choices=["blob", "sphere"], help="geometry: photo sets")
+    ap.add_argument("--geometry-photos", type=int, default=36, help="geometry: photos per set")
+    ap.add_argument("--geometry-photo-size", type=int, default=320, help="geometry: photo size, px")
+    ap.add_argument("--geometry-capture-size", type=int, default=256, help="geometry: capture resolution, px")
+    ap.add_argument("--geometry-modes", nargs="+", default=["auto", *GEOMETRY_MODES], choices=["auto", *GEOMETRY_MODES],
+                    help="geometry: modes measured (auto registers the photos; the others use the true cameras)")
+    ap.add_argument("--data", type=Path, default=DATA.parent, help="the shared data folder (real photos under real/)")
+    ap.add_argument("--cache", type=Path, default=CACHE, help="work folders (registrations, captures)")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="write reconstruct.json, reconstruct.md and the figures here instead of bench/results/ and bench/")
     args = ap.parse_args(argv)
-    import damcap.reconstruct.sfm  # noqa: F401  (imports pycolmap after OpenImageIO/OpenCV)
+    import damcap.reconstruct.colmap.register  # noqa: F401  (imports pycolmap after OpenImageIO/OpenCV)
 
-    if not (DATA / "mold_gold_cape").is_dir():
-        print(f"error: real data not found at {DATA}", file=sys.stderr)
-        return 2
-    CACHE.mkdir(parents=True, exist_ok=True)
-    res = load_results()
+    data = args.data / "real"
+    results = RESULTS if args.out is None else args.out / "reconstruct.json"
+    report = REPORT if args.out is None else args.out / "reconstruct.md"
+    figure = FIGURE if args.out is None else args.out / FIGURE.name
     parts = ["registration", "geometry", "realworld"] if args.part == "all" else ([] if args.part == "report" else [args.part])
+    if set(parts) & {"registration", "realworld"} and not (data / "mold_gold_cape").is_dir():
+        print(f"error: real data not found at {data}", file=sys.stderr)
+        return 2
+    args.cache.mkdir(parents=True, exist_ok=True)
+    res = load_results(results)
     if parts:
         res["machine"] = machine_info()
     for part in parts:
         if part == "registration":
-            res["registration"] = keep_timed_runs(part_registration(args.fresh), res.get("registration"))
+            res["registration"] = keep_timed_runs(part_registration(args.fresh, data, args.cache), res.get("registration"))
         elif part == "geometry":
-            res["geometry"] = part_geometry(args.fresh)
+            res["geometry"] = part_geometry(args.fresh, args.cache, tuple(args.geometry_objects), args.geometry_photos,
+                                            args.geometry_photo_size, args.geometry_capture_size, tuple(args.geometry_modes))
         else:
             key = "realworld" + realworld_tag(args.capture_size, args.geometry, args.train_views)
-            res[key] = part_realworld(args.train_views, args.steps, args.fresh, args.capture_size, args.geometry)
+            res[key] = part_realworld(args.train_views, args.steps, args.fresh, args.capture_size, args.geometry, data, args.cache, figure)
         res.setdefault("machines", {})[part if part != "realworld" else key] = machine_info()
         verdicts(res)
-        save_results(res)
+        save_results(res, results)
     verdicts(res)
-    save_results(res)
-    cmd = ".venv/bin/python bench/reconstruct.py" + (f" --part {args.part}" if args.part != "all" else "") + (f" --geometry {args.geometry}" if args.geometry != "auto" else "")
+    save_results(res, results)
+    cmd = BASE + (f" --part {args.part}" if args.part != "all" else "") + (f" --geometry {args.geometry}" if args.geometry != "auto" else "")
     cmd += f" --train-views {args.train_views}" if args.train_views != 8 else ""
+    given = argv if argv is not None else sys.argv[1:]
+    if any(a.startswith(("--geometry-", "--data", "--cache", "--out")) for a in given):  # a non-default run: all of it
+        cmd = command_line("reconstruct", given)
     if parts:  # every command whose results the JSON holds (parts merge), in the order they ran
-        res["commands"] = drop_covered_commands([c for c in res.get("commands", []) if c != cmd] + [cmd])
-        save_results(res)
+        res["commands"] = drop_covered_commands([c for c in res.get("commands", []) if _options_of(c) != _options_of(cmd)] + [cmd])
+        save_results(res, results)
     if res.get("commands"):
         res["commands"] = drop_covered_commands(res["commands"])
-        save_results(res)
+        save_results(res, results)
     cmd = "; ".join(res.get("commands", [cmd]))
-    write_report(res, cmd)
-    log(f"wrote {RESULTS} and {REPORT}")
+    write_report(res, cmd, report, results)
+    log(f"wrote {results} and {report}")
     return 0
 
 

@@ -19,36 +19,34 @@ Per capture:
 
 Run (from the repository root; renders the corpus first when it is missing, ~5 min)::
 
-    .venv/bin/python bench/segment.py --closed-form --dev --seed-study
+    .venv/bin/python -m bench.segment --closed-form --dev --seed-study
 
-Results: ``bench/results/segment.json`` and ``bench/segment.md``. Finished captures are kept in
-the JSON and skipped on a rerun (``--fresh`` recomputes).
+Results: ``bench/results/segment.json`` and ``bench/segment.md`` (``--out DIR``: both in DIR).
+Finished captures are kept in the JSON and skipped on a rerun (``--fresh`` recomputes).
+``--steps``, ``--init-steps`` and ``--kmeans-steps`` shorten the fits (smoke runs).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import shlex
 import statistics
 import sys
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import CpuMeter, log, machine_info  # noqa: E402
+from bench.common import BENCH, CACHE, RESULTS, CpuMeter, command_line, log, machine_info, shared_data_dir
 
-from damcap.appearance.segment import SegmentOptions, choose_materials, segment_materials  # noqa: E402
-from damcap.paper.tables import PAPER, TableOptions, heldout_entries, mean_iou, segmentation_rows  # noqa: E402
-from damcap.appearance.views import load_views  # noqa: E402
-from damcap.common.atomic import write_json_atomic, write_text_atomic  # noqa: E402
-from damcap.common.capture_folder import read_capture  # noqa: E402
-
-BENCH = Path(__file__).resolve().parent
-RESULTS = BENCH / "results"
+from damcap.appearance.segment.choose import choose_materials
+from damcap.appearance.segment.options import SegmentOptions
+from damcap.appearance.segment.train import segment_materials
+from damcap.appearance.views import load_views
+from damcap.common.atomic import write_json_atomic, write_text_atomic
+from damcap.common.capture_folder import read_capture
+from damcap.paper.tables import PAPER, TableOptions, heldout_entries, mean_iou, segmentation_rows
 
 
 def bench_capture(path: Path, entry: dict, opts: TableOptions, auto: bool, restarts: int) -> dict:
@@ -90,7 +88,7 @@ def stage_closed_form(restarts: int) -> list[dict]:
 
     out = []
     for name, true_n, kw in CLOSED_FORM:
-        path = BENCH / ".cache" / "segment_closed_form" / name
+        path = CACHE / "segment_closed_form" / name
         if not (path / "transforms.json").is_file():
             make_closed_form_capture(path, ClosedFormOptions(views=12, train_views=5, dtype="float", **kw))
         cap = read_capture(path)
@@ -115,11 +113,10 @@ def ensure_corpus(folder: Path, preset: str) -> None:
     corpus = folder / "corpus.json"
     if corpus.is_file() and all(e.get("status") == "done" for e in json.loads(corpus.read_text())["captures"]):
         return
-    from damcap.cli.synth_cmds import default_data_dir
     from damcap.synth.corpus import make_corpus
 
     log(f"rendering the {preset} preset into {folder} (resumable)")
-    make_corpus(folder, preset, default_data_dir())
+    make_corpus(folder, preset, shared_data_dir())
 
 
 #: the held-out seed study: this session's defaults next to the previous ones, over fit seeds
@@ -247,19 +244,24 @@ def write_markdown(res: dict, path: Path) -> None:
     write_text_atomic(path, "\n".join(L) + "\n")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--corpus", type=Path, default=BENCH / ".cache" / "synth_segment")
+    ap.add_argument("--corpus", type=Path, default=CACHE / "synth_segment")
     ap.add_argument("--no-auto", action="store_true", help="skip --materials auto (the slowest part)")
     ap.add_argument("--restarts", type=int, default=2, help="--materials auto: runs per n")
     ap.add_argument("--fresh", action="store_true")
     ap.add_argument("--closed-form", action="store_true", help="also --materials auto on closed-form captures of known n")
     ap.add_argument("--dev", action="store_true", help="also the development set (segment-dev preset): default options vs ablations")
-    ap.add_argument("--dev-corpus", type=Path, default=BENCH / ".cache" / "synth_segment_dev")
+    ap.add_argument("--dev-corpus", type=Path, default=CACHE / "synth_segment_dev")
     ap.add_argument("--seed-study", action="store_true", help="also the held-out captures' IoU over 3 fit seeds, default vs the previous default")
-    args = ap.parse_args()
+    ap.add_argument("--steps", type=int, default=None, help="our segmentation's fit steps (default: SegmentOptions' default)")
+    ap.add_argument("--init-steps", type=int, default=None, help="our segmentation's initial steps (default: SegmentOptions' default)")
+    ap.add_argument("--kmeans-steps", type=int, default=None, help="fit steps of each k-means cluster's DAM (default: TableOptions' default)")
+    ap.add_argument("--out", type=Path, default=None, help="write segment.json and segment.md here instead of bench/results/ and bench/")
+    args = ap.parse_args(argv)
     torch.set_num_threads(2)
-    out_json = RESULTS / "segment.json"
+    out_json = RESULTS / "segment.json" if args.out is None else args.out / "segment.json"
+    out_md = BENCH / "segment.md" if args.out is None else args.out / "segment.md"
     old, old_closed_form, old_dev, old_seed_study = {}, None, None, None
     previous_doc = json.loads(out_json.read_text()) if out_json.is_file() else None
     if previous_doc and not args.fresh:
@@ -268,7 +270,10 @@ def main() -> None:
         old_dev = previous_doc.get("dev")
         old_seed_study = previous_doc.get("seed_study")
     opts = TableOptions()
-    res = {"command": "python bench/segment.py " + " ".join(shlex.quote(a) for a in sys.argv[1:]), "machine": machine_info(),
+    changed = {k: v for k, v in (("steps", args.steps), ("init_steps", args.init_steps)) if v is not None}
+    opts = replace(opts, segment=replace(opts.segment, **changed),
+                   kmeans_steps=opts.kmeans_steps if args.kmeans_steps is None else args.kmeans_steps)
+    res = {"command": command_line("segment", sys.argv[1:] if argv is None else argv), "machine": machine_info(),
            "segment_options": asdict(opts.segment), "kmeans_steps": opts.kmeans_steps, "auto_margin": 0.1, "auto_restarts": args.restarts,
            "per_capture": []}
     res["commands"] = ([] if args.fresh or not previous_doc else previous_doc.get("commands", [previous_doc["command"]])) + [res["command"]]
@@ -298,9 +303,10 @@ def main() -> None:
     elif old_seed_study:
         res["seed_study"] = old_seed_study
     write_json_atomic(out_json, res)
-    write_markdown(res, BENCH / "segment.md")
-    log(f"wrote {out_json} and {BENCH / 'segment.md'}")
+    write_markdown(res, out_md)
+    log(f"wrote {out_json} and {out_md}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -5,7 +5,7 @@ Stages (``--stages``, default all, in this order):
 * ``throughput``: images per second at 128x128 and 256x256, 64 spp (bunny, one material, an
   environment map): the path tracer alone, and whole frames (ray-cast geometry + render +
   validation + EXR writes) through ``make_synthetic_capture``.
-* ``noise``: the path-tracing noise floor: DSSIM (capture-format.md) between two renders of the
+* ``noise``: the path-tracing noise floor: DSSIM (docs/capture-format.md) between two renders of the
   same views with different sampler seeds, at 64..1024 spp under environment maps and 16..256 spp
   under the point light, 128x128; plus the paper preset's setting at 256x256.
 * ``small``: ``damcap synth-set --preset small`` timed from scratch (in ``bench/.cache``).
@@ -49,7 +49,11 @@ file, so stages can be rerun alone) and ``bench/synth.md``.
 
 Run (from the repository root)::
 
-    .venv/bin/python bench/synth.py
+    .venv/bin/python -m bench.synth
+
+``--out DIR`` writes synth.json and synth.md into DIR (merging into DIR/synth.json) instead of
+bench/results/ and bench/; ``--corpus DIR`` and ``--fit-steps N`` run the ``table1`` stage on another
+corpus with shorter fits (smoke runs).
 """
 
 from __future__ import annotations
@@ -71,8 +75,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import CpuMeter, cpu_model, log  # noqa: E402
+from bench.common import BENCH, CACHE, REPO, RESULTS, CpuMeter, command_line, cpu_model, log, shared_data_dir
 
 from damcap.appearance.views import ViewData
 from damcap.appearance.evaluate import evaluate_split
@@ -87,11 +90,7 @@ from damcap.synth.geometry import GeometryBuffers, RayCaster, frame_geometry
 from damcap.synth.mitsuba_render import build_scene, pass_sample_counts, render_view, select_variant
 from damcap.synth.corpus import plan_corpus, preset
 
-BENCH = Path(__file__).resolve().parent
-REPO = BENCH.parent
-CACHE = BENCH / ".cache"
-RESULTS = BENCH / "results"
-DATA = Path(os.environ.get("DAMCAP_SHARED_DATA", REPO.parent / "shared" / "data"))
+DATA = shared_data_dir()
 STAGES = ("throughput", "noise", "small", "paper", "table1", "why", "anchor", "activation", "weight_decay", "design", "quantile",
           "separable")
 TARGET_NOVEL_RATIO = 0.5
@@ -309,7 +308,7 @@ def split_views(root: Path) -> tuple[list[ViewData], list[ViewData], PixelSample
     return train, test, samples_of(train)
 
 
-def table1_capture(root: Path, c: dict, fit_seeds: list[int], floor_every: int) -> dict:
+def table1_capture(root: Path, c: dict, fit_seeds: list[int], floor_every: int, fit: FitOptions = FitOptions()) -> dict:
     """One capture's Table 1 record: its noise floor, DAM fits (one per seed) and RM++ / RM, same
     view (train frames) and novel view (test frames). ``c``: its corpus entry (name, object, light)."""
     train, test, samples = split_views(root)
@@ -322,13 +321,13 @@ def table1_capture(root: Path, c: dict, fit_seeds: list[int], floor_every: int) 
     base = None
     for s in fit_seeds:
         with Timed() as tf:
-            fit = fit_dam(samples, FitOptions(seed=s))
-        res_same = evaluate_split(train, train, {"DAM": fit.model}, baselines=base is None)
-        res_novel = evaluate_split(train, test, {"DAM": fit.model}, baselines=base is None)
+            fitted = fit_dam(samples, replace(fit, seed=s))
+        res_same = evaluate_split(train, train, {"DAM": fitted.model}, baselines=base is None)
+        res_novel = evaluate_split(train, test, {"DAM": fitted.model}, baselines=base is None)
         if base is None:
             base = {"same_view": {m: res_same[m].mean for m in ("RM++", "RM")},
                     "novel_view": {m: res_novel[m].mean for m in ("RM++", "RM")}}
-        rec["fits"].append({"seed": s, "fit_s": round(fit.seconds, 2), "best_step": fit.best_step,
+        rec["fits"].append({"seed": s, "fit_s": round(fitted.seconds, 2), "best_step": fitted.best_step,
                             "same_view": res_same["DAM"].mean, "novel_view": res_novel["DAM"].mean, **tf.as_dict()})
     rec["baselines"] = base
     rec["dam"] = {k: statistics.fmean(f[k] for f in rec["fits"]) for k in ("same_view", "novel_view")}
@@ -338,14 +337,15 @@ def table1_capture(root: Path, c: dict, fit_seeds: list[int], floor_every: int) 
     return rec
 
 
-def stage_table1(fit_seeds: list[int], floor_every: int) -> dict:
-    corpus = json.loads((small_corpus_dir() / "corpus.json").read_text())
+def stage_table1(fit_seeds: list[int], floor_every: int, corpus_dir: Path | None = None, fit: FitOptions = FitOptions()) -> dict:
+    corpus_dir = corpus_dir or small_corpus_dir()
+    corpus = json.loads((corpus_dir / "corpus.json").read_text())
     held = [c for c in corpus["captures"] if c["split"] == "heldout" and c["materials"] == 1]
     if not held or any(c["status"] not in ("done", "skipped") for c in held):
         raise SystemExit("run the 'small' stage first: held-out captures are missing")
-    per_capture = [table1_capture(small_corpus_dir() / c["path"], c, fit_seeds, floor_every) for c in held]
+    per_capture = [table1_capture(corpus_dir / c["path"], c, fit_seeds, floor_every, fit) for c in held]
     table = summarise_table1(per_capture, fit_seeds)
-    return {"captures": [c["name"] for c in held], "fit_options": asdict(FitOptions()), "fit_seeds": fit_seeds, "floor_every": floor_every,
+    return {"captures": [c["name"] for c in held], "fit_options": asdict(fit), "fit_seeds": fit_seeds, "floor_every": floor_every,
             "table": table, "per_capture": per_capture, "target_novel_ratio": TARGET_NOVEL_RATIO}
 
 
@@ -746,7 +746,7 @@ def write_markdown(res: dict, path: Path) -> None:
          f"Machine: {m.get('cpu_model')} ({m.get('nproc')} cores, shared with other engineers; {m.get('mem_gib')} GiB), "
          f"Mitsuba {m.get('mitsuba')} `{m.get('variant')}` ({m.get('drjit_threads')} threads), torch {m.get('torch')} "
          f"({m.get('torch_threads')} threads), Python {m.get('python')}; {m.get('date_utc')}.", "",
-         "Command (from the repository root): `" + res.get("command", ".venv/bin/python bench/synth.py") + "` (all stages; "
+         "Command (from the repository root): `" + res.get("command", command_line("synth", [])) + "` (all stages; "
          "`--stages a,b` reruns some, merging into the results). This file's results came from these runs: "
          + "; ".join(f"`{r['command']}` ({r['started_utc']})" for r in res.get("runs", [])) + ".", "",
          "*others* = share of all cores that other processes used during the timed section (the machine is shared). "
@@ -969,28 +969,31 @@ def write_markdown(res: dict, path: Path) -> None:
     path.write_text("\n".join(L), encoding="utf-8")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--stages", default=",".join(STAGES), help="comma-separated subset of " + ", ".join(STAGES) + ", or 'report'")
     ap.add_argument("--jobs", type=int, default=2, help="synth-set --jobs for the small preset")
     ap.add_argument("--keep-small", action="store_true", help="reuse a finished small corpus in bench/.cache (not timed from scratch)")
     ap.add_argument("--fit-seeds", default="0,1,2")
     ap.add_argument("--floor-every", type=int, default=3, help="re-render every n-th frame for the Table 1 noise floors")
-    args = ap.parse_args()
+    ap.add_argument("--corpus", type=Path, default=None, help="table1: the corpus whose held-out captures are measured (default: the small preset's in bench/.cache)")
+    ap.add_argument("--fit-steps", type=int, default=None, help="table1: DAM fit steps (default: FitOptions' default)")
+    ap.add_argument("--out", type=Path, default=None, help="write synth.json and synth.md here instead of bench/results/ and bench/")
+    args = ap.parse_args(argv)
     stages = [s for s in args.stages.split(",") if s and s != "report"]  # 'report': only rewrite synth.md
     unknown = set(stages) - set(STAGES)
     if unknown:
         raise SystemExit(f"unknown stage(s) {sorted(unknown)}; use {STAGES}")
     torch.set_num_threads(min(2, torch.get_num_threads()))
     CACHE.mkdir(parents=True, exist_ok=True)
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    out_json = RESULTS / "synth.json"
+    out_json = RESULTS / "synth.json" if args.out is None else args.out / "synth.json"
+    out_md = BENCH / "synth.md" if args.out is None else args.out / "synth.md"
+    out_json.parent.mkdir(parents=True, exist_ok=True)
     res = json.loads(out_json.read_text()) if out_json.is_file() else {}
-    res["command"] = ".venv/bin/python bench/synth.py"
+    res["command"] = command_line("synth", [])
     if stages:
         res["machine"] = machine_info()
-        argv = " ".join(sys.argv[1:])
-        res.setdefault("runs", []).append({"command": f".venv/bin/python bench/synth.py {argv}".strip(), "stages": stages,
+        res.setdefault("runs", []).append({"command": command_line("synth", sys.argv[1:] if argv is None else argv), "stages": stages,
                                            "started_utc": res["machine"]["date_utc"]})
     if "table1" in res:  # derived cells always follow the stored per-capture results
         res["table1"]["table"] = summarise_table1(res["table1"]["per_capture"], res["table1"]["fit_seeds"])
@@ -1021,15 +1024,17 @@ def main() -> None:
         elif stage == "anchor":
             res["anchor"] = stage_anchor(fit_seeds, args.floor_every)
         elif stage == "table1":
-            res["table1"] = stage_table1(fit_seeds, args.floor_every)
+            fit = FitOptions() if args.fit_steps is None else FitOptions(steps=args.fit_steps)
+            res["table1"] = stage_table1(fit_seeds, args.floor_every, args.corpus, fit)
         res.setdefault("stage_wall_s", {})[stage] = round(time.perf_counter() - t0, 1)
         t0 = time.perf_counter()
         out_json.write_text(json.dumps(res, indent=2) + "\n")
-        write_markdown(res, BENCH / "synth.md")
+        write_markdown(res, out_md)
     out_json.write_text(json.dumps(res, indent=2) + "\n")
-    write_markdown(res, BENCH / "synth.md")
-    log(f"wrote {out_json} and {BENCH / 'synth.md'}")
+    write_markdown(res, out_md)
+    log(f"wrote {out_json} and {out_md}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

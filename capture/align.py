@@ -132,7 +132,7 @@ def preview_u8(linear: np.ndarray, normalize: bool = True, eps: float = 1e-12) -
     Returns:
         (H, W) uint8.
     """
-    from damcap.capture.response import linear_to_srgb
+    from damcap.common.colour import linear_to_srgb
 
     img = np.asarray(linear, dtype=np.float32)
     if img.ndim == 3:

@@ -3,7 +3,7 @@
 The exposure of a photo is ``H = time_s * (iso / 100) / f_number**2`` (the photometric exposure
 up to a constant: sensor counts are proportional to radiance times H). Dividing a linearised
 photo by H (relative to a reference H) makes values proportional to scene radiance across photos
-(``capture-format.md``: "exposure time, ISO and aperture are already divided out").
+(``docs/capture-format.md``: "exposure time, ISO and aperture are already divided out").
 
 Readers: OpenImageIO's EXIF attributes first (JPEG, PNG, TIFF and every TIFF-based RAW, DNG
 included); for RAW files OpenImageIO cannot open, LibRaw's parse via rawpy. A field that is
@@ -58,7 +58,7 @@ class Exposure:
     """Aperture f-number N, > 0."""
 
     def to_json(self) -> dict[str, float]:
-        """The capture-format ``exposure`` record (only the known fields)."""
+        """The capture folder's ``exposure`` record (docs/capture-format.md; only the known fields)."""
         out = {"time_s": self.time_s, "iso": self.iso, "f_number": self.f_number}
         return {k: float(v) for k, v in out.items() if v is not None}
 

@@ -22,7 +22,7 @@ import numpy as np
 from damcap.common.errors import DamcapError
 
 from damcap.capture.align import chain_shifts, preview_u8, shift_image
-from damcap.capture.exif import Exposure, is_raw_path, read_exposure, resolve_exposure_factors
+from damcap.capture.exif import Exposure, is_raw_path, parse_exposure_list, read_exposure, resolve_exposure_factors
 from damcap.capture.merge import PoissonAccumulator, merge_ldr
 from damcap.capture.raw import (
     SATURATION_FRACTION,
@@ -47,7 +47,7 @@ LEVELS_16BIT = 1024
 class HdrOptions:
     """Options of ``damcap hdr`` (the CLI mirrors them one to one)."""
 
-    exposures_s: list[float] | None = None
+    exposures_s: list[float] | None = field(default=None, metadata={"cli_flag": "--exposures", "cli_parse": parse_exposure_list})
     """Exposure time of each file in seconds (same ISO and aperture), overriding EXIF; None: EXIF."""
     align: bool = False
     """Align frames by translation (median threshold bitmaps) before merging."""
@@ -398,6 +398,60 @@ def write_hdr(path: str | os.PathLike, result: HdrResult, opts: HdrOptions) -> P
         record["response"] = {"method": result.response.method, "levels": result.response.levels,
                                "log_response": result.response.log_response.round(6).tolist(),
                                "level_weight": result.response.level_weight.round(6).tolist()}
-    side = path.with_name(path.name + ".json")
+    side = hdr_record_path(path)
     write_json_atomic(side, record)
     return side
+
+
+def hdr_record_path(path: str | os.PathLike) -> Path:
+    """The record :func:`write_hdr` writes beside a merged map: ``NAME.exr`` -> ``NAME.exr.json``.
+
+    >>> hdr_record_path("out/merged.exr").as_posix()
+    'out/merged.exr.json'
+    """
+    path = Path(path)
+    return path.with_name(path.name + ".json")
+
+
+def read_response(path: str | os.PathLike) -> ResponseCurve:
+    """The response curve ``damcap hdr`` recovered from an LDR bracket, read back from its record.
+
+    Args:
+        path: the record ``NAME.exr.json`` that :func:`write_hdr` wrote, or the merged ``NAME.exr``
+            itself (its record beside it is read).
+
+    Returns:
+        The :class:`~damcap.capture.response.ResponseCurve` (``log_response``: (3, L), ln of the
+        linear value per code, a single-channel table repeated; ``level_weight`` zeros when the
+        record has none).
+
+    Raises:
+        DamcapError: the file is missing or not JSON, the record has no response (a RAW bracket has
+            none), or the table is not a finite (C, L) array with C in {1, 3} and L >= 2.
+    """
+    path = Path(path)
+    record_path = hdr_record_path(path) if path.suffix.lower() == ".exr" else path
+    if not record_path.is_file():
+        raise DamcapError(f"{record_path}: response file not found (give the NAME.exr.json record damcap hdr writes "
+                          "beside its output, or that NAME.exr)")
+    try:
+        record = json.loads(record_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise DamcapError(f"{record_path}: cannot read the damcap hdr record ({type(e).__name__}: {e})") from None
+    response = record.get("response") if isinstance(record, dict) else None
+    if not isinstance(response, dict) or "log_response" not in response:
+        kind = record.get("kind") if isinstance(record, dict) else None
+        why = "a RAW bracket has none" if kind == "raw" else "not a damcap hdr record of an LDR bracket"
+        raise DamcapError(f"{record_path}: no response curve in this file ({why})")
+    try:
+        g = np.asarray(response["log_response"], dtype=np.float64)
+        w = np.asarray(response.get("level_weight", np.zeros_like(g)), dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DamcapError(f"{record_path}: the response table is not numeric") from None
+    if g.ndim != 2 or g.shape[0] not in (1, 3) or g.shape[1] < 2 or not np.all(np.isfinite(g)):
+        raise DamcapError(f"{record_path}: the response table must be finite, (3, L) with L >= 2 code levels; got shape {g.shape}")
+    if w.shape != g.shape:
+        w = np.zeros_like(g)
+    if g.shape[0] == 1:
+        g, w = np.repeat(g, 3, axis=0), np.repeat(w, 3, axis=0)
+    return ResponseCurve(log_response=g, level_weight=w, method=str(response.get("method", "debevec")))

@@ -18,7 +18,7 @@ import numpy as np
 from damcap.common.errors import DamcapError
 
 from damcap.capture.exif import Exposure, exposure_factor, is_raw_path, read_exposure, resolve_exposure_factors
-from damcap.capture.response import srgb_to_linear
+from damcap.common.colour import srgb_to_linear
 from damcap.capture.working_space import CAMERA_RGB, COLORSPACES, rec709_to_working
 
 #: file extensions ``damcap linearize`` picks up in a folder (RAW files too)
@@ -200,14 +200,8 @@ def _linear_raw(path: Path) -> tuple[np.ndarray, np.ndarray, bool]:
     """One RAW photo as linear Rec.709 (or camera RGB), clipped mask, whether a matrix was applied."""
     import warnings
 
-    from damcap.capture.raw import CaptureWarning, apply_flip, camera_rgb_from_mosaic, dilate_mask, read_raw, to_rec709
+    from damcap.capture.raw import CaptureWarning, read_raw_rgb
 
-    m = read_raw(path)
-    floor = 1.0 / (m.white_level - max(m.black_level))
-    cam = camera_rgb_from_mosaic(np.maximum(m.counts, 0.0), m.cfa, floor)
     with warnings.catch_warnings():
         warnings.simplefilter("always", CaptureWarning)
-        rgb, converted = to_rec709(cam, m.rgb_from_camera, path.name)
-    sat = m.saturated if m.saturated.ndim == 2 else m.saturated.any(axis=-1)
-    clipped = dilate_mask(sat, 2) if m.cfa is not None else sat
-    return np.maximum(apply_flip(rgb, m.flip), 0.0), apply_flip(clipped, m.flip), converted
+        return read_raw_rgb(path)

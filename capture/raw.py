@@ -432,3 +432,32 @@ def to_rec709(camera_rgb: np.ndarray, rgb_from_camera: np.ndarray | None, source
         return np.asarray(camera_rgb, np.float32), False
     out = np.asarray(camera_rgb, np.float32) @ np.asarray(rgb_from_camera, np.float32).T
     return out, True
+
+
+def read_raw_rgb(path: str | os.PathLike, saturation_fraction: float = SATURATION_FRACTION) -> tuple[np.ndarray, np.ndarray, bool]:
+    """One RAW photo as linear RGB (``damcap linearize`` and ``damcap reconstruct`` read RAW files with it).
+
+    The sensor values as :func:`read_raw` gives them (black subtracted, 1 = white level),
+    demosaiced once (:func:`camera_rgb_from_mosaic`), converted with the file's colour matrix
+    (:func:`to_rec709`, which warns when there is none) and turned upright (:func:`apply_flip`).
+    The exposure is not divided out here.
+
+    Args:
+        path: any file LibRaw reads.
+        saturation_fraction: see :func:`normalize_raw`.
+
+    Returns:
+        rgb: (H, W, 3) float32, linear Rec.709 (camera RGB when the file has no colour matrix), >= 0.
+        clipped: (H, W) bool, some photosite saturated (dilated by the demosaicing footprint for mosaics).
+        converted: whether a colour matrix was applied.
+
+    Raises:
+        DamcapError: see :func:`read_raw`.
+    """
+    m = read_raw(path, saturation_fraction)
+    floor = 1.0 / (m.white_level - max(m.black_level))
+    cam = camera_rgb_from_mosaic(np.maximum(m.counts, 0.0), m.cfa, floor)
+    rgb, converted = to_rec709(cam, m.rgb_from_camera, Path(path).name)
+    sat = m.saturated if m.saturated.ndim == 2 else m.saturated.any(axis=-1)
+    clipped = dilate_mask(sat, 2) if m.cfa is not None else sat
+    return np.maximum(apply_flip(rgb, m.flip), 0.0), apply_flip(clipped, m.flip), converted

@@ -1,4 +1,6 @@
-"""Camera response curves: the sRGB curve and Debevec & Malik's recovery from a bracket.
+"""Camera response curves: the sRGB curve as a response table and Debevec & Malik's recovery from a bracket.
+
+The sRGB curve itself lives in :mod:`damcap.common.colour`.
 
 A response curve here is a table ``log_response[c, z]``: the natural log of the (relative) linear
 exposure ``X = E * H`` that produces code value ``z`` in channel ``c`` (Debevec & Malik 1997 call
@@ -17,46 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from damcap.common.colour import srgb_to_linear
 from damcap.common.errors import DamcapError
 
 #: floor for linear values before ``log`` (the sRGB curve reaches 0 at code 0)
 LOG_EPS = 1e-6
-
-
-# --------------------------------------------------------------------------------------------
-# sRGB
-# --------------------------------------------------------------------------------------------
-
-def srgb_to_linear(srgb: np.ndarray) -> np.ndarray:
-    """The sRGB decoding curve (IEC 61966-2-1), elementwise.
-
-    Args:
-        srgb: (...) float, encoded values in [0, 1] (values outside are clipped).
-
-    Returns:
-        (...) float, linear in [0, 1].
-
-    >>> round(float(srgb_to_linear(np.array(0.5))), 7)
-    0.2140411
-    """
-    v = np.clip(np.asarray(srgb, dtype=np.float64), 0.0, 1.0)
-    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(lin: np.ndarray) -> np.ndarray:
-    """The sRGB encoding curve (inverse of :func:`srgb_to_linear`), elementwise.
-
-    Args:
-        lin: (...) float, linear in [0, 1] (values outside are clipped).
-
-    Returns:
-        (...) float, encoded in [0, 1].
-
-    >>> round(float(linear_to_srgb(np.array(0.18))), 7)
-    0.4613561
-    """
-    v = np.clip(np.asarray(lin, dtype=np.float64), 0.0, 1.0)
-    return np.where(v <= 0.0031308, v * 12.92, 1.055 * np.power(v, 1 / 2.4) - 0.055)
 
 
 def srgb_log_response(levels: int, channels: int = 3, eps: float = LOG_EPS) -> np.ndarray:

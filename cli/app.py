@@ -8,12 +8,31 @@ import typer
 
 from damcap.common.errors import DamcapError
 
-app = typer.Typer(
-    add_completion=False,
-    no_args_is_help=True,
-    pretty_exceptions_enable=False,
-    help="damcap: from photos to deep appearance maps.",
-)
+from damcap.cli.options import COMMANDS, command  # noqa: F401  (command: the decorator every command module uses)
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        from damcap.common.version import damcap_version
+
+        typer.echo(f"damcap {damcap_version()}")
+        raise typer.Exit()
+
+
+def _root(version: bool = typer.Option(False, "--version", is_eager=True, callback=_print_version,
+                                       help="print damcap's version and exit")) -> None:
+    """damcap: from photos to deep appearance maps."""
+
+
+def build_app(selected: str | None = None) -> typer.Typer:
+    """The ``damcap`` application. Only the ``selected`` command (the one being run, or whose help
+    is shown) imports its options dataclasses; the others are listed by name and summary."""
+    app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                      help="damcap: from photos to deep appearance maps.")
+    app.callback()(_root)
+    for cmd in COMMANDS:
+        app.command(cmd.name)(cmd.typer_function(full=cmd.name == selected))
+    return app
 
 
 def progress_bar(total: int, desc: str):

@@ -4,16 +4,21 @@ from __future__ import annotations
 
 from dataclasses import asdict
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import typer
 
 from damcap.common.errors import DamcapError
 
-from damcap.cli.app import app, progress_bar, refuse_input_overlap
+from damcap.cli.app import command, progress_bar, refuse_input_overlap
+from damcap.cli.options import parse_choice, parse_float
+
+if TYPE_CHECKING:
+    from damcap.appearance.fit import FitOptions
+    from damcap.paper.tables import TableOptions
 
 
-@app.command()
+@command()
 def inspect(capture: Path = typer.Argument(..., help="capture folder")) -> None:
     """Summarise a capture folder and validate every file in it."""
     from rich.console import Console
@@ -39,50 +44,32 @@ def inspect(capture: Path = typer.Argument(..., help="capture folder")) -> None:
     typer.echo("valid capture")
 
 
-@app.command()
+@command(opts="damcap.appearance.fit:FitOptions")
 def fit(
     capture: Path = typer.Argument(..., help="capture folder"),
     output: Path = typer.Option(..., "-o", "--output", help="model file to write (.dam)"),
-    split: str = typer.Option("train", help="frames to fit: train | all"),
-    steps: int = typer.Option(None, help="optimiser steps"),
-    batch_size: int = typer.Option(None, help="pixels per step"),
-    learning_rate: float = typer.Option(None, help="initial Adam learning rate"),
-    width: int = typer.Option(None, help="hidden units per layer"),
-    depth: int = typer.Option(None, help="hidden layers"),
-    encoding: str = typer.Option(None, help="network input: vn (paper) | nr | vnr"),
-    activation: str = typer.Option(None, help="hidden non-linearity: shifted_softplus (default) | leaky_relu | relu | softplus | tanh"),
-    separable: bool = typer.Option(None, "--separable/--no-separable", help="DAM = f(N) + g(R): two half-width branches (encoding nr, even width)"),
-    adversarial: bool = typer.Option(None, "--adversarial/--no-adversarial", help="add the adversarial cost (alpha 0.001)"),
-    holdout_views: int = typer.Option(None, help="training views held out for the stopping rule (0 = none)"),
-    seed: int = typer.Option(None),
-    device: str = typer.Option(None, help="cpu | cuda | auto"),
-    precision: str = typer.Option(None, help="training-step compute: float32 | bfloat16 (autocast; weights and the saved model stay float32)"),
-    weight_decay: float = typer.Option(None, help="decoupled weight decay (AdamW), e.g. 0.1: smoother, for captures with shadows and interreflection (default 0)"),
-    quantile: float = typer.Option(None, help="quantile of the data cost, in (0, 1): 0.5 = L1 (default); an upper one (e.g. 0.75, with --weight-decay 0.1) discounts cast shadows"),
+    split: str = typer.Option("train", parser=parse_choice("--split", ("train", "all")), metavar="[train|all]", help="frames to fit"),
     resume: bool = typer.Option(True, "--resume/--no-resume", help="continue from OUTPUT.ckpt if a run was interrupted"),
-    target_dssim: Optional[float] = typer.Option(None, "--target-dssim", help="fit growing DAMs and keep the smallest whose DSSIM on the held-out train views is at most this"),
+    target_dssim: Optional[float] = typer.Option(None, "--target-dssim", parser=parse_float("--target-dssim"),
+                                                 help="fit growing DAMs and keep the smallest whose DSSIM on the held-out train views is at most this"),
+    *,
+    opts: FitOptions,
+    given: frozenset[str],
 ) -> None:
     """Fit a deep appearance map to a capture (L1 or quantile data cost, optional adversarial cost)."""
     from damcap.appearance.dam_file import save_dam
-    from damcap.appearance.fit import FitOptions, fit_dam
-    from damcap.appearance.fit import adversarial_frames
+    from damcap.appearance.fit import adversarial_frames, fit_dam
     from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import read_capture
     from damcap.common.version import damcap_version
 
-    given = dict(steps=steps, batch_size=batch_size, learning_rate=learning_rate, width=width, depth=depth,
-                 encoding=encoding, activation=activation, separable=separable, adversarial=adversarial, holdout_views=holdout_views,
-                 seed=seed, device=device, precision=precision, weight_decay=weight_decay, quantile=quantile)
-    opts = FitOptions(**{k: v for k, v in given.items() if v is not None})
     opts.validate()  # numeric options and --precision, before reading the capture
     opts.architecture  # validates width/depth/encoding/activation
-    if split not in ("train", "all"):
-        raise DamcapError(f"--split must be train or all, got {split!r}")
     refuse_input_overlap(output, capture)
     cap = read_capture(capture)
     views = load_views(cap, split)  # type: ignore[arg-type]
     if target_dssim is not None:
-        _fit_to_target(capture, cap, views, split, target_dssim, opts, output, width_or_depth_given=width is not None or depth is not None,
+        _fit_to_target(capture, cap, views, split, target_dssim, opts, output, width_or_depth_given=bool({"width", "depth"} & given),
                        resume=resume)
         return
     samples = samples_of(views)
@@ -142,12 +129,13 @@ def _fit_to_target(capture: Path, cap, views, split: str, target: float, opts, o
                    f"({n} weights, held-out DSSIM {err:.4f}). More steps (--steps) or more train views may help.")
 
 
-@app.command()
+@command()
 def render(
     model: Path = typer.Argument(..., help="model file (.dam)"),
     capture: Path = typer.Argument(..., help="capture folder (cameras and geometry)"),
     output: Path = typer.Option(..., "-o", "--output", help="folder for one EXR per frame"),
-    split: str = typer.Option("test", help="test | train | all"),
+    split: str = typer.Option("test", parser=parse_choice("--split", ("test", "train", "all")), metavar="[test|train|all]",
+                              help="frames to render"),
 ) -> None:
     """Render the model into every frame of a split: one linear EXR per frame, background 0."""
     from damcap.appearance.dam_file import load_dam
@@ -172,7 +160,7 @@ def render(
     typer.echo(f"wrote {len(frames)} frames to {output}")
 
 
-@app.command()
+@command(table="damcap.paper.tables:TableOptions")
 def evaluate(
     capture: Optional[Path] = typer.Argument(None, help="capture folder (not with --table1 / --table2)"),
     model: Optional[list[Path]] = typer.Option(None, "--model", help="model file (.dam), repeatable (e.g. a predicted and a fitted one); without it only the baselines"),
@@ -186,6 +174,9 @@ def evaluate(
     predictor: Optional[Path] = typer.Option(None, "--predictor", help="--table1/--table2: predictor file (default: the shipped one)"),
     table_materials: str = typer.Option("auto", "--table-materials", help="--table2: materials of the segmentation, a number or 'auto'"),
     fresh: bool = typer.Option(False, "--fresh", help="--table1: recompute every capture instead of resuming"),
+    *,
+    table: TableOptions,
+    given: frozenset[str],
 ) -> None:
     """Mean DSSIM, same view (train) and novel view (test), for the model, RM and RM++
     (and segmentations: ours and the k-means baseline); or the paper's Table 1 / Table 2."""
@@ -200,10 +191,13 @@ def evaluate(
             raise DamcapError("--table1 / --table2 need --out FOLDER for the markdown, JSON and plots")
         refuse_input_overlap(out, *(table1 or [table2]))
         if table1:
-            run_table1(list(table1), out, predictor, fresh)
+            run_table1(list(table1), out, predictor, fresh, table)
         else:
-            run_table2(table2, out, predictor, table_materials)
+            run_table2(table2, out, predictor, table_materials, table)
         return
+    if given:
+        raise DamcapError(f"--{sorted(given)[0].replace('.', '-').replace('_', '-')} is an option of --table1 / --table2; "
+                          "without them evaluate scores the given models")
     if capture is None:
         raise DamcapError("evaluate needs a CAPTURE folder (or --table1 CORPUS / --table2 CAPTURE)")
     from rich.console import Console
@@ -233,16 +227,16 @@ def evaluate(
     results = {"train": evaluate_split(train, train, models), "test": evaluate_split(train, test, models)}
     segs = {}
     if segmentation is not None:
-        from damcap.appearance.segment_file import load_segmentation
+        from damcap.appearance.segment.file import load_segmentation
 
         segs["segment"] = load_segmentation(segmentation)
     if kmeans is not None:
-        from damcap.appearance.segment import kmeans_baseline
+        from damcap.appearance.segment.kmeans_baseline import kmeans_baseline
 
         segs["k-means"] = kmeans_baseline(train, kmeans)
     if segs:
         from damcap.appearance.evaluate import MethodScores
-        from damcap.appearance.segment import segmentation_scores
+        from damcap.appearance.segment.score import segmentation_scores
 
         for name, seg in segs.items():
             for split, targets in (("train", train), ("test", test)):

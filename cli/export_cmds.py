@@ -4,14 +4,18 @@ from __future__ import annotations
 
 from dataclasses import asdict
 from pathlib import Path
-from typing import List, Optional
+from typing import TYPE_CHECKING, List, Optional
 
 import numpy as np
 import typer
 
 from damcap.common.errors import DamcapError
 
-from damcap.cli.app import app, refuse_input_overlap
+from damcap.cli.app import command, refuse_input_overlap
+
+if TYPE_CHECKING:
+    from damcap.export.turntable import ExportOptions, OrbitOptions
+    from damcap.export.viewer import ViewerCamera
 
 
 def _load_mesh(mesh: Optional[Path]):
@@ -39,33 +43,29 @@ def _vertex_labels(path: Path, n_vertices: int) -> np.ndarray:
     return labels.astype(np.int64)
 
 
-@app.command()
+@command(opts="damcap.export.turntable:ExportOptions", orbit="damcap.export.turntable:OrbitOptions")
 def export(
     models: List[Path] = typer.Argument(..., help="model file(s) (.dam); several = one per mesh part"),
     output: Path = typer.Option(..., "-o", "--output", help="output folder (frames) or file (onnx, glsl)"),
-    fmt: str = typer.Option("frames", "--format", help="frames | onnx | glsl"),
     mesh: Optional[Path] = typer.Option(None, "--mesh", help="OBJ/PLY shape to render the appearance on"),
     labels: Optional[Path] = typer.Option(None, "--labels", help="per-vertex part labels (.npy or .txt), instead of OBJ material groups"),
-    views: int = typer.Option(36, help="frames on the orbit"),
-    elevation: float = typer.Option(20.0, help="camera elevation, degrees"),
-    resolution: int = typer.Option(512, help="frame size, pixels"),
-    distance: float = typer.Option(3.0, help="camera distance (the mesh is scaled into the unit sphere)"),
-    fov: float = typer.Option(45.0, help="field of view, degrees"),
-    video: bool = typer.Option(False, "--video/--no-video", help="also write an MP4 turntable"),
-    fps: int = typer.Option(24, help="video frame rate"),
+    *,
+    opts: ExportOptions,
+    orbit: OrbitOptions,
 ) -> None:
     """Render appearance on a new shape along an orbit (EXR + PNG + MP4), or write ONNX / GLSL."""
     from damcap.appearance.dam_file import load_dam
 
+    opts.validate()
     loaded = [load_dam(m) for m in models]
     dams = [m for m, _ in loaded]
     refuse_input_overlap(output, *models, *([mesh] if mesh else []))
-    if fmt == "onnx":
+    if opts.format == "onnx":
         if len(dams) != 1:
             raise DamcapError("--format onnx takes one model")
         _export_onnx(dams[0], output if output.suffix == ".onnx" else output / "model.onnx")
         return
-    if fmt == "glsl":
+    if opts.format == "glsl":
         from damcap.common.atomic import write_text_atomic
         from damcap.export.glsl import glsl_source
 
@@ -73,16 +73,17 @@ def export(
         write_text_atomic(path, "".join(glsl_source(d, prefix=f"dam{k}" if len(dams) > 1 else "dam") for k, d in enumerate(dams)))
         typer.echo(f"wrote {path}")
         return
-    if fmt != "frames":
-        raise DamcapError(f"--format must be frames, onnx or glsl, got {fmt!r}")
     if mesh is None:
         raise DamcapError("--format frames needs --mesh SHAPE.obj|ply")
-    _export_frames(dams, [meta for _, meta in loaded], models, mesh, labels, output, views, elevation, resolution, distance, fov, video, fps)
+    _export_frames(dams, [meta for _, meta in loaded], models, mesh, labels, output, orbit, opts)
 
 
 def _export_onnx(dam, path: Path) -> None:
-    import onnxruntime as ort
     import torch
+
+    from damcap.common.optional import require
+
+    ort = require("onnxruntime", "damcap export --format onnx")
 
     from damcap.export.onnx_export import export_onnx
 
@@ -99,18 +100,18 @@ def _export_onnx(dam, path: Path) -> None:
     typer.echo(f"wrote {path} (checked against onnxruntime: max relative difference {err:.1e})")
 
 
-def _export_frames(dams, metas, model_paths, mesh_path, labels, output, views, elevation, resolution, distance, fov, video, fps) -> None:
+def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, export_opts) -> None:
     from tqdm import tqdm
 
     from damcap.common.atomic import atomic_path, write_json_atomic
     from damcap.common.capture_folder import RADIANCE_CHANNELS
     from damcap.common.exr import write_exr, write_png
     from damcap.common.version import damcap_version
-    from damcap.export.display import display_srgb8, exposure_scale_for
-    from damcap.export.turntable import OrbitOptions, parts_from_vertex_labels, render_orbit
+    from damcap.common.colour import display_srgb8, exposure_scale_for
+    from damcap.export.turntable import parts_from_vertex_labels, render_orbit
 
-    opts = OrbitOptions(views=views, elevation_deg=elevation, resolution=resolution, distance=distance, fov_deg=fov)
     opts.validate()
+    views, resolution, video, fps = opts.views, opts.resolution, export_opts.video, export_opts.fps
     shape = _load_mesh(mesh_path)
     if labels is not None:
         part = parts_from_vertex_labels(shape.triangles, _vertex_labels(labels, len(shape.vertices)))
@@ -154,35 +155,36 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, views, e
     write_json_atomic(output / "export.json", {
         "damcap_version": damcap_version(), "models": [str(p.resolve()) for p in model_paths],
         "mesh": str(mesh_path.resolve()), "labels": str(labels.resolve()) if labels else None,
-        "options": asdict(opts), "exposure_scale": scale, "colorspace": metas[0].get("colorspace"),
+        "options": asdict(opts), "export_options": asdict(export_opts), "exposure_scale": scale, "colorspace": metas[0].get("colorspace"),
         "world_from_cam": cams,
     })
     typer.echo(f"wrote {views} frames to {output} (frames/*.exr linear, display/*.png sRGB{', turntable.mp4' if video else ''})")
 
 
-@app.command()
+@command(cam="damcap.export.viewer:ViewerCamera")
 def view(
     model: Path = typer.Argument(..., help="model file (.dam)"),
     output: Path = typer.Option(..., "-o", "--output", help="HTML file to write"),
     mesh: Optional[Path] = typer.Option(None, "--mesh", help="OBJ/PLY shape (default: a sphere)"),
-    azimuth: float = typer.Option(30.0, help="initial camera azimuth, degrees"),
-    elevation: float = typer.Option(20.0, help="initial camera elevation, degrees"),
     serve: bool = typer.Option(False, "--serve/--no-serve", help="serve the page on 127.0.0.1 until Ctrl-C"),
     port: int = typer.Option(8765, help="port for --serve"),
+    *,
+    cam: ViewerCamera,
 ) -> None:
     """Write a self-contained HTML page that shows the DAM on a mesh in real time (WebGL 2)."""
     from damcap.appearance.dam_file import load_dam
     from damcap.common.atomic import write_text_atomic
-    from damcap.export.display import exposure_scale_for
+    from damcap.common.colour import exposure_scale_for
     from damcap.export.turntable import OrbitOptions, render_orbit
-    from damcap.export.viewer import ViewerCamera, viewer_html
+    from damcap.export.viewer import viewer_html
 
+    # the page's exposure: the same rule as damcap export's PNGs, on a CPU render of the first view
+    opts = OrbitOptions(views=1, elevation_deg=cam.elevation_deg, azimuth0_deg=cam.azimuth_deg, resolution=128, distance=cam.distance,
+                        fov_deg=cam.fov_deg)
+    opts.validate()
     dam, _ = load_dam(model)
     refuse_input_overlap(output, model, *([mesh] if mesh else []))
     shape = _load_mesh(mesh)
-    cam = ViewerCamera(azimuth_deg=azimuth, elevation_deg=elevation)
-    # the page's exposure: the same rule as damcap export's PNGs, on a CPU render of the first view
-    opts = OrbitOptions(views=1, elevation_deg=elevation, azimuth0_deg=azimuth, resolution=128, distance=cam.distance, fov_deg=cam.fov_deg)
     _, buf, rad = next(render_orbit([dam], shape, np.zeros(len(shape.triangles), np.int64), opts))
     html = viewer_html(dam, shape, exposure_scale_for(rad, buf.coverage > 0.5), cam, title=f"{model.name} on {mesh.name if mesh else 'a sphere'}")
     write_text_atomic(output, html)

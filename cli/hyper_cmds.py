@@ -6,32 +6,25 @@ import shlex
 import sys
 import time
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import typer
 
 from damcap.common.errors import DamcapError
 
-from damcap.cli.app import app, progress_bar, refuse_input_overlap
+from damcap.cli.app import command, progress_bar, refuse_input_overlap
+
+if TYPE_CHECKING:
+    from damcap.appearance.hyper.train import HyperTrainOptions
 
 
-@app.command("train-hyper")
+@command("train-hyper", opts="damcap.appearance.hyper.train:HyperTrainOptions")
 def train_hyper_cmd(
     dataset: Path = typer.Argument(..., help="corpus folder written by `damcap synth-set` (its train split is used)"),
     output: Path = typer.Option(..., "-o", "--output", help="predictor file to write (safetensors); its recipe goes to the .json beside it"),
-    steps: int = typer.Option(3000, help="optimiser steps"),
-    batch_size: int = typer.Option(8, help="(capture, view) pairs per step, all ranks together"),
-    pixels: int = typer.Option(4096, help="pixels scored per capture and step"),
-    learning_rate: float = typer.Option(5e-4, help="initial Adam learning rate (cosine decay)"),
-    input_size: int = typer.Option(256, help="side of the input image, pixels"),
-    channels: str = typer.Option("16,32,64,64,128,128,256,256", help="channels of the stride-2 convolutions, comma-separated"),
-    max_captures: int = typer.Option(0, help="use at most this many training captures (0 = all)"),
-    val_fraction: float = typer.Option(0.1, help="training captures kept for the validation curve"),
-    eval_every: int = typer.Option(100, help="steps between validations"),
-    augment: bool = typer.Option(True, "--augment/--no-augment", help="rotation about +y, mirror, tinted light"),
-    seed: int = typer.Option(0),
-    device: str = typer.Option("cpu", help="cpu | cuda | auto"),
     resume: bool = typer.Option(True, "--resume/--no-resume", help="continue from OUTPUT.state if a run was interrupted"),
+    *,
+    opts: HyperTrainOptions,
 ) -> None:
     """Train the predictor network (learning-to-learn). Data-parallel under
     `torchrun --nproc-per-node N -m damcap.cli.main train-hyper ...`."""
@@ -40,18 +33,11 @@ def train_hyper_cmd(
     import hashlib
     import json
 
-    from damcap.appearance.hyper_file import save_predictor
-    from damcap.appearance.hyper_train import HyperTrainOptions, corpus_training_captures, train_hyper
+    from damcap.appearance.hyper.file import save_predictor
+    from damcap.appearance.hyper.train import corpus_training_captures, train_hyper
     from damcap.common.atomic import write_json_atomic
     from damcap.common.version import damcap_version
 
-    try:
-        chans = tuple(int(c) for c in channels.split(","))
-    except ValueError:
-        raise DamcapError(f"--channels must be comma-separated integers, got {channels!r}") from None
-    opts = HyperTrainOptions(channels=chans, steps=steps, batch_size=batch_size, pixels=pixels, learning_rate=learning_rate, input_size=input_size,
-                             max_captures=max_captures, val_fraction=val_fraction, eval_every=eval_every, augment=augment,
-                             seed=seed, device=device)
     opts.validate()
     opts.architecture  # validates channels against the input size
     refuse_input_overlap(output, dataset)
@@ -79,7 +65,7 @@ def train_hyper_cmd(
     except (OSError, ValueError, AttributeError):
         preset = None
     if preset:
-        training["corpus_command"] = f"damcap synth-set {shlex.quote(str(dataset))} --preset {preset} --data DATA"
+        training["corpus_command"] = f"damcap synth-set {shlex.quote(str(dataset))} --preset {preset} --data-dir DATA"
     save_predictor(output, result.net, training)
     sidecar = output.with_name(output.stem + ".json")
     write_json_atomic(sidecar, {"predictor": output.name, "sha256": hashlib.sha256(output.read_bytes()).hexdigest(), **training})
@@ -88,7 +74,7 @@ def train_hyper_cmd(
                f"validation L1 {last.get('val_l1', float('nan')):.4f}, {result.seconds:.0f} s, {result.world_size} process(es))")
 
 
-@app.command()
+@command()
 def predict(
     capture: Path = typer.Argument(..., help="capture folder"),
     output: Path = typer.Option(..., "-o", "--output", help="model file to write (.dam)"),
@@ -100,8 +86,8 @@ def predict(
     """Predict a deep appearance map from one view in milliseconds (optionally refine it)."""
     from damcap.appearance.dam_file import save_dam
     from damcap.appearance.fit import refine_dam
-    from damcap.appearance.hyper import predict_dam, predictor_input
-    from damcap.appearance.hyper_file import load_predictor, shipped_predictor_path
+    from damcap.appearance.hyper.model import predict_dam, predictor_input
+    from damcap.appearance.hyper.file import load_predictor, shipped_predictor_path
     from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import read_capture
     from damcap.common.device import resolve_device

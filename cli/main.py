@@ -15,18 +15,20 @@ from damcap.common.errors import DamcapError
 
 from damcap.cli import appearance_cmds  # noqa: F401  (registers inspect, fit, render, evaluate)
 from damcap.cli import capture_cmds  # noqa: F401
-from damcap.cli import synth_cmds  # noqa: F401  (registers closed-form, synth, synth-set)
+from damcap.cli import synth_cmds  # noqa: F401  (registers closed-form, synth, synth-set, synth-photos, shape)
 from damcap.cli import reconstruct_cmds  # noqa: F401
 from damcap.cli import export_cmds  # noqa: F401  (registers export, view)
 from damcap.cli import segment_cmds  # noqa: F401  (registers segment)
 from damcap.cli import hyper_cmds  # noqa: F401  (registers train-hyper, predict)
-from damcap.cli.app import app
+from damcap.cli.app import build_app
 
 
 def main(argv: list[str] | None = None) -> int:
     """Console-script entry point: runs a command, turning user mistakes into one-line errors."""
+    args = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    selected = next((a for a in args if not a.startswith("-")), None)  # the top level takes only --help, --version
     try:
-        app(args=argv, standalone_mode=False)
+        build_app(selected)(args=args, prog_name="damcap", standalone_mode=False)
     except DamcapError as e:
         typer.echo(f"error: {e}", err=True)
         return 2
@@ -35,12 +37,14 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except typer.Exit as e:
         return int(getattr(e, "exit_code", 0) or 0)
-    except typer.TyperException as e:  # usage errors: missing argument, bad option value
-        show = getattr(e, "show", None)
-        if show is not None:
-            show()
-        else:
-            typer.echo(f"error: {e}", err=True)
+    except typer.TyperException as e:  # usage errors: missing argument, unknown option or command
+        if type(e).__name__ == "NoArgsIsHelpError":  # bare ``damcap``: the help, as a usage error
+            e.show()  # type: ignore[attr-defined]
+            return 2
+        ctx = getattr(e, "ctx", None)
+        hint = f" (see {ctx.command_path} --help)" if ctx is not None else ""
+        message = e.format_message() if hasattr(e, "format_message") else str(e)
+        typer.echo(f"error: {' '.join(message.split())}{hint}", err=True)
         return int(getattr(e, "exit_code", 2) or 2)
     except KeyboardInterrupt:
         typer.echo("interrupted", err=True)

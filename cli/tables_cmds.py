@@ -25,7 +25,7 @@ def _command() -> str:
 
 
 def _predictor(path: Optional[Path]):
-    from damcap.appearance.hyper_file import load_predictor, shipped_predictor_path
+    from damcap.appearance.hyper.file import load_predictor, shipped_predictor_path
 
     return load_predictor(path or shipped_predictor_path())[0]
 
@@ -35,15 +35,17 @@ def _options_record(opts, predictor: Optional[Path]) -> dict:
             "kmeans_steps": opts.kmeans_steps, "predictor": str(predictor) if predictor else "shipped"}
 
 
-def run_table1(corpora: list[Path], out: Path, predictor_path: Optional[Path], fresh: bool) -> None:
-    from damcap.paper.tables import TableOptions, plot_table1, summarise, table1_markdown, table1_rows
+def run_table1(corpora: list[Path], out: Path, predictor_path: Optional[Path], fresh: bool, opts) -> None:
+    """``--table1``: ``opts`` is the TableOptions of the command line."""
+    from damcap.paper.tables import plot_table1, summarise, table1_markdown, table1_rows
     from damcap.common.atomic import write_json_atomic, write_text_atomic
     from damcap.common.version import damcap_version
 
     for c in corpora:
         if not (c / "corpus.json").is_file():
             raise DamcapError(f"{c}: no corpus.json; --table1 takes a folder written by damcap synth-set")
-    opts = TableOptions()
+    opts.fit.validate()
+    opts.segment.validate()
     record = _options_record(opts, predictor_path)
     out.mkdir(parents=True, exist_ok=True)
     json_path = out / "table1.json"
@@ -75,9 +77,10 @@ def run_table1(corpora: list[Path], out: Path, predictor_path: Optional[Path], f
     typer.echo(f"wrote {out / 'table1.md'}, {json_path} and {len(plots)} plot(s) in {out}")
 
 
-def run_table2(capture: Path, out: Path, predictor_path: Optional[Path], materials: str) -> None:
+def run_table2(capture: Path, out: Path, predictor_path: Optional[Path], materials: str, opts) -> None:
+    """``--table2``: ``opts`` is the TableOptions of the command line."""
     from damcap.appearance.evaluate import plot_sorted_dssim
-    from damcap.paper.tables import TableOptions, false_colour_figure, table2_markdown, table2_rows
+    from damcap.paper.tables import false_colour_figure, table2_markdown, table2_rows
     from damcap.appearance.views import load_views
     from damcap.common.atomic import write_json_atomic, write_text_atomic
     from damcap.common.capture_folder import read_capture
@@ -89,11 +92,12 @@ def run_table2(capture: Path, out: Path, predictor_path: Optional[Path], materia
                 raise ValueError
         except ValueError:
             raise DamcapError(f"--table-materials must be a positive number or 'auto', got {materials!r}") from None
+    opts.fit.validate()
+    opts.segment.validate()
     cap = read_capture(capture)
     train, test = load_views(cap, "train"), load_views(cap, "test")
     if not test:
         raise DamcapError(f"{capture}: the capture has no test split; Table 2 scores novel views")
-    opts = TableOptions()
     row, seg = table2_rows(train, test, opts, _predictor(predictor_path), capture.name, materials,
                            log=lambda m: typer.echo(m, err=True))
     out.mkdir(parents=True, exist_ok=True)

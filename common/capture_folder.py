@@ -1,4 +1,4 @@
-"""The capture folder (``capture-format.md``): read, write and validate.
+"""The capture folder (``docs/capture-format.md``): read, write and validate.
 
 A capture folder holds ``transforms.json`` (cameras, frames, splits), ``images/*.exr`` (linear
 radiance), ``geometry/*.exr`` (world normal ``N.*``, world position ``P.*``, coverage ``A``) and

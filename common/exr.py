@@ -113,11 +113,17 @@ def _write_atomic(path: str | os.PathLike, spec: "oiio.ImageSpec", pixels: np.nd
 
 def write_image_u8(path: str | os.PathLike, pixels_u8: np.ndarray, attributes: Mapping[str, str | int | float] | None = None) -> None:
     """Write (H, W), (H, W, 3) or (H, W, 4) uint8 display pixels (PNG, JPEG, ... by extension)
-    with optional header attributes (e.g. ``Compression``, EXIF tags), atomically."""
+    with optional header attributes (e.g. ``Compression``, EXIF tags), atomically.
+
+    A 4th channel is written as unassociated (straight) alpha, as PNG defines it: the colour
+    channels are stored as given, not divided by alpha.
+    """
     px = np.ascontiguousarray(pixels_u8, dtype=np.uint8)
-    h, w = px.shape[:2]
-    c = 1 if px.ndim == 2 else px.shape[2]
+    if px.ndim == 2:  # OpenImageIO reads a 2-D array's second axis as channels
+        px = px[..., None]
+    h, w, c = px.shape
     spec = oiio.ImageSpec(w, h, c, "uint8")
+    spec.attribute("oiio:UnassociatedAlpha", 1)
     for key, value in (attributes or {}).items():
         spec.attribute(key, value)
     _write_atomic(path, spec, px)
@@ -129,9 +135,11 @@ def write_png(path: str | os.PathLike, pixels_u8: np.ndarray) -> None:
 
 
 def read_image_u8(path: str | os.PathLike) -> np.ndarray:
-    """Read an 8-bit display image (PNG/JPEG) as (H, W, C) uint8."""
+    """Read an 8-bit display image (PNG/JPEG) as (H, W, C) uint8, alpha unassociated (as stored)."""
     path = Path(path)
-    inp = oiio.ImageInput.open(str(path))
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    inp = oiio.ImageInput.open(str(path), config)
     if inp is None:
         raise DamcapError(f"{path}: cannot read image ({_one_line(oiio.geterror(), path)})")
     try:

@@ -30,20 +30,36 @@ class SurfaceBuffers:
 
 
 class MeshRaycaster:
-    """An Open3D ray-casting scene of one mesh, reused across frames."""
+    """An Open3D (Embree) ray-casting scene of one mesh, reused across frames.
+
+    The scene holds the mesh in float32 (Embree's precision) whatever the mesh's dtype.
+    """
 
     def __init__(self, mesh: Mesh) -> None:
         import open3d as o3d
 
         self.mesh = mesh
         self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.core.Tensor(mesh.vertices), o3d.core.Tensor(mesh.triangles.astype(np.uint32)))
+        self.scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+                                 o3d.core.Tensor(mesh.triangles.astype(np.uint32)))
 
-    def _cast(self, origin: np.ndarray, dirs: np.ndarray) -> dict[str, np.ndarray]:
+    def cast(self, origin: np.ndarray, dirs: np.ndarray) -> dict[str, np.ndarray]:
+        """First hits of rays from one origin (origin and directions are cast to float32).
+
+        Args:
+            origin: (3,) ray origin, world space.
+            dirs: (..., 3) ray directions (unit length: then ``t_hit`` is a distance).
+
+        Returns:
+            arrays shaped like ``dirs``' leading dimensions: ``t_hit`` (...) float32, inf on a
+            miss; ``primitive_ids`` (...) uint32 hit triangle (invalid on a miss);
+            ``primitive_uvs`` (..., 2) float32 barycentrics (u, v) of vertices 1 and 2 (vertex 0
+            has 1 - u - v); ``primitive_normals`` (..., 3) float32 unit geometric normals.
+        """
         import open3d as o3d
 
         flat = dirs.reshape(-1, 3).astype(np.float32)
-        rays = np.concatenate([np.broadcast_to(origin.astype(np.float32), flat.shape), flat], axis=1)
+        rays = np.concatenate([np.broadcast_to(np.asarray(origin, np.float32), flat.shape), flat], axis=1)
         ans = self.scene.cast_rays(o3d.core.Tensor(rays))
         return {k: (a := ans[k].numpy()).reshape(dirs.shape[:-1] + a.shape[1:]) for k in ("t_hit", "primitive_ids", "primitive_uvs", "primitive_normals")}
 
@@ -58,7 +74,7 @@ class MeshRaycaster:
         """
         origin, d = pixel_rays_world(world_from_cam, fl_x, fl_y, cx, cy, w, h)
         d = d.astype(np.float32)
-        hit = self._cast(origin, d)
+        hit = self.cast(origin, d)
         valid = np.isfinite(hit["t_hit"])
         # everything below runs on the hit pixels only
         dv = d[valid]
@@ -92,6 +108,6 @@ class MeshRaycaster:
             edge &= visible
             if edge.any():
                 _, d_sub = pixel_rays_world(world_from_cam, fl_x, fl_y, cx, cy, w, h, offsets=offs)
-                sub = np.isfinite(self._cast(origin, d_sub[:, edge])["t_hit"]).mean(0)
+                sub = np.isfinite(self.cast(origin, d_sub[:, edge])["t_hit"]).mean(0)
                 coverage[edge] = np.maximum(sub, 1.0 / ss**2)
         return SurfaceBuffers(normal_world=normal, position_world=position, coverage=coverage, triangle_id=tri)

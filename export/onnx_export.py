@@ -24,6 +24,10 @@ class _DamModule(torch.nn.Module):
 
 def export_onnx(model: DeepAppearanceMap, path: str | os.PathLike, opset: int = 18) -> None:
     """Write the DAM as an ONNX graph with a dynamic batch size (torch's exporter), atomically."""
+    from damcap.common.optional import require
+
+    for name in ("onnx", "onnxscript"):  # torch's exporter imports them
+        require(name, "damcap export --format onnx")
     module = _DamModule(model.cpu().eval())
     example = (torch.randn(4, 3), torch.randn(4, 3))
     n = torch.export.Dim("n")

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Iterator
+from dataclasses import dataclass, field
+from typing import Iterator, Literal
 
 import numpy as np
 import torch
@@ -21,7 +21,7 @@ class OrbitOptions:
 
     views: int = 36
     """frames on the orbit"""
-    elevation_deg: float = 20.0
+    elevation_deg: float = field(default=20.0, metadata={"cli_flag": "--elevation"})
     """camera elevation above the y = 0 plane, degrees"""
     azimuth0_deg: float = 0.0
     """azimuth of the first frame, degrees"""
@@ -29,7 +29,7 @@ class OrbitOptions:
     """square frame size, pixels"""
     distance: float = 3.0
     """camera distance from the origin (the mesh fits in the unit sphere)"""
-    fov_deg: float = 45.0
+    fov_deg: float = field(default=45.0, metadata={"cli_flag": "--fov"})
     """full field of view, degrees"""
     supersample: int = 1
     """sub-pixel grid per axis for silhouette coverage (1 = pixel-centre rays only)"""
@@ -42,6 +42,23 @@ class OrbitOptions:
             )
         if not -90 < self.elevation_deg < 90:
             raise DamcapError(f"--elevation must lie in (-90, 90) degrees, got {self.elevation_deg}")
+
+
+@dataclass(frozen=True)
+class ExportOptions:
+    """What ``damcap export`` writes (the orbit's cameras are :class:`OrbitOptions`)."""
+
+    format: Literal["frames", "onnx", "glsl"] = "frames"
+    """'frames' (linear EXR + sRGB PNG per orbit view), 'onnx' (the DAM as an ONNX model) or
+    'glsl' (the DAM as a fragment-shader function)"""
+    video: bool = False
+    """frames: also write an MP4 turntable"""
+    fps: int = 24
+    """frames: video frame rate"""
+
+    def validate(self) -> None:
+        if self.fps < 1:
+            raise DamcapError(f"--fps must be >= 1, got {self.fps}")
 
 
 def parts_from_vertex_labels(triangles: np.ndarray, vertex_labels: np.ndarray) -> np.ndarray:

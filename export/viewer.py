@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import base64
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import resources
 
 import numpy as np
@@ -20,10 +20,14 @@ from damcap.export.glsl import glsl_source
 class ViewerCamera:
     """The page's initial orbit camera (same convention as :class:`export.turntable.OrbitOptions`)."""
 
-    azimuth_deg: float = 30.0
-    elevation_deg: float = 20.0
+    azimuth_deg: float = field(default=30.0, metadata={"cli_flag": "--azimuth"})
+    """initial camera azimuth, degrees"""
+    elevation_deg: float = field(default=20.0, metadata={"cli_flag": "--elevation"})
+    """initial camera elevation, degrees"""
     distance: float = 3.0
-    fov_deg: float = 45.0
+    """camera distance from the origin (the mesh is scaled into the unit sphere)"""
+    fov_deg: float = field(default=45.0, metadata={"cli_flag": "--fov"})
+    """full field of view, degrees"""
 
 
 def _b64(a: np.ndarray) -> str:

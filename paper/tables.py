@@ -2,7 +2,7 @@
 
 Table 1, on the held-out captures of ``damcap synth-set`` corpora (objects and illuminations
 never used for training), point-light and environment-map columns, same view (train split) and
-novel view (test split), mean DSSIM (capture-format.md):
+novel view (test split), mean DSSIM (docs/capture-format.md):
 
 * representation rows (one-material captures): the SGD-fitted DAM against RM and RM++;
 * learning-to-learn rows (one-material captures): the predictor's DAM alone and refined for K
@@ -19,7 +19,6 @@ Every method's per-frame DSSIM is kept, for the paper-style sorted-DSSIM plots.
 
 from __future__ import annotations
 
-import json
 import math
 import statistics
 import time
@@ -29,15 +28,18 @@ from typing import Any, Callable
 
 import numpy as np
 
+from damcap.common.corpus_index import finished_captures
 from damcap.common.errors import DamcapError
 
 from damcap.appearance.views import ViewData
 from damcap.appearance.evaluate import MethodScores, evaluate_split
 from damcap.appearance.fit import FitOptions, fit_dam, refine_dam
 from damcap.appearance.pixels import FOREGROUND_COVERAGE
-from damcap.appearance.segment import (
-    SegmentOptions, chromaticity_features, kmeans_baseline, match_materials, segment_materials, segmentation_scores,
-)
+from damcap.appearance.segment.options import SegmentOptions
+from damcap.appearance.segment.cluster import chromaticity_features
+from damcap.appearance.segment.kmeans_baseline import kmeans_baseline
+from damcap.appearance.segment.score import match_materials, segmentation_scores
+from damcap.appearance.segment.train import segment_materials
 from damcap.appearance.views import samples_of
 
 #: the paper's published figures, for the side-by-side columns (Table 1 ratios and Table 2)
@@ -100,23 +102,30 @@ def learning_to_learn_rows(train: list[ViewData], test: list[ViewData], net, fit
     """The predictor alone and refined K steps, next to an SGD fit of the same DAM architecture:
     ``fitted`` when the predictor's architecture is the fit's, else a fit of the predictor's (the
     paper compares a predicted DAM with the same DAM fitted; the shipped predictor emits leaky-ReLU
-    DAMs, ``damcap fit`` defaults to shifted softplus)."""
-    from damcap.appearance.hyper import predict_dam, predictor_input
+    DAMs, ``damcap fit`` defaults to shifted softplus); ``fitted=None``: no SGD row.
+
+    Returns (scores, extra: the input view, seconds of the prediction and of each refinement, and
+    each refinement's training L1 before and after, ``{"refine K": [before, after]}``)."""
+    from damcap.appearance.hyper.model import predict_dam, predictor_input
 
     k, crop, scale = predictor_input(train)
     t = time.perf_counter()
     predicted = predict_dam(net, crop, scale)
     predict_s = time.perf_counter() - t
     samples = samples_of(train)
-    if predicted.arch != fitted.arch:
-        fitted = fit_dam(samples, opts.fit.for_architecture(predicted.arch)).model
-    models = {"DAM (SGD fit)": fitted, "predicted": predicted}
-    seconds = {"predict": predict_s}
+    models = {}
+    if fitted is not None:
+        if predicted.arch != fitted.arch:
+            fitted = fit_dam(samples, opts.fit.for_architecture(predicted.arch)).model
+        models["DAM (SGD fit)"] = fitted
+    models["predicted"] = predicted
+    seconds, train_l1 = {"predict": predict_s}, {}
     for steps in opts.refine_steps:
         t = time.perf_counter()
-        models[f"predicted + {steps} refine"] = refine_dam(predicted, samples, steps)[0]
+        models[f"predicted + {steps} refine"], before, after = refine_dam(predicted, samples, steps)
         seconds[f"refine {steps}"] = time.perf_counter() - t
-    return _both(train, test, models, baselines=False), {"input_view": train[k].name, "seconds": seconds}
+        train_l1[f"refine {steps}"] = [before, after]
+    return _both(train, test, models, baselines=False), {"input_view": train[k].name, "seconds": seconds, "train_l1": train_l1}
 
 
 def mean_iou(model, views: list[ViewData], carried: bool, lit_only: bool = False) -> float | None:
@@ -173,17 +182,7 @@ def segmentation_rows(train: list[ViewData], test: list[ViewData], opts: TableOp
 
 def heldout_entries(corpora: list[Path]) -> list[tuple[Path, dict]]:
     """The finished held-out captures of one or more synth-set corpora: (capture folder, entry)."""
-    out = []
-    for corpus in corpora:
-        index = corpus / "corpus.json"
-        try:
-            entries = json.loads(index.read_text())["captures"]
-        except (OSError, ValueError, KeyError, TypeError) as e:
-            raise DamcapError(f"{index}: not a damcap synth-set corpus ({e}); pass the folder given to damcap synth-set") from None
-        for e in entries:
-            path = corpus / e["path"]
-            if e.get("split") == "heldout" and (path / "transforms.json").is_file():
-                out.append((path, e))
+    out = [c for corpus in corpora for c in finished_captures(corpus, "heldout", reader="evaluate --table1")]
     if not out:
         raise DamcapError(f"{', '.join(map(str, corpora))}: no rendered held-out captures; render them with damcap synth-set first")
     return out
@@ -351,7 +350,7 @@ def table2_rows(train: list[ViewData], test: list[ViewData], opts: TableOptions,
                 materials: int | str = "auto", log: Callable[[str], None] = lambda m: None) -> tuple[CaptureRows, Any]:
     """All three tasks on one (real) capture. ``materials``: n for the segmentation, or 'auto'
     (:func:`.segment.choose_materials` on the test split). Returns (rows, our segmentation)."""
-    from damcap.appearance.segment import choose_materials
+    from damcap.appearance.segment.choose import choose_materials
 
     row = CaptureRows(name, "real", 0)
     t = time.perf_counter()
@@ -410,13 +409,14 @@ def false_colour_figure(model, views: list[ViewData], path: Path, max_frames: in
 
     from damcap.common.atomic import atomic_path
 
-    from damcap.appearance.segment import false_colour
+    from damcap.appearance.segment.preview import false_colour
+    from damcap.common.colour import preview_gamma
 
     pick = views[:: max(1, math.ceil(len(views) / max_frames))][:max_frames]
     fig, axes = plt.subplots(2, len(pick), figsize=(3 * len(pick), 6), squeeze=False)
     scale = max(float(np.percentile(np.concatenate([v.data.radiance_lin[v.data.coverage > 0.5] for v in pick]), 99)), 1e-12)
     for j, v in enumerate(pick):
-        axes[0, j].imshow(np.clip(v.data.radiance_lin / scale, 0, 1) ** (1 / 2.2))
+        axes[0, j].imshow(preview_gamma(v.data.radiance_lin / scale))
         axes[1, j].imshow(false_colour(model.weights_of(v), v.data.coverage))
         axes[0, j].set_title(v.name, fontsize=8)
         for ax in axes[:, j]:

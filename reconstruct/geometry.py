@@ -31,8 +31,9 @@ from damcap.common.capture_folder import Intrinsics
 from damcap.common.errors import DamcapError
 
 from damcap.reconstruct.normalize import transform_points
-from damcap.common.mesh import Mesh, load_mesh, vertex_normals_area_weighted
+from damcap.common.mesh import Mesh, load_mesh, signed_volume, vertex_normals_area_weighted
 from damcap.common.raycast import MeshRaycaster
+from damcap.common.shapes import sphere_mesh
 
 GeometryMode = Literal["auto", "visual-hull", "poisson", "sphere", "mesh"]
 MeshAlign = Literal["auto", "none", "icp"]
@@ -207,18 +208,18 @@ def isosurface_mesh(volume_zyx: np.ndarray, origin: np.ndarray, voxel_size: floa
     tris = tm.triangle.indices.numpy().astype(np.int32)
     verts = origin + (verts - 1.0) * voxel_size
     mesh = _clean(verts, tris)
-    if _signed_volume(mesh.vertices, mesh.triangles) < 0:
+    if signed_volume(mesh.vertices, mesh.triangles) < 0:
         mesh = Mesh(mesh.vertices, mesh.triangles[:, ::-1].copy(), -mesh.vertex_normals, mesh.triangle_groups)
     return mesh
 
 
-def _signed_volume(v: np.ndarray, t: np.ndarray) -> float:
-    v = v.astype(np.float64)
-    return float(np.einsum("ij,ij->i", v[t[:, 0]], np.cross(v[t[:, 1]], v[t[:, 2]])).sum() / 6)
-
-
 def _clean(verts: np.ndarray, tris: np.ndarray, smooth_iterations: int = 0, keep_largest: bool = True) -> Mesh:
-    """Weld, drop degenerate triangles, keep the largest connected part, Taubin-smooth."""
+    """Tidy a reconstructed surface with Open3D: weld equal vertices, drop triangles with a repeated
+    index, keep the largest connected part, Taubin-smooth, recompute normals (float32 result).
+
+    Unlike :func:`damcap.common.mesh.clean_mesh` (drops zero-area triangles, keeps the file's
+    vertices), this changes the surface; it is for marching-cubes and Poisson output only.
+    """
     import open3d as o3d
 
     m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(tris))
@@ -394,19 +395,6 @@ def fit_sphere_silhouettes(origins: np.ndarray, dirs: np.ndarray, centre0: np.nd
     sol = least_squares(residual, np.concatenate([centre0, [radius0]]), loss="soft_l1", f_scale=0.01 * radius0)
     res = residual(sol.x)
     return sol.x[:3], float(abs(sol.x[3])), float(np.sqrt(np.mean(res ** 2)))
-
-
-def icosphere_mesh(centre: np.ndarray, radius: float, subdivisions: int = 6) -> Mesh:
-    """A sphere mesh with exact (radial) vertex normals."""
-    import open3d as o3d
-
-    m = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=max(8, 2 ** subdivisions))
-    v = np.asarray(m.vertices, np.float64)
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
-    t = np.asarray(m.triangles, np.int32)
-    if _signed_volume(v, t) < 0:
-        t = t[:, ::-1].copy()
-    return Mesh((centre + radius * v).astype(np.float32), t, v.astype(np.float32), np.zeros(len(t), np.int32))
 
 
 def sphere_fit(inputs: GeometryInputs) -> tuple[np.ndarray, float, float, str]:
@@ -671,7 +659,7 @@ def build_geometry(inputs: GeometryInputs, opts: GeometryOptions = GeometryOptio
         except DamcapError:
             c, r, rms, what, sphere_ok = np.zeros(3), 0.0, float("inf"), "", False
         if sphere_ok:
-            return GeometryResult(icosphere_mesh(c, r), "sphere",
+            return GeometryResult(sphere_mesh(c, r), "sphere",
                                   f"auto: sphere, since {what} fit a sphere within {rms / r:.2%} of its radius "
                                   f"(threshold {opts.sphere_max_rms:.0%})", (c, r), {"rms": rms, "radius": r})
         why_not = f"not a sphere (fit rms {rms / r:.1%} of radius)" if r > 0 else "no sphere fit"
@@ -694,7 +682,7 @@ def build_geometry(inputs: GeometryInputs, opts: GeometryOptions = GeometryOptio
         return GeometryResult(mesh, mode, f"Poisson surface of {stats['points_used']} sparse points", None, stats)
     if mode == "sphere":
         c, r, rms, what = sphere_fit(inputs)
-        return GeometryResult(icosphere_mesh(c, r), mode, f"sphere fitted to {what} (rms {rms / r:.2%} of radius)",
+        return GeometryResult(sphere_mesh(c, r), mode, f"sphere fitted to {what} (rms {rms / r:.2%} of radius)",
                               (c, r), {"rms": rms, "radius": r, "centre": c.tolist()})
     assert path is not None
     hull = None

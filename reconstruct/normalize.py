@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from damcap.common.errors import DamcapError
-from damcap.common.mesh import bounding_sphere
+from damcap.common.mesh import Mesh, bounding_sphere
 
 
 def similarity(scale: float, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
@@ -269,3 +269,11 @@ def rotation_aligned_errors_deg(world_from_cams: np.ndarray, ref_world_from_cams
     u, _, vt = np.linalg.svd(m)
     align = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
     return rotation_angle_deg(np.swapaxes(ref, -1, -2) @ align @ est)
+
+
+def transform_mesh_similarity(mesh: Mesh, t: np.ndarray) -> Mesh:
+    """The mesh under a similarity ``t`` (4, 4): vertices transformed, normals rotated (float32)."""
+    s = similarity_scale(t)
+    v = transform_points(t, mesh.vertices).astype(np.float32)
+    n = (mesh.vertex_normals.astype(np.float64) @ (t[:3, :3] / s).T).astype(np.float32)
+    return Mesh(v, mesh.triangles, n, mesh.triangle_groups)

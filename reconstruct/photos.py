@@ -1,39 +1,119 @@
-"""The photo folder at the edge of ``damcap reconstruct``: listing, masks, EXIF exposure, linear radiance.
+"""The photo folder at the edge of ``damcap reconstruct``: listing, masks, exposure, linear radiance.
 
-Photos are ordinary 8-bit JPEG/PNG/TIFF files in one folder; masks (optional) are grey images with
-the same base name (``IMG_5881.JPG`` <-> ``IMG_5881.png``, or COLMAP's ``IMG_5881.JPG.png``),
-white = object. Everything that touches a file is here; the math is in small pure functions.
+Photos are the files of one folder, all of one kind (:func:`photo_kind`):
 
-Linearisation is the capture stage's (:func:`damcap.capture.linearize.linearize_photo`): the
-tone curve is undone and the exposure ``time_s * (iso / 100) / f_number^2`` from EXIF is divided
-out, relative to the median exposure of the photo set (:func:`exposure_factors`).
+- ``display``: 8/16-bit JPEG/PNG/TIFF. The tone curve is undone (sRGB, or a response curve that
+  ``damcap hdr`` recovered) and the EXIF exposure ``time_s * (iso / 100) / f_number^2`` divided
+  out, relative to the median exposure of the set (:func:`damcap.capture.linearize.linearize_photo`).
+- ``linear``: OpenEXR (the output of ``damcap hdr`` and ``damcap linearize``) or Radiance ``.hdr``;
+  the values are linear already. An EXR written by damcap records in its header the exposure its
+  values are relative to (``damcap:reference_exposure``); the values are rescaled to the median of
+  the set, so EXRs of several ``linearize`` runs or brackets compare. Without that attribute (other
+  tools, ``.hdr``) the factor is 1 and the values are used as stored. A ``clipped`` channel (both
+  commands write one) flags pixels whose radiance is only a lower bound.
+- ``raw``: camera RAW files (:data:`damcap.capture.exif.RAW_EXTENSIONS`), decoded linearly as the
+  capture stage does (:func:`damcap.capture.raw.read_raw_rgb`), EXIF exposure divided out as for
+  display photos; saturated photosites are flagged clipped.
+
+A folder mixing kinds is refused: an sRGB-decoded JPEG, a RAW file (1 = the sensor's white level)
+and a merged EXR (1 = the middle code of a recovered response) have no common scale.
+
+Masks (optional) are grey images with the same base name (``IMG_5881.JPG`` <-> ``IMG_5881.png``,
+or COLMAP's ``IMG_5881.JPG.png``), white = object. COLMAP reads only display images well, so
+linear and RAW photos are registered through 8-bit proxies (:func:`write_registration_proxies`).
+Everything that touches a file is here; the math is in small pure functions.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Literal
 
 import numpy as np
 
 from damcap.common.errors import DamcapError
 
-#: file suffixes read as photos (case-insensitive)
-PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+from damcap.capture.exif import RAW_EXTENSIONS
+
+PhotoKind = Literal["display", "linear", "raw"]
+
+#: display photos: 8/16-bit, tone-mapped (case-insensitive suffixes)
+DISPLAY_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+#: linear radiance files (OpenEXR, Radiance RGBE)
+LINEAR_SUFFIXES = (".exr", ".hdr")
+#: camera RAW files (read through LibRaw)
+RAW_SUFFIXES = tuple(sorted(RAW_EXTENSIONS))
+#: file suffixes read as photos
+PHOTO_SUFFIXES = DISPLAY_SUFFIXES + LINEAR_SUFFIXES + RAW_SUFFIXES
+#: file suffixes read as masks
+MASK_SUFFIXES = DISPLAY_SUFFIXES
 #: mask value (0..1) above which a pixel belongs to the object
 MASK_THRESHOLD = 0.5
+#: EXR header attribute: the exposure factor the values are relative to (damcap hdr / linearize)
+EXR_REFERENCE_EXPOSURE = "damcap:reference_exposure"
+#: EXR header attribute: the colour space of the values
+EXR_COLORSPACE = "damcap:colorspace"
+#: EXR channel flagging pixels whose radiance is a lower bound (damcap hdr / linearize)
+CLIPPED_CHANNEL = "clipped"
+#: registration proxies: this percentile of the per-pixel largest channel maps to display white
+PROXY_PERCENTILE = 99.0
+#: version of the proxy encoding (a change makes every proxy be written again)
+PROXY_VERSION = 1
+
+_KIND_WORDS = {"display": "8-bit photos", "linear": "linear EXR/HDR files", "raw": "RAW files"}
 
 
 # --------------------------------------------------------------------------------------------
 # Listing photos and masks
 # --------------------------------------------------------------------------------------------
 
-def list_photos(folder: str | os.PathLike) -> list[str]:
-    """Sorted file names of the photos in ``folder`` (not recursive; hidden files skipped).
+def photo_kind(name: str | os.PathLike) -> PhotoKind:
+    """The kind of a photo file by its suffix.
+
+    >>> photo_kind("IMG_1.JPG"), photo_kind("IMG_1.exr"), photo_kind("IMG_1.CR2")
+    ('display', 'linear', 'raw')
 
     Raises:
-        DamcapError: the folder is missing or holds no photo.
+        DamcapError: not a photo suffix.
+    """
+    suffix = Path(name).suffix.lower()
+    if suffix in DISPLAY_SUFFIXES:
+        return "display"
+    if suffix in LINEAR_SUFFIXES:
+        return "linear"
+    if suffix in RAW_EXTENSIONS:
+        return "raw"
+    raise DamcapError(f"{name}: not a photo (suffixes {', '.join(DISPLAY_SUFFIXES + LINEAR_SUFFIXES)} and camera RAW)")
+
+
+def photo_set_kind(names: list[str] | list[Path], where: str | os.PathLike = "") -> PhotoKind:
+    """The one kind of a photo set.
+
+    Raises:
+        DamcapError: the set is empty or mixes kinds (names one file of each).
+    """
+    if not names:
+        raise DamcapError(f"{where}: no photos")
+    by_kind: dict[str, str] = {}
+    for n in names:
+        by_kind.setdefault(photo_kind(n), Path(n).name)
+    if len(by_kind) > 1:
+        which = " and ".join(f"{_KIND_WORDS[k]} (e.g. {v})" for k, v in sorted(by_kind.items()))
+        raise DamcapError(f"{where or Path(names[0]).parent}: the folder mixes {which}; their radiance scales are not comparable, "
+                          "so keep one kind per folder (damcap linearize turns 8-bit and RAW photos into linear EXRs)")
+    return next(iter(by_kind))  # type: ignore[return-value]
+
+
+def list_photos(folder: str | os.PathLike) -> list[str]:
+    """Sorted file names of the photos in ``folder`` (not recursive; hidden files skipped), all of one kind.
+
+    Raises:
+        DamcapError: the folder is missing, holds no photo, mixes kinds (:func:`photo_set_kind`)
+            or has two photos with one base name.
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -43,13 +123,14 @@ def list_photos(folder: str | os.PathLike) -> list[str]:
     if not names:
         others = sorted(p.name for p in folder.iterdir() if not p.name.startswith("."))[:5]
         raise DamcapError(
-            f"{folder}: no photos found (looked for {', '.join(PHOTO_SUFFIXES)}); "
-            f"the folder holds {others or 'nothing'}. Point damcap reconstruct at the folder of JPEG/PNG photos"
+            f"{folder}: no photos found (looked for {', '.join(DISPLAY_SUFFIXES + LINEAR_SUFFIXES)} and camera RAW); "
+            f"the folder holds {others or 'nothing'}. Point damcap reconstruct at the folder of photos"
         )
     stems = [Path(n).stem for n in names]
     dup = sorted({s for s in stems if stems.count(s) > 1})
     if dup:
         raise DamcapError(f"{folder}: several photos share the base name {dup[0]!r} (e.g. .jpg and .png); keep one")
+    photo_set_kind(names, folder)
     return names
 
 
@@ -63,7 +144,7 @@ def match_masks(photo_names: list[str], mask_folder: str | os.PathLike) -> dict[
     mask_folder = Path(mask_folder)
     if not mask_folder.is_dir():
         raise DamcapError(f"{mask_folder}: mask folder not found")
-    files = [p for p in mask_folder.iterdir() if p.is_file() and p.suffix.lower() in PHOTO_SUFFIXES]
+    files = [p for p in mask_folder.iterdir() if p.is_file() and p.suffix.lower() in MASK_SUFFIXES]
     by_name = {p.name: p for p in files}
     by_stem: dict[str, Path] = {}
     for p in files:
@@ -86,7 +167,7 @@ def match_masks(photo_names: list[str], mask_folder: str | os.PathLike) -> dict[
 
 
 # --------------------------------------------------------------------------------------------
-# Pure math: masks
+# Pure math
 # --------------------------------------------------------------------------------------------
 
 def mask_to_unit(mask_pixels: np.ndarray) -> np.ndarray:
@@ -106,8 +187,32 @@ def mask_to_unit(mask_pixels: np.ndarray) -> np.ndarray:
     return np.clip(m.astype(np.float32), 0.0, 1.0)
 
 
+def proxy_srgb_u8(radiance_lin: np.ndarray, percentile: float = PROXY_PERCENTILE) -> np.ndarray:
+    """The 8-bit display encoding of linear radiance that feature extraction sees.
+
+    The radiance is scaled so that the ``percentile`` of the per-pixel largest channel maps to 1
+    (a per-photo exposure, as a camera's auto exposure would choose), clipped to [0, 1] and
+    sRGB-encoded. A pure function of the photo: the same file always gives the same proxy.
+
+    Args:
+        radiance_lin: (H, W, 3) float, linear, >= 0 (negative values count as 0).
+        percentile: in (0, 100].
+
+    Returns:
+        (H, W, 3) uint8 sRGB.
+
+    >>> proxy_srgb_u8(np.array([[[0.18, 0.18, 0.18], [1.0, 2.0, 0.5]]]), 100.0).tolist()
+    [[[85, 85, 85], [188, 255, 137]]]
+    """
+    from damcap.common.colour import display_srgb8
+
+    rad = np.maximum(np.asarray(radiance_lin, dtype=np.float64), 0.0)
+    white = float(np.percentile(rad.max(axis=-1), percentile)) if rad.size else 0.0
+    return display_srgb8(rad, 1.0 / white if white > 0 else 1.0)
+
+
 # --------------------------------------------------------------------------------------------
-# File readers
+# Headers and exposure
 # --------------------------------------------------------------------------------------------
 
 def _spec_attributes(path: Path) -> tuple[int, int, dict[str, Any]]:
@@ -115,7 +220,8 @@ def _spec_attributes(path: Path) -> tuple[int, int, dict[str, Any]]:
 
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise DamcapError(f"{path}: cannot read image ({oiio.geterror().strip()})")
+        msg = oiio.geterror().strip().splitlines()
+        raise DamcapError(f"{path}: cannot read image ({msg[-1] if msg else 'unknown format'})")
     try:
         spec = inp.spec()
         attrs = {a.name: a.value for a in spec.extra_attribs}
@@ -124,47 +230,121 @@ def _spec_attributes(path: Path) -> tuple[int, int, dict[str, Any]]:
         inp.close()
 
 
+def _raw_size(path: Path) -> tuple[int, int]:
+    """(width, height) of a RAW file as :func:`damcap.capture.raw.read_raw_rgb` decodes it (upright)."""
+    import rawpy
+
+    try:
+        with rawpy.imread(str(path)) as raw:
+            w, h, flip = int(raw.sizes.width), int(raw.sizes.height), int(raw.sizes.flip)
+    except (rawpy.LibRawError, OSError, ValueError) as e:
+        raise DamcapError(f"{path}: cannot read as a camera RAW file ({type(e).__name__}: {e}); "
+                          "is the file complete and a RAW format?") from None
+    return (h, w) if flip in (5, 6) else (w, h)
+
+
 def image_size(path: str | os.PathLike) -> tuple[int, int]:
-    """(width, height) of an image file in pixels (header only)."""
-    w, h, _ = _spec_attributes(Path(path))
+    """(width, height) of a photo in pixels (header only; RAW files as decoded, upright)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DamcapError(f"{path}: file not found")
+    if path.suffix.lower() in RAW_EXTENSIONS:
+        return _raw_size(path)
+    w, h, _ = _spec_attributes(path)
     return w, h
 
 
-def exposure_factors(paths: list[Path], ignore_exposure: bool = False) -> tuple[np.ndarray, list[Any], float, str]:
-    """Exposure factors of a photo set from EXIF (the capture stage's reader and rules).
+def _reference_exposure_of(path: Path) -> float | None:
+    """The exposure factor an EXR's values are relative to (its header), or None."""
+    _, _, attrs = _spec_attributes(path)
+    value = attrs.get(EXR_REFERENCE_EXPOSURE)
+    try:
+        v = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return None
+    return float(f"{v:.7g}") if np.isfinite(v) and v > 0 else None  # stored as float32
+
+
+def exposure_factors(paths: list[Path], ignore_exposure: bool = False,
+                     tone_curve: str = "sRGB") -> tuple[np.ndarray, list[Any], float, str]:
+    """Exposure factors of a photo set: what each photo's linear values are divided by.
+
+    Display and RAW photos: ``time_s * (iso / 100) / f_number^2`` from EXIF (the capture stage's
+    reader and rules). Linear EXRs: the header's ``damcap:reference_exposure`` (the exposure
+    ``damcap hdr`` / ``damcap linearize`` made the values relative to), or 1 for every photo when
+    no EXR has one.
 
     Args:
-        paths: the photos.
-        ignore_exposure: use factor 1 for every photo (only the tone curve is undone).
+        paths: the photos, all of one kind.
+        ignore_exposure: use factor 1 for every photo (values are only linearised).
+        tone_curve: what undoes the tone curve of display photos, for the note.
 
     Returns:
-        factors: (N,) float64 exposure ``time_s * (iso / 100) / f_number^2`` (1 when ignored).
-        exposures: N :class:`damcap.capture.exif.Exposure` records.
+        factors: (N,) float64 exposure factors (1 when ignored or unknown).
+        exposures: N :class:`damcap.capture.exif.Exposure` records (time unknown for linear files).
         reference: the median factor; radiance is relative to a photo taken at it.
-        note: one line saying what was divided out.
+        note: one line saying how the photos were linearised and what was divided out.
 
     Raises:
-        DamcapError: some photos have an exposure time and others not (or ISO / f-number for
-            some only); the message suggests ``--ignore-exposure``.
+        DamcapError: mixed kinds; some photos have an exposure (EXIF time, ISO, f-number, or an
+            EXR reference exposure) and others not; the message suggests ``--ignore-exposure``.
     """
-    from damcap.capture.exif import read_exposure, resolve_exposure_factors
+    from damcap.capture.exif import Exposure, read_exposure, resolve_exposure_factors
 
+    kind = photo_set_kind(paths)
+    hint = "or pass --ignore-exposure if all photos were taken at one fixed exposure"
+    if kind == "linear":
+        exposures = [Exposure(time_s=None) for _ in paths]
+        how = "linear EXR/HDR radiance, no tone curve undone"
+        refs = [None] * len(paths) if ignore_exposure else [_reference_exposure_of(Path(p)) for p in paths]
+        if ignore_exposure or not any(r is not None for r in refs):
+            why = ("--ignore-exposure" if ignore_exposure
+                   else f"no file's header has {EXR_REFERENCE_EXPOSURE}, which damcap hdr / linearize write")
+            return (np.ones(len(paths)), exposures, 1.0,
+                    f"{how}; values used as stored, exposure factor 1 for every photo ({why}): radiance is comparable "
+                    "across photos only if they share one scale")
+        lacking = next(Path(p).name for p, r in zip(paths, refs) if r is None) if None in refs else None
+        if lacking is not None:
+            raise DamcapError(f"{lacking}: its header has no {EXR_REFERENCE_EXPOSURE} while other photos' do, so they "
+                              f"would not be comparable; {hint}")
+        factors = np.array(refs, dtype=np.float64)
+        ref = float(np.median(factors))
+        return factors, exposures, ref, (
+            f"{how}; each file's values, relative to its {EXR_REFERENCE_EXPOSURE}, rescaled to the median {ref:.6g} "
+            f"(factors {factors.min():.4g}..{factors.max():.4g})")
+    how = (f"tone curve ({tone_curve}) undone" if kind == "display"
+           else "RAW sensor values decoded linearly (black level subtracted, white level 1, demosaiced, colour matrix to Rec.709)")
     exposures = [read_exposure(p) for p in paths]
     have_time = [e.time_s is not None for e in exposures]
     if ignore_exposure or not any(have_time):
         why = "--ignore-exposure" if ignore_exposure else "no photo has an EXIF exposure time"
         return (np.ones(len(paths)), exposures, 1.0,
-                f"tone curve (sRGB) undone; exposure not divided out ({why}): radiance is comparable across "
+                f"{how}; exposure not divided out ({why}): radiance is comparable across "
                 "photos only if they share one exposure")
-    hint = "or pass --ignore-exposure if all photos were taken at one fixed exposure"
     factors = resolve_exposure_factors(paths, exposures, None, hint)
     ref = float(np.median(factors))
-    return factors, exposures, ref, (f"tone curve (sRGB) undone, EXIF exposure time x ISO/100 / f-number^2 divided out, "
+    return factors, exposures, ref, (f"{how}, EXIF exposure time x ISO/100 / f-number^2 divided out, "
                                      f"relative to the median exposure {ref:.6g} (factors {factors.min():.4g}..{factors.max():.4g})")
 
 
+# --------------------------------------------------------------------------------------------
+# File readers
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class PhotoRadiance:
+    """One photo as linear radiance."""
+
+    radiance_lin: np.ndarray
+    """(H, W, 3) float32, linear Rec.709, proportional across the photo set (exposure divided out), >= 0
+    up to noise"""
+    clipped: np.ndarray | None
+    """(H, W) bool, radiance only a lower bound (saturated); None when the file does not say
+    (display photos)"""
+
+
 def read_photo_u8(path: str | os.PathLike) -> np.ndarray:
-    """A photo as (H, W, 3) uint8 (grey expanded, alpha dropped; 16-bit scaled down)."""
+    """A display photo as (H, W, 3) uint8 (grey expanded, alpha dropped; 16-bit scaled down)."""
     from damcap.common.exr import read_image_u8
 
     px = read_image_u8(path)
@@ -173,20 +353,104 @@ def read_photo_u8(path: str | os.PathLike) -> np.ndarray:
     return np.ascontiguousarray(px[..., :3])
 
 
-def read_photo_linear(path: str | os.PathLike, factor: float, reference: float) -> np.ndarray:
-    """A photo as linear radiance (:func:`damcap.capture.linearize.linearize_photo`).
+def read_linear_rgb(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
+    """A linear EXR/HDR file as Rec.709 radiance, as stored (no exposure applied).
+
+    Channels R, G, B (a single channel is grey); ``damcap:colorspace`` ``acescg`` is converted
+    back to Rec.709; a ``clipped`` channel (> 0.5) is returned as the clipped mask.
+
+    Returns:
+        rgb: (H, W, 3) float32, linear Rec.709.
+        clipped: (H, W) bool, or None without a ``clipped`` channel.
+
+    Raises:
+        DamcapError: unreadable or truncated file, no colour channels, NaN or infinite values,
+            radiance in a camera's own RGB or an unknown colour space.
+    """
+    from damcap.common.exr import read_exr
+
+    from damcap.capture.working_space import COLORSPACES, working_from_rec709
+
+    path = Path(path)
+    pixels, names = read_exr(path)
+    if all(c in names for c in ("R", "G", "B")):
+        rgb = np.stack([pixels[..., names.index(c)] for c in ("R", "G", "B")], axis=-1)
+    elif len(names) == 1 or (len(names) == 2 and CLIPPED_CHANNEL in names):
+        grey = pixels[..., [i for i, n in enumerate(names) if n != CLIPPED_CHANNEL][0]]
+        rgb = np.repeat(grey[..., None], 3, axis=-1)
+    else:
+        raise DamcapError(f"{path}: no R, G, B channels (the file has {', '.join(names)})")
+    bad = int((~np.isfinite(rgb)).sum())
+    if bad:
+        raise DamcapError(f"{path}: {bad} pixel value(s) are NaN or infinite; a photo must hold finite radiance")
+    _, _, attrs = _spec_attributes(path)
+    space = attrs.get(EXR_COLORSPACE, "lin_rec709")
+    if space not in COLORSPACES:
+        raise DamcapError(f"{path}: radiance is in {space!r} (a RAW file without a colour matrix?); damcap reconstruct "
+                          f"needs one of {', '.join(COLORSPACES)}")
+    if space != "lin_rec709":
+        rgb = rgb @ np.linalg.inv(working_from_rec709(space)).astype(np.float32).T
+    clipped = pixels[..., names.index(CLIPPED_CHANNEL)] > 0.5 if CLIPPED_CHANNEL in names else None
+    return np.ascontiguousarray(rgb, dtype=np.float32), clipped
+
+
+def _read_raw(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    import warnings
+
+    from damcap.capture.raw import CaptureWarning, read_raw_rgb
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", CaptureWarning)
+        rgb, clipped, converted = read_raw_rgb(path)
+    if not converted:
+        raise DamcapError(f"{path}: the RAW file has no colour matrix, so its camera RGB cannot be converted to the "
+                          "capture's lin_rec709")
+    return rgb, clipped
+
+
+def read_photo_radiance(path: str | os.PathLike, factor: float, reference: float,
+                        log_response: np.ndarray | None = None) -> PhotoRadiance:
+    """A photo of any kind as linear radiance, comparable across the photo set.
+
+    Display photos go through :func:`damcap.capture.linearize.linearize_photo` (8/16-bit codes,
+    tone curve undone); linear files through :func:`read_linear_rgb`; RAW files through
+    :func:`damcap.capture.raw.read_raw_rgb`. The result is multiplied by ``reference / factor``.
 
     Args:
         path: the photo.
         factor: its exposure factor (from :func:`exposure_factors`), > 0.
         reference: the exposure factor the result is relative to, > 0.
+        log_response: display photos only: (3, L) ``ln`` linear value per code, the curve
+            ``damcap hdr`` recovered (:func:`damcap.capture.hdr.read_response`); None: sRGB.
 
     Returns:
-        (H, W, 3) float32 linear Rec.709 radiance, proportional across photos, >= 0.
+        :class:`PhotoRadiance`.
+
+    Raises:
+        DamcapError: an unreadable or truncated file (named), a bad factor, a response curve
+            given for a linear or RAW photo.
     """
     from damcap.capture.linearize import linearize_photo
 
-    return linearize_photo(read_photo_u8(path), float(factor), float(reference))
+    path = Path(path)
+    if not (np.isfinite(factor) and factor > 0 and np.isfinite(reference) and reference > 0):
+        raise DamcapError(f"{path}: exposure factor and reference must be positive, got {factor!r}, {reference!r}")
+    kind = photo_kind(path)
+    if kind != "display" and log_response is not None:
+        raise DamcapError(f"{path}: a response curve undoes the tone curve of 8-bit photos; this photo is a {kind} file")
+    if kind == "display":
+        from damcap.capture.hdr import read_ldr_codes
+
+        codes, _ = read_ldr_codes(path)
+        return PhotoRadiance(linearize_photo(codes, float(factor), float(reference), log_response), None)
+    rgb, clipped = read_linear_rgb(path) if kind == "linear" else _read_raw(path)
+    return PhotoRadiance((rgb * np.float32(reference / factor)).astype(np.float32), clipped)
+
+
+def read_photo_linear(path: str | os.PathLike, factor: float, reference: float,
+                      log_response: np.ndarray | None = None) -> np.ndarray:
+    """(H, W, 3) float32 linear radiance of a photo (:func:`read_photo_radiance` without the clipped mask)."""
+    return read_photo_radiance(path, factor, reference, log_response).radiance_lin
 
 
 def read_mask(path: str | os.PathLike, size: tuple[int, int] | None = None) -> np.ndarray:
@@ -205,3 +469,71 @@ def read_mask(path: str | os.PathLike, size: tuple[int, int] | None = None) -> n
     if size is not None and (m.shape[1], m.shape[0]) != tuple(size):
         raise DamcapError(f"{path}: mask is {m.shape[1]}x{m.shape[0]} but its photo is {size[0]}x{size[1]}; masks must match the photos' size")
     return m
+
+
+# --------------------------------------------------------------------------------------------
+# Registration proxies
+# --------------------------------------------------------------------------------------------
+
+def proxy_name(photo_name: str) -> str:
+    """The file name of a photo's registration proxy: same base name, PNG.
+
+    >>> proxy_name("IMG_0001.exr")
+    'IMG_0001.png'
+    """
+    return f"{Path(photo_name).stem}.png"
+
+
+def write_registration_proxies(photos_dir: str | os.PathLike, names: list[str], proxy_dir: str | os.PathLike,
+                               progress: Callable[[str, int, int], None] | None = None) -> dict[str, str]:
+    """8-bit proxies of linear or RAW photos for COLMAP, which reads display images only.
+
+    COLMAP's reader would clamp linear floats to 8 bits without a display encoding and cannot
+    decode RAW files, so each photo is decoded to linear radiance (:func:`read_photo_radiance`)
+    and written as :func:`proxy_srgb_u8` PNG under its base name. Same pixel grid as the photo,
+    so cameras and keypoints are the photo's. A proxy is written again only when its photo's size
+    or modification time changed (``proxy_dir/manifest.json``); the encoding is deterministic.
+
+    Args:
+        photos_dir: the photo folder (read only).
+        names: photo file names (unique base names, see :func:`list_photos`).
+        proxy_dir: where the proxies go (inside the capture's work folder).
+        progress: called as (stage, done, total).
+
+    Returns:
+        photo name -> proxy file name (in ``proxy_dir``).
+
+    Raises:
+        DamcapError: an unreadable photo (named).
+    """
+    from damcap.common.atomic import write_json_atomic
+    from damcap.common.exr import write_png
+
+    photos_dir, proxy_dir = Path(photos_dir), Path(proxy_dir)
+    proxy_dir.mkdir(parents=True, exist_ok=True)
+    progress = progress or (lambda stage, done, total: None)
+    manifest_path = proxy_dir / "manifest.json"
+    try:
+        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError):
+        manifest = {}
+    out: dict[str, str] = {}
+    for k, name in enumerate(names):
+        progress("registration proxies", k, len(names))
+        st = (photos_dir / name).stat()
+        key = {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "version": PROXY_VERSION, "percentile": PROXY_PERCENTILE}
+        target = proxy_dir / proxy_name(name)
+        if manifest.get(name) != key or not target.is_file():
+            rad = read_photo_radiance(photos_dir / name, 1.0, 1.0).radiance_lin
+            write_png(target, proxy_srgb_u8(rad))
+            manifest[name] = key
+            write_json_atomic(manifest_path, manifest)
+        out[name] = target.name
+    progress("registration proxies", len(names), len(names))
+    return out
+
+
+def file_digests(folder: str | os.PathLike, names: list[str]) -> dict[str, str]:
+    """SHA-256 (16 hex digits) of each file's bytes: what identifies a proxy's content."""
+    folder = Path(folder)
+    return {n: hashlib.sha256((folder / n).read_bytes()).hexdigest()[:16] for n in names}

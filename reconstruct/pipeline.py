@@ -1,15 +1,18 @@
-"""``damcap reconstruct``: a folder of photos -> a capture folder (capture-format.md).
+"""``damcap reconstruct``: a folder of photos -> a capture folder (docs/capture-format.md).
 
 Steps (each reports progress):
 
-1. list the photos (and match the masks by base name);
-2. cameras: COLMAP registration (:mod:`sfm`; resumable) or known poses (:mod:`poses`);
+1. list the photos (8-bit, linear EXR or RAW, one kind; match the masks by base name);
+2. cameras: COLMAP registration (:mod:`colmap`; resumable; linear and RAW photos through 8-bit
+   proxies in the work folder) or known poses (:mod:`known_poses`);
 3. normalise the scene (:mod:`normalize`): object at the origin, radius about 1, up = +y;
 4. per photo, one pinhole target camera at ``capture_size`` (:mod:`undistort`); masks resampled;
 5. geometry (:mod:`geometry`), then the final centring on its bounding sphere;
-6. per frame: the photo linearised (tone curve undone, EXIF exposure divided out) and resampled
-   once into the pinhole image; ray-cast normals, positions and coverage (:class:`MeshRaycaster`;
-   with masks, coverage is also limited to the mask); frames the geometry misses are dropped;
+6. per frame: the photo linearised (:mod:`photos`: 8-bit photos' tone curve undone, sRGB or a
+   ``damcap hdr`` response; linear EXRs and RAW files read linearly; exposure divided out) and
+   resampled once into the pinhole image; ray-cast normals, positions and coverage (:mod:`frames`;
+   with masks, coverage is also limited to the mask; pixels flagged clipped leave it); frames
+   the geometry misses are dropped;
 7. train/test split; ``transforms.json`` written last with ``damcap_source`` (resolved options,
    version, registration and geometry reports).
 
@@ -22,24 +25,26 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Literal
 
 import numpy as np
 
 from damcap.common.atomic import atomic_path, write_json_atomic
-from damcap.common.capture_folder import Capture, Frame, FrameData, Intrinsics, write_frame, write_transforms
+from damcap.common.capture_folder import Capture, Frame, Intrinsics, write_transforms
 from damcap.common.errors import DamcapError
 from damcap.common.version import damcap_version
 
 from damcap.reconstruct.geometry import GeometryInputs, GeometryOptions, GeometryResult, build_geometry
 from damcap.reconstruct.normalize import normalization_transform, recentre_transform, similarity_scale, transform_points, transform_world_from_cam
-from damcap.reconstruct.photos import exposure_factors, list_photos, match_masks, read_mask, read_photo_linear
-from damcap.reconstruct.poses import Registration, load_known_poses
+from damcap.reconstruct.frames import FramePhoto, write_frames
+from damcap.reconstruct.normalize import transform_mesh_similarity
+from damcap.reconstruct.photos import exposure_factors, list_photos, match_masks, read_mask
+from damcap.reconstruct.poses import Registration
+from damcap.reconstruct.known_poses import load_known_poses
 from damcap.common.mesh import Mesh
-from damcap.common.raycast import MeshRaycaster
-from damcap.reconstruct.sfm import SfmOptions, StageProgress, register_photos, triangulate_known
+from damcap.reconstruct.colmap.register import SfmOptions, StageProgress, register_photos, triangulate_known
 from damcap.reconstruct.undistort import pinhole_for, resample_to_pinhole
 
 SplitKind = Literal["consecutive", "spread"]
@@ -78,9 +83,9 @@ class ReconstructOptions:
     """registration: most similar photos matched per photo"""
     camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "SIMPLE_RADIAL"
     """registration: COLMAP camera model"""
-    refine_principal_point: bool = False
+    refine_principal_point: bool = field(default=False, metadata={"cli_flag": "--refine-principal-point/--centred-principal-point"})
     """registration: also refine the principal point after mapping (see SfmOptions)"""
-    single_camera: bool = True
+    single_camera: bool = field(default=True, metadata={"cli_flag": "--single-camera/--camera-per-photo"})
     """registration: photos of one size share one camera"""
     mask_features: bool = False
     """registration: with --masks, also restrict features to the object (a turntable whose
@@ -99,7 +104,14 @@ class ReconstructOptions:
     min_registered_fraction: float = 0.5
     """fewest registered photos, as a fraction of the photos"""
     ignore_exposure: bool = False
-    """only undo the tone curve; do not divide by the EXIF exposure (photos at one fixed exposure)"""
+    """only linearise; do not divide by the EXIF exposure (photos at one fixed exposure) nor rescale
+    linear EXRs by their recorded reference exposure"""
+    response: str | None = None
+    """a response curve file written by ``damcap hdr`` (the ``NAME.exr.json`` record beside its
+    output, or that ``NAME.exr``) to undo instead of the sRGB curve for 8-bit photos; None: sRGB"""
+    keep_clipped: bool = False
+    """linear EXR and RAW photos: keep pixels flagged clipped (saturated: their radiance is only a
+    lower bound) in the frames' coverage; by default such pixels get coverage A = 0"""
     mask_coverage: bool = True
     """with masks: coverage A is also limited to the mask (keeps background out of silhouettes)"""
     supersample: int = 3
@@ -186,34 +198,6 @@ def split_indices(n: int, train_views: int, kind: SplitKind = "consecutive", sta
     return train, test
 
 
-def frame_data_from_buffers(radiance_lin: np.ndarray, normal_world: np.ndarray, position_world: np.ndarray,
-                            coverage: np.ndarray, mask: np.ndarray | None = None) -> FrameData:
-    """Compose one frame: coverage (limited to the mask when given), background zeroed.
-
-    Args:
-        radiance_lin: (H, W, 3) float32 linear radiance of the whole photo.
-        normal_world, position_world: (H, W, 3) ray-cast buffers.
-        coverage: (H, W) ray-cast coverage in [0, 1].
-        mask: optional (H, W) object mask in [0, 1].
-    """
-    a = coverage if mask is None else np.minimum(coverage, np.clip(mask, 0, 1))
-    a = np.where(a > 1e-3, a, 0).astype(np.float32)
-    on = a[..., None] > 0
-    return FrameData(
-        radiance_lin=np.where(on, np.maximum(radiance_lin, 0), 0).astype(np.float32),
-        normal_world=np.where(on, normal_world, 0).astype(np.float32),
-        position_world=np.where(on, position_world, 0).astype(np.float32),
-        coverage=a,
-    )
-
-
-def _transform_mesh_similarity(mesh: Mesh, t: np.ndarray) -> Mesh:
-    s = similarity_scale(t)
-    v = transform_points(t, mesh.vertices).astype(np.float32)
-    n = (mesh.vertex_normals.astype(np.float64) @ (t[:3, :3] / s).T).astype(np.float32)
-    return Mesh(v, mesh.triangles, n, mesh.triangle_groups)
-
-
 # --------------------------------------------------------------------------------------------
 # I/O steps
 # --------------------------------------------------------------------------------------------
@@ -242,6 +226,58 @@ def _save_mesh(path: Path, mesh: Mesh) -> None:
             raise DamcapError(f"{path}: cannot write the mesh")
 
 
+@dataclass
+class RegistrationImages:
+    """The images COLMAP reads for a photo set: the photos themselves (8-bit), or 8-bit proxies of
+    linear and RAW photos in the work folder (same base names, same pixel grid)."""
+
+    folder: Path
+    """where the images are"""
+    by_photo: dict[str, str]
+    """photo name -> image name in ``folder``"""
+    content: dict[str, str] | None
+    """image name -> digest of its bytes (proxies), what the resumable stages fingerprint; None: file sizes"""
+
+    def names(self, photo_names: list[str]) -> list[str]:
+        return [self.by_photo[n] for n in photo_names]
+
+    def masks(self, masks: dict[str, Path] | None) -> dict[str, Path] | None:
+        return {self.by_photo[n]: m for n, m in masks.items() if n in self.by_photo} if masks else None
+
+    def to_images(self, reg: Registration) -> Registration:
+        return renamed_registration(reg, self.by_photo)
+
+    def to_photos(self, reg: Registration) -> Registration:
+        return renamed_registration(reg, {v: k for k, v in self.by_photo.items()})
+
+
+def renamed_registration(reg: Registration, names: dict[str, str]) -> Registration:
+    """The registration with its photos renamed (``names``: old -> new; others kept), sorted by the
+    new names, with ``points_seen_from`` following the new order."""
+    if all(names.get(n, n) == n for n in [p.name for p in reg.photos] + list(reg.unregistered)):
+        return reg
+    order = sorted(range(len(reg.photos)), key=lambda k: names.get(reg.photos[k].name, reg.photos[k].name))
+    new_index = np.empty(len(order), np.int64)
+    new_index[order] = np.arange(len(order))
+    seen = np.asarray(reg.points_seen_from, np.int64)
+    stats = dict(reg.stats)
+    if isinstance(stats.get("unregistered"), dict):
+        stats["unregistered"] = {names.get(k, k): v for k, v in stats["unregistered"].items()}
+    return replace(reg, photos=[replace(reg.photos[k], name=names.get(reg.photos[k].name, reg.photos[k].name)) for k in order],
+                   unregistered={names.get(k, k): v for k, v in reg.unregistered.items()},
+                   points_seen_from=new_index[seen] if len(seen) else seen, stats=stats)
+
+
+def _registration_images(photos_dir: Path, names: list[str], work: Path, progress: StageProgress) -> RegistrationImages:
+    from damcap.reconstruct.photos import file_digests, photo_set_kind, write_registration_proxies
+
+    if photo_set_kind(names, photos_dir) == "display":
+        return RegistrationImages(photos_dir, {n: n for n in names}, None)
+    proxy_dir = work / "proxies"
+    by_photo = write_registration_proxies(photos_dir, names, proxy_dir, progress)
+    return RegistrationImages(proxy_dir, by_photo, file_digests(proxy_dir, [by_photo[n] for n in names]))
+
+
 def _registration(photos_dir: Path, names: list[str], sizes: dict[str, tuple[int, int]], work: Path, opts: ReconstructOptions,
                   masks: dict[str, Path] | None, poses: str | None, progress: StageProgress) -> Registration:
     if poses:
@@ -249,8 +285,10 @@ def _registration(photos_dir: Path, names: list[str], sizes: dict[str, tuple[int
         reg = load_known_poses(poses, sizes)
         progress("poses", 1, 1)
         return reg
-    reg, _ = register_photos(photos_dir, names, work / "sfm", opts.sfm(), masks if opts.mask_features else None, progress)
-    return reg
+    images = _registration_images(photos_dir, names, work, progress)
+    reg, _ = register_photos(images.folder, images.names(names), work / "sfm", opts.sfm(),
+                             images.masks(masks) if opts.mask_features else None, progress, images.content)
+    return images.to_photos(reg)
 
 
 def _needs_points(opts: ReconstructOptions, has_masks: bool) -> bool:
@@ -278,13 +316,132 @@ def _check_enough(reg: Registration, n_photos: int, opts: ReconstructOptions, ph
         )
 
 
+@dataclass
+class NormalisedScene:
+    """The scene after normalisation and geometry: what the frames are ray cast against."""
+
+    norm_from_world: np.ndarray
+    """(4, 4) similarity from the registration's world to the capture's (object at the origin, radius ~1)"""
+    world_from_cams: np.ndarray
+    """(N, 4, 4) cameras in the capture's world"""
+    mesh: Mesh
+    """the geometry in the capture's world"""
+    sphere: tuple[np.ndarray, float] | None
+    """(centre, radius) when the geometry is an analytic sphere (its normals are used exactly)"""
+    geometry: GeometryResult
+    """what the geometry step returned (mode, reason, statistics)"""
+
+
+def _check_inputs(photos_dir: Path, masks_dir: str | os.PathLike | None, poses: str | None,
+                  opts: ReconstructOptions) -> tuple[list[str], dict[str, Path] | None]:
+    """Step 1: the photos, their masks, and the options that name files (checked before any work)."""
+    from damcap.reconstruct.geometry import parse_mode
+
+    names = list_photos(photos_dir)
+    masks = match_masks(names, masks_dir) if masks_dir is not None else None
+    if poses and not poses.startswith("colmap:") and Path(poses).suffix.lower() not in (".json", ".npy"):
+        raise DamcapError(f"--poses {poses!r}: use a transforms.json, a poses_bounds.npy or colmap:DIR")
+    _mode, mesh_path = parse_mode(opts.geometry)
+    if mesh_path is not None and not mesh_path.is_file():
+        raise DamcapError(f"{mesh_path}: mesh file not found (--geometry mesh:FILE)")
+    return names, masks
+
+
+def _response_curve(photos_dir: Path, names: list[str], opts: ReconstructOptions) -> tuple[np.ndarray | None, str]:
+    """Step 1: the response curve of ``--response`` (checked before any work) and its label for the
+    linearisation note; (None, 'sRGB') without one."""
+    from damcap.capture.hdr import read_response
+    from damcap.reconstruct.photos import photo_set_kind
+
+    if not opts.response:
+        return None, "sRGB"
+    kind = photo_set_kind(names, photos_dir)
+    if kind != "display":
+        raise DamcapError(f"--response {opts.response}: a response curve undoes the tone curve of 8-bit photos, but "
+                          f"{photos_dir} holds {'linear EXR/HDR' if kind == 'linear' else 'RAW'} files")
+    curve = read_response(opts.response)
+    return curve.log_response, f"response curve of {Path(opts.response).name} ({curve.method}, {curve.levels} levels, from damcap hdr)"
+
+
+def _cameras(photos_dir: Path, names: list[str], work: Path, opts: ReconstructOptions, masks: dict[str, Path] | None,
+             poses: str | None, progress: StageProgress, log: Callable[[str], None], seconds: dict[str, float]) -> Registration:
+    """Step 2: registration (or known poses), and sparse points triangulated at known poses when the
+    geometry needs them."""
+    from damcap.reconstruct.photos import image_size
+
+    sizes = {n: image_size(photos_dir / n) for n in names}
+    t0 = time.perf_counter()
+    reg = _registration(photos_dir, names, sizes, work, opts, masks, poses, progress)
+    seconds["registration"] = time.perf_counter() - t0
+    _check_enough(reg, len(names), opts, photos_dir)
+    if len(reg.points_world) == 0 and _needs_points(opts, masks is not None):
+        t0 = time.perf_counter()
+        log("known poses without sparse points: matching features and triangulating them with the poses held fixed")
+        images = _registration_images(photos_dir, [p.name for p in reg.photos], work, progress)
+        reg = images.to_photos(triangulate_known(images.folder, images.to_images(reg), work / "sfm", opts.sfm(),
+                                                 images.masks(masks) if opts.mask_features else None, progress, images.content))
+        seconds["triangulation"] = time.perf_counter() - t0
+    for name, why in sorted(reg.unregistered.items()):
+        log(f"unregistered: {name}: {why}")
+    return reg
+
+
+def _target_masks(reg: Registration, targets: list[Intrinsics], masks: dict[str, Path] | None,
+                  progress: StageProgress) -> list[np.ndarray] | None:
+    """Step 4: each photo's mask resampled into its pinhole target, in [0, 1] (None without masks)."""
+    if masks is None:
+        return None
+    mask_px = []
+    for k, (p, tgt) in enumerate(zip(reg.photos, targets)):
+        progress("masks", k, len(reg.photos))
+        m = read_mask(masks[p.name], (p.camera.width, p.camera.height))
+        mask_px.append(np.clip(resample_to_pinhole(m, p.camera, tgt), 0, 1))
+    progress("masks", len(reg.photos), len(reg.photos))
+    return mask_px
+
+
+def _scene(reg: Registration, targets: list[Intrinsics], mask_px: list[np.ndarray] | None, opts: ReconstructOptions,
+           work: Path, progress: StageProgress, log: Callable[[str], None], seconds: dict[str, float]) -> NormalisedScene:
+    """Steps 3 and 5: normalise the scene, build the geometry, centre it on its bounding sphere,
+    and keep the mesh in the work folder."""
+    norm_from_world = normalization_transform(reg.world_from_cams, reg.points_world if len(reg.points_world) else None)
+    cams = transform_world_from_cam(norm_from_world, reg.world_from_cams)
+    points = transform_points(norm_from_world, reg.points_world) if len(reg.points_world) else np.zeros((0, 3))
+    t0 = time.perf_counter()
+    progress("geometry", 0, 1)
+    inputs = GeometryInputs(cams, targets, mask_px, points, reg.points_seen_from)
+    geo: GeometryResult = build_geometry(inputs, opts.geometry_options(), norm_from_world)
+    log(f"geometry: {geo.reason}")
+    recentre = recentre_transform(geo.mesh.vertices)
+    norm_from_world = recentre @ norm_from_world
+    cams = transform_world_from_cam(recentre, cams)
+    mesh = transform_mesh_similarity(geo.mesh, recentre)
+    sphere = None
+    if geo.sphere is not None:
+        sphere = (transform_points(recentre, geo.sphere[0][None])[0], geo.sphere[1] * similarity_scale(recentre))
+    _save_mesh(work / "mesh.ply", mesh)
+    progress("geometry", 1, 1)
+    seconds["geometry"] = time.perf_counter() - t0
+    return NormalisedScene(norm_from_world, cams, mesh, sphere, geo)
+
+
+def _remove_stale_frames(out: Path, frames: list[Frame]) -> None:
+    """Frames of an earlier run that this run did not write again are deleted."""
+    keep = {f.file_path for f in frames} | {f.geometry_path for f in frames}
+    for sub in ("images", "geometry"):
+        for f in (out / sub).glob("*.exr"):
+            if f"{sub}/{f.name}" not in keep:
+                f.unlink()
+
+
 def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, opts: ReconstructOptions = ReconstructOptions(),
                         masks_dir: str | os.PathLike | None = None, poses: str | None = None,
                         progress: StageProgress | None = None, log: Callable[[str], None] | None = None) -> tuple[Capture, ReconstructReport]:
     """Run the whole reconstruction (see the module docstring).
 
     Args:
-        photos_dir: folder of JPEG/PNG photos (read only).
+        photos_dir: folder of photos of one kind: 8-bit JPEG/PNG/TIFF, linear EXR/HDR (``damcap hdr`` /
+            ``damcap linearize`` output) or camera RAW (read only; :mod:`damcap.reconstruct.photos`).
         out: capture folder to write (new, or one this function wrote before: its registration is reused).
         opts: options.
         masks_dir: folder of object masks with the photos' base names, or None.
@@ -306,113 +463,36 @@ def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, o
     seconds: dict[str, float] = {}
     t_all = time.perf_counter()
 
-    names = list_photos(photos_dir)
-    masks = match_masks(names, masks_dir) if masks_dir is not None else None
-    if poses and not poses.startswith("colmap:") and Path(poses).suffix.lower() not in (".json", ".npy"):
-        raise DamcapError(f"--poses {poses!r}: use a transforms.json, a poses_bounds.npy or colmap:DIR")
-    from damcap.reconstruct.geometry import parse_mode
-
-    mode, mesh_path = parse_mode(opts.geometry)
-    if mesh_path is not None and not mesh_path.is_file():
-        raise DamcapError(f"{mesh_path}: mesh file not found (--geometry mesh:FILE)")
+    names, masks = _check_inputs(photos_dir, masks_dir, poses, opts)
+    log_response, tone_curve = _response_curve(photos_dir, names, opts)
     _prepare_output(out, [photos_dir] + ([Path(masks_dir)] if masks_dir is not None else []))
     work = out / WORK_FOLDER
     work.mkdir(exist_ok=True)
-    from damcap.reconstruct.photos import image_size
-
-    sizes = {n: image_size(photos_dir / n) for n in names}
-
-    # ---- cameras ----
-    t0 = time.perf_counter()
-    reg = _registration(photos_dir, names, sizes, work, opts, masks, poses, progress)
-    seconds["registration"] = time.perf_counter() - t0
-    _check_enough(reg, len(names), opts, photos_dir)
-    if len(reg.points_world) == 0 and _needs_points(opts, masks is not None):
-        t0 = time.perf_counter()
-        log("known poses without sparse points: matching features and triangulating them with the poses held fixed")
-        reg = triangulate_known(photos_dir, reg, work / "sfm", opts.sfm(), masks if opts.mask_features else None, progress)
-        seconds["triangulation"] = time.perf_counter() - t0
-    for name, why in sorted(reg.unregistered.items()):
-        log(f"unregistered: {name}: {why}")
-
-    # ---- exposure (checked before the long steps) ----
-    factors, exposures, reference, lin_note = exposure_factors([photos_dir / p.name for p in reg.photos], opts.ignore_exposure)
+    reg = _cameras(photos_dir, names, work, opts, masks, poses, progress, log, seconds)
+    # exposure is checked before the long steps
+    factors, exposures, reference, lin_note = exposure_factors([photos_dir / p.name for p in reg.photos], opts.ignore_exposure,
+                                                               tone_curve)
     log(f"linearisation: {lin_note}")
-
-    # ---- targets, masks, normalisation ----
     targets = [pinhole_for(p.camera, opts.capture_size) for p in reg.photos]
-    mask_px: list[np.ndarray] | None = None
-    if masks is not None:
-        mask_px = []
-        for k, (p, tgt) in enumerate(zip(reg.photos, targets)):
-            progress("masks", k, len(reg.photos))
-            m = read_mask(masks[p.name], (p.camera.width, p.camera.height))
-            mask_px.append(np.clip(resample_to_pinhole(m, p.camera, tgt), 0, 1))
-        progress("masks", len(reg.photos), len(reg.photos))
-    norm_from_world = normalization_transform(reg.world_from_cams, reg.points_world if len(reg.points_world) else None)
-    cams = transform_world_from_cam(norm_from_world, reg.world_from_cams)
-    points = transform_points(norm_from_world, reg.points_world) if len(reg.points_world) else np.zeros((0, 3))
+    mask_px = _target_masks(reg, targets, masks, progress)
+    scene = _scene(reg, targets, mask_px, opts, work, progress, log, seconds)
 
-    # ---- geometry ----
     t0 = time.perf_counter()
-    progress("geometry", 0, 1)
-    inputs = GeometryInputs(cams, targets, mask_px, points, reg.points_seen_from)
-    geo: GeometryResult = build_geometry(inputs, opts.geometry_options(), norm_from_world)
-    log(f"geometry: {geo.reason}")
-    recentre = recentre_transform(geo.mesh.vertices)
-    norm_from_world = recentre @ norm_from_world
-    cams = transform_world_from_cam(recentre, cams)
-    mesh = _transform_mesh_similarity(geo.mesh, recentre)
-    sphere = None
-    if geo.sphere is not None:
-        sphere = (transform_points(recentre, geo.sphere[0][None])[0], geo.sphere[1] * similarity_scale(recentre))
-    _save_mesh(work / "mesh.ply", mesh)
-    progress("geometry", 1, 1)
-    seconds["geometry"] = time.perf_counter() - t0
-
-    # ---- frames ----
-    t0 = time.perf_counter()
-    rc = MeshRaycaster(mesh)
-    frames: list[Frame] = []
-    dropped: dict[str, str] = {}
-    for k, (p, tgt) in enumerate(zip(reg.photos, targets)):
-        progress("frames", k, len(reg.photos))
-        radiance = read_photo_linear(photos_dir / p.name, factors[k], reference)
-        radiance = resample_to_pinhole(radiance, p.camera, tgt)
-        b = rc.buffers(cams[k], tgt.fl_x, tgt.fl_y, tgt.cx, tgt.cy, tgt.w, tgt.h, supersample=opts.supersample)
-        normal = b.normal_world
-        if sphere is not None:  # analytic normals of the analytic sphere
-            hit = b.coverage > 0
-            d = b.position_world[hit] - sphere[0]
-            normal = normal.copy()
-            normal[hit] = d / np.linalg.norm(d, axis=1, keepdims=True)
-        mask = mask_px[k] if (mask_px is not None and opts.mask_coverage) else None
-        data = frame_data_from_buffers(radiance, normal, b.position_world, b.coverage, mask)
-        if not (data.coverage > 0.5).any():
-            dropped[p.name] = "the geometry is not seen from this camera (no covered pixel)"
-            log(f"dropped: {p.name}: {dropped[p.name]}")
-            continue
-        stem = Path(p.name).stem
-        frame = Frame(file_path=f"images/{stem}.exr", geometry_path=f"geometry/{stem}.exr", world_from_cam=cams[k],
-                      intrinsics=tgt, exposure=exposures[k].to_json() or None,
-                      extra={"photo": p.name, "exposure_relative": float(factors[k] / reference)})
-        tmp_capture = Capture(out, [frame], [], [])
-        write_frame(tmp_capture, frame, data, dtype=opts.dtype)
-        frames.append(frame)
-    progress("frames", len(reg.photos), len(reg.photos))
+    photos = [FramePhoto(p.name, photos_dir / p.name, p.camera, tgt, float(factors[k]), exposures[k].to_json() or None,
+                         mask_px[k] if (mask_px is not None and opts.mask_coverage) else None)
+              for k, (p, tgt) in enumerate(zip(reg.photos, targets))]
+    frames, dropped = write_frames(out, photos, scene.world_from_cams, scene.mesh, scene.sphere, reference,
+                                   opts.supersample, opts.dtype, progress, log, log_response, opts.keep_clipped)
     seconds["frames"] = time.perf_counter() - t0
+    geo = scene.geometry
     if not frames:
         raise DamcapError(f"{out}: no camera sees the geometry ({geo.reason}); check --geometry / the mesh's frame")
     if len(frames) < 2:
         raise DamcapError(f"{out}: only {len(frames)} frame sees the geometry; a capture needs at least 2")
 
-    # ---- split, stale files, transforms.json ----
+    # split, stale files, transforms.json
     train_idx, test_idx = split_indices(len(frames), opts.train_views, opts.split, opts.split_start % len(frames))
-    keep = {f.file_path for f in frames} | {f.geometry_path for f in frames}
-    for sub in ("images", "geometry"):
-        for f in (out / sub).glob("*.exr"):
-            if f"{sub}/{f.name}" not in keep:
-                f.unlink()
+    _remove_stale_frames(out, frames)
     seconds["total"] = time.perf_counter() - t_all
     report = ReconstructReport(
         photos=len(names), registered=len(reg.photos), unregistered=dict(reg.unregistered), frames=len(frames),
@@ -420,10 +500,11 @@ def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, o
         train=[frames[i].file_path for i in train_idx], test=[frames[i].file_path for i in test_idx],
         registration={"source": reg.source, **{k: v for k, v in reg.stats.items() if k != "unregistered"}},
         seconds={k: round(v, 2) for k, v in seconds.items()}, linearisation=lin_note)
+    sphere = scene.sphere
     source = {
         "tool": "damcap reconstruct", "damcap_version": damcap_version(), "photos": str(photos_dir.resolve()),
         "masks": str(Path(masks_dir).resolve()) if masks_dir is not None else None, "poses": poses,
-        "options": asdict(opts), "norm_from_input_world": norm_from_world.tolist(),
+        "options": asdict(opts), "norm_from_input_world": scene.norm_from_world.tolist(),
         "geometry": {"mode": geo.mode, "reason": geo.reason, "mesh": f"{WORK_FOLDER}/mesh.ply",
                      **({"sphere_centre": sphere[0].tolist(), "sphere_radius": sphere[1]} if sphere else {}),
                      "stats": _jsonable(geo.stats)},
@@ -448,5 +529,3 @@ def _jsonable(obj: Any) -> Any:
         return obj.item()
     return obj
 
-
-__all__ = ["ReconstructOptions", "ReconstructReport", "reconstruct_capture", "split_indices", "frame_data_from_buffers", "Intrinsics"]

@@ -142,6 +142,9 @@ def write_dng(
         iso: PhotographicSensitivity tag.
         f_number: FNumber tag.
     """
+    from damcap.common.optional import require
+
+    require("pidng", "writing simulated RAW brackets as DNG")
     from pidng.core import RAW2DNG
     from pidng.defs import CalibrationIlluminant, DNGVersion, Orientation, PhotometricInterpretation
     from pidng.dng import DNGTags, Tag

@@ -14,7 +14,7 @@ Optionally two materials laid out by a smooth function of position, with ground-
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -23,6 +23,7 @@ import torch
 
 from damcap.common.capture_folder import Capture, Frame, FrameData, Intrinsics, write_capture
 from damcap.common.errors import DamcapError
+from damcap.common.version import damcap_version
 from damcap.common.numerics import dot, safe_div, safe_normalize
 
 from damcap.common.cameras import focal_px_from_fov, orbit_world_from_cam, pixel_rays_world
@@ -275,9 +276,9 @@ class ClosedFormOptions:
     """1, or 2 (laid out by position, with ground-truth weights/)"""
     views: int = 32
     """cameras on one circle around the object"""
-    resolution: int = 128
+    resolution: int = field(default=128, metadata={"cli_flag": "--res"})
     """image width and height, pixels"""
-    elevation_deg: float = 25.0
+    elevation_deg: float = field(default=25.0, metadata={"cli_flag": "--elevation"})
     """camera elevation above the object's equator, degrees"""
     train_views: int = 10
     """consecutive views (random start) in the train split; the rest are test"""
@@ -315,6 +316,9 @@ def render_closed_form(opts: ClosedFormOptions) -> tuple[list[np.ndarray], Intri
         raise DamcapError(f"closed-form captures have 1 or 2 materials, got {opts.materials}")
     if not 2 <= opts.train_views < opts.views:
         raise DamcapError(f"--train-views must lie in [2, views - 1], got {opts.train_views} of {opts.views} views")
+    if opts.resolution < 8 or opts.env_grid < 2 or opts.supersample < 1:
+        raise DamcapError(f"--res must be >= 8, --env-grid >= 2 and --supersample >= 1; got {opts.resolution}, "
+                          f"{opts.env_grid}, {opts.supersample}")
     rng = np.random.default_rng(opts.seed)
     radius = 1.3 if opts.shape == "torus" else 1.0
     distance = 4.0
@@ -385,7 +389,7 @@ def make_closed_form_capture(out: str | Path, opts: ClosedFormOptions) -> Captur
         train_filenames=train,
         test_filenames=[f.file_path for i, f in enumerate(frames) if i not in train_idx],
         materials=opts.materials,
-        extra={"damcap_source": {"generator": "closed-form", "options": asdict(opts),
+        extra={"damcap_source": {"generator": "closed-form", "damcap_version": damcap_version(), "options": asdict(opts),
                                  "materials": [asdict(m) for m in materials]}},
     )
     write_capture(capture, data, dtype=opts.dtype)

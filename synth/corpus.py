@@ -53,6 +53,21 @@ HELDOUT_POINT_LIGHTS = (16, 17, 18, 19)
 
 
 @dataclass(frozen=True)
+class CorpusOptions:
+    """Options of ``damcap synth-set`` (the corpus folder and the shared data folder are arguments)."""
+
+    preset: Preset = "small"
+    """what to render (:func:`preset`): 'small' (8 captures, 128 px), 'paper' (720 captures, 256 px),
+    'hyper' (224 predictor-training captures, 128 px), 'segment' (the held-out part with 3
+    materials, 4 captures, 128 px), 'segment-dev' (6 training-part 3-material captures, 128 px:
+    where segmentation defaults are chosen)"""
+    jobs: int = 1
+    """parallel processes (each gets cores / jobs render threads)"""
+    dry_run: bool = False
+    """write corpus.json (the plan) and render nothing"""
+
+
+@dataclass(frozen=True)
 class LightEntry:
     """One of the corpus's 40 illuminations."""
 
@@ -301,6 +316,9 @@ def make_corpus(out: str | os.PathLike, preset_name: Preset, data_dir: str | os.
                 on_capture(e, finished, len(entries))
     if dry_run or not todo:
         return entries
+    from damcap.common.optional import require
+
+    require("mitsuba", "damcap synth-set")  # one line here, not one failure per capture
     threads = max(1, (os.cpu_count() or 1) // jobs)
     ctx = multiprocessing.get_context("spawn")  # never fork a process that may hold LLVM/Dr.Jit threads
     with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:

@@ -1,9 +1,9 @@
 """Per-pixel geometry of a synthetic capture by ray casting (renderer-independent).
 
 The geometry buffers are not taken from the renderer's AOVs: rays through the exact pixel
-centres of the capture's pinhole (capture-format.md: pixel (i, j) has its centre at
+centres of the capture's pinhole (docs/capture-format.md: pixel (i, j) has its centre at
 (j + 0.5, i + 0.5)) are cast against the very triangles and vertex normals that the renderer
-gets, with Embree (Open3D's ``RaycastingScene``), or analytically for the sphere. This avoids the
+gets, with the common ray caster (Embree through Open3D's ``RaycastingScene``), or analytically for the sphere. This avoids the
 pitfalls of Mitsuba's AOVs (box-filtered normals and positions averaged across silhouettes, a
 ``shape_index`` whose meaning depends on the variant) and gives the contract's values exactly:
 
@@ -28,8 +28,9 @@ import numpy as np
 from damcap.common.capture_folder import Intrinsics
 
 from damcap.common.cameras import pixel_rays_world
+from damcap.common.mesh import Mesh
+from damcap.common.raycast import MeshRaycaster
 from damcap.synth.closed_form import intersect_sphere
-from damcap.synth.mesh import TriangleMesh
 
 
 @dataclass(frozen=True)
@@ -37,7 +38,7 @@ class SceneGeometry:
     """The object as the ray caster sees it: a mesh with smooth normals and face materials,
     or the analytic unit sphere (``mesh is None``) with a single material."""
 
-    mesh: TriangleMesh | None
+    mesh: Mesh | None
     """normalised mesh, or None for the analytic unit sphere at the origin"""
     vertex_normals: np.ndarray | None
     """(V, 3) unit vertex normals of ``mesh``"""
@@ -64,21 +65,19 @@ class RayHits:
 
 
 class RayCaster:
-    """Casts rays against a :class:`SceneGeometry` (Embree through Open3D for meshes)."""
+    """Casts rays against a :class:`SceneGeometry`: the common ray caster
+    (:class:`~damcap.common.raycast.MeshRaycaster`, Embree through Open3D) for meshes, the
+    closed-form intersection for the analytic sphere."""
 
     def __init__(self, geometry: SceneGeometry) -> None:
         self.geometry = geometry
-        self._scene = None
-        if geometry.mesh is not None:
-            import open3d as o3d
-
-            self._o3d = o3d
-            self._scene = o3d.t.geometry.RaycastingScene()
-            self._scene.add_triangles(o3d.core.Tensor(geometry.mesh.positions.astype(np.float32)),
-                                      o3d.core.Tensor(geometry.mesh.faces.astype(np.uint32)))
+        self._scene = MeshRaycaster(geometry.mesh) if geometry.mesh is not None else None
 
     def cast(self, origin_world: np.ndarray, dir_world: np.ndarray) -> RayHits:
         """First hits of rays from one origin.
+
+        Hit points, shading and face normals are interpolated in float64 on the mesh's own
+        vertices from the float32 hit's triangle and barycentrics.
 
         Args:
             origin_world: (3,) ray origin (the camera centre).
@@ -93,19 +92,17 @@ class RayCaster:
             nrm = np.where(hit[..., None], nrm, 0.0)
             return RayHits(hit, np.where(hit[..., None], pos, 0.0), nrm, nrm.copy(), np.zeros(shape, np.int64))
         g = self.geometry
-        d = dir_world.reshape(-1, 3)
-        rays = np.concatenate([np.broadcast_to(origin_world, d.shape), d], -1).astype(np.float32)
-        ans = self._scene.cast_rays(self._o3d.core.Tensor(rays))
-        t = ans["t_hit"].numpy()
+        ans = self._scene.cast(np.asarray(origin_world, np.float64), dir_world.reshape(-1, 3))
+        t = ans["t_hit"]
         hit = np.isfinite(t)
-        face = np.where(hit, ans["primitive_ids"].numpy().astype(np.int64), 0)
-        uv = ans["primitive_uvs"].numpy().astype(np.float64)
+        face = np.where(hit, ans["primitive_ids"].astype(np.int64), 0)
+        uv = ans["primitive_uvs"].astype(np.float64)
         bary = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], -1)  # (1-u-v) v0 + u v1 + v v2
-        tri = g.mesh.faces[face]  # type: ignore[union-attr]
-        pos = np.einsum("rk,rkc->rc", bary, g.mesh.positions[tri])  # type: ignore[union-attr]
+        tri = g.mesh.triangles[face]  # type: ignore[union-attr]
+        pos = np.einsum("rk,rkc->rc", bary, g.mesh.vertices[tri])  # type: ignore[union-attr]
         nrm = np.einsum("rk,rkc->rc", bary, g.vertex_normals[tri])  # type: ignore[index]
         nrm /= np.maximum(np.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
-        p = g.mesh.positions[tri]  # type: ignore[union-attr]
+        p = g.mesh.vertices[tri]  # type: ignore[union-attr]
         geo = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
         geo /= np.maximum(np.linalg.norm(geo, axis=-1, keepdims=True), 1e-30)
         mat = g.face_material[face] if g.face_material is not None else np.zeros_like(face)

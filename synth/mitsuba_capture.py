@@ -7,12 +7,12 @@ by a small spherical area light ("point"), path traced with indirect bounces, se
 equally spaced on a circle at a random elevation; 10 consecutive views from a random start are
 the train split, the other 22 the test split (the paper's protocol).
 
-Materials are laid out by smooth random 3D noise regions (:func:`synth_mesh.material_labels`):
+Materials are laid out by smooth random 3D noise regions (:func:`damcap.synth.regions.material_labels`):
 the mesh's faces are split into one sub-mesh per material, each with one BSDF, and the weight
 maps record which sub-mesh the pixel's sub-pixel rays hit (:mod:`synth_geometry`). The analytic
 sphere with several materials is rendered as an icosphere so it can be split the same way.
 
-Written capture (capture-format.md) plus, per image, the renderer's own coverage as channel
+Written capture (docs/capture-format.md) plus, per image, the renderer's own coverage as channel
 ``render.A`` (the fraction of the path tracer's samples that hit the object), kept so validation
 can check the geometry's coverage against the renderer. Radiance is un-premultiplied by that
 alpha (a silhouette pixel holds the surface's radiance, not a blend with the black background)
@@ -32,7 +32,7 @@ import json
 import math
 import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Literal
 
@@ -55,10 +55,9 @@ from damcap.common.exr import read_exr, write_exr
 
 from damcap.common.cameras import focal_px_from_fov, orbit_world_from_cam, pixel_rays_world
 from damcap.synth.geometry import GeometryBuffers, RayCaster, SceneGeometry, frame_geometry
-from damcap.synth.mesh import (
-    TriangleMesh, face_normals_area, icosphere, material_labels, normalise_to_unit_sphere, read_mesh, submesh,
-    vertex_normals,
-)
+from damcap.common.mesh import Mesh, face_normals_area, normalise_to_unit_sphere, read_mesh, vertex_normals_area_weighted
+from damcap.common.shapes import icosphere
+from damcap.synth.regions import SYNTH_ISOLATED_NORMAL, SYNTH_NORMAL_EPS, material_labels, submesh
 from damcap.synth.mitsuba_render import EnvLight, LayeredMaterial, SphereLight, Variant
 
 #: channel of images/*.exr holding the renderer's alpha (fraction of samples hitting the object)
@@ -90,7 +89,7 @@ class SynthOptions:
     """Options of ``damcap synth`` (one capture)."""
 
     object: str = "sphere"
-    """'sphere' (the analytic unit sphere) or a mesh file (.obj, .ply), normalised into the unit sphere"""
+    """'sphere' (the analytic unit sphere) or a mesh file (.obj, .ply, .off, .glb, .gltf), normalised into the unit sphere"""
     light: str = "point"
     """'point[:AZIMUTH_DEG[:ELEVATION_DEG]]' (small spherical area light; position from the seed
     when not given) or 'env:FILE[:ROTATION_DEG]' (environment map rotated about +y)"""
@@ -98,7 +97,7 @@ class SynthOptions:
     """number of materials: 1 (whole object) or 3 (noise regions) as in the paper; 1..8 allowed"""
     views: int = 32
     """cameras equally spaced on one circle around the object"""
-    resolution: int = 256
+    resolution: int = field(default=256, metadata={"cli_flag": "--res"})
     """image width and height, pixels"""
     spp: int = 64
     """path-tracing samples per pixel (noise floor, bench/synth.md: at 128 px, 512 under environment
@@ -108,7 +107,7 @@ class SynthOptions:
     the point light's position (when not given) and the path tracer's random numbers"""
     train_views: int = 10
     """consecutive views (random start) in the train split; the rest are test"""
-    elevation_deg: float | None = None
+    elevation_deg: float | None = field(default=None, metadata={"cli_flag": "--elevation"})
     """camera elevation above the xz-plane, degrees; None draws it from the seed in [5, 45]"""
     max_depth: int = 6
     """path tracer's longest path (2 = direct light only; 6 = up to 4 indirect bounces)"""
@@ -366,25 +365,25 @@ def resolve_scene(opts: SynthOptions) -> ResolvedScene:
         else:
             path = Path(opts.object)
             if not path.is_file():
-                raise DamcapError(f"{path}: mesh file not found (from --object {opts.object!r}); give an .obj or .ply file or 'sphere'")
-            mesh = normalise_to_unit_sphere(read_mesh(path))
+                raise DamcapError(f"{path}: mesh file not found (from --object {opts.object!r}); give an .obj, .ply, .off, .glb or .gltf file or 'sphere'")
+            mesh = normalise_to_unit_sphere(read_mesh(path), clean=True, fix_winding=True)
             obj_record = {"kind": "mesh", "file": path.name}
-        normals = vertex_normals(mesh)
+        normals = vertex_normals_area_weighted(mesh.vertices, mesh.triangles, SYNTH_NORMAL_EPS, SYNTH_ISOLATED_NORMAL)
         labels = material_labels(mesh, n, int(np.random.default_rng([opts.seed, 3]).integers(2**31)))
         geometry = SceneGeometry(mesh, normals, labels, n)
         parts = [submesh(mesh, normals, labels == k) for k in range(n)]
-        empty = [k for k, p in enumerate(parts) if len(p[0].faces) == 0]
+        empty = [k for k, p in enumerate(parts) if len(p[0].triangles) == 0]
         if empty:
             raise DamcapError(f"{opts.object}: material region(s) {empty} got no faces (mesh too coarse?); try another --seed")
         area = np.array([_area(p[0]) for p in parts])
-        obj_record.update({"vertices": len(mesh.positions), "faces": len(mesh.faces),
+        obj_record.update({"vertices": len(mesh.vertices), "faces": len(mesh.triangles),
                            "material_area_fraction": (area / area.sum()).round(4).tolist()})
     record = {"object": obj_record, "light": light_record, "materials": [asdict(m) for m in materials]}
     return ResolvedScene(geometry, parts, materials, light, record)
 
 
-def _area(mesh: TriangleMesh) -> float:
-    return float(0.5 * np.linalg.norm(face_normals_area(mesh.positions, mesh.faces), axis=-1).sum())
+def _area(mesh: Mesh) -> float:
+    return float(0.5 * np.linalg.norm(face_normals_area(mesh.vertices, mesh.triangles), axis=-1).sum())
 
 
 # --------------------------------------------------------------------------------------------
@@ -716,11 +715,13 @@ def make_synthetic_capture(out: str | os.PathLike, opts: SynthOptions, *, progre
         DamcapError: bad options, missing mesh or environment map, a folder holding something
             else, or a rendered frame failing validation (then no transforms.json is written).
     """
+    from damcap.common.optional import require
     from damcap.common.version import damcap_version
 
     from damcap.synth import mitsuba_render as synth_render
 
     opts.validate()
+    require("mitsuba", "damcap synth")  # before anything is written
     out = Path(out)
     options = _options_record(opts)
     scene_desc = resolve_scene(opts)  # user mistakes (files, specs) surface before anything is written

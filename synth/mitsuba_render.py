@@ -23,7 +23,7 @@ import numpy as np
 from damcap.common.capture_folder import Intrinsics
 from damcap.common.errors import DamcapError
 
-from damcap.synth.mesh import TriangleMesh
+from damcap.common.mesh import Mesh
 
 Variant = Literal["auto", "llvm_ad_rgb", "scalar_rgb"]
 #: most camera samples (pixels x samples) traced per Mitsuba call; more passes above it
@@ -46,8 +46,10 @@ def select_variant(requested: Variant = "auto") -> str:
     Raises:
         DamcapError: an unknown variant, or 'llvm_ad_rgb' asked for without libLLVM.
     """
-    import drjit as dr
-    import mitsuba as mi
+    from damcap.common.optional import require
+
+    mi = require("mitsuba", "Mitsuba renders (damcap synth, synth-set)")
+    dr = require("drjit", "Mitsuba renders (damcap synth, synth-set)")
 
     if requested not in ("auto", "llvm_ad_rgb", "scalar_rgb"):
         raise DamcapError(f"unknown Mitsuba variant {requested!r}: use auto, llvm_ad_rgb or scalar_rgb")
@@ -130,7 +132,7 @@ class SphereLight:
     """emitted radiance (white), W / (m^2 sr)"""
 
 
-def mesh_part(mi: Any, name: str, mesh: TriangleMesh, normals: np.ndarray, bsdf: Any) -> Any:
+def mesh_part(mi: Any, name: str, mesh: Mesh, normals: np.ndarray, bsdf: Any) -> Any:
     """A Mitsuba mesh built from arrays (works in every variant).
 
     Args:
@@ -142,17 +144,17 @@ def mesh_part(mi: Any, name: str, mesh: TriangleMesh, normals: np.ndarray, bsdf:
     """
     props = mi.Properties()
     props["bsdf"] = bsdf
-    shape = mi.Mesh(name, len(mesh.positions), len(mesh.faces), props, has_vertex_normals=True)
+    shape = mi.Mesh(name, len(mesh.vertices), len(mesh.triangles), props, has_vertex_normals=True)
     params = mi.traverse(shape)
     float_t, index_t = type(params["vertex_positions"]), type(params["faces"])
-    params["vertex_positions"] = float_t(mesh.positions.astype(np.float32).ravel())
-    params["faces"] = index_t(mesh.faces.astype(np.uint32).ravel())
+    params["vertex_positions"] = float_t(mesh.vertices.astype(np.float32).ravel())
+    params["faces"] = index_t(mesh.triangles.astype(np.uint32).ravel())
     params["vertex_normals"] = float_t(normals.astype(np.float32).ravel())
     params.update()
     return shape
 
 
-def build_scene(parts: list[tuple[TriangleMesh, np.ndarray] | None], materials: list[LayeredMaterial],
+def build_scene(parts: list[tuple[Mesh, np.ndarray] | None], materials: list[LayeredMaterial],
                 light: EnvLight | SphereLight, max_depth: int) -> Any:
     """The Mitsuba scene: one shape per material, the light, a path tracer.
 

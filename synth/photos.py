@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -23,31 +23,10 @@ from damcap.common.capture_folder import Intrinsics
 from damcap.common.exr import write_image_u8
 
 from damcap.common.cameras import focal_px_from_fov, look_at_world_from_cam
-from damcap.common.mesh import Mesh, vertex_normals_area_weighted
+from damcap.common.colour import linear_to_srgb
+from damcap.common.mesh import Mesh
 from damcap.common.raycast import MeshRaycaster
-
-
-def _hash3(ijk: np.ndarray, seed: int) -> np.ndarray:
-    """Deterministic pseudo-random values in [0, 1) per integer lattice point (P, 3) -> (P,)."""
-    h = (ijk[:, 0] * 73856093) ^ (ijk[:, 1] * 19349663) ^ (ijk[:, 2] * 83492791) ^ (seed * 2654435761)
-    h = (h ^ (h >> 13)) * 1274126177
-    h = h ^ (h >> 16)
-    return (h & 0xFFFFFF).astype(np.float64) / float(0x1000000)
-
-
-def value_noise(points: np.ndarray, frequency: float, seed: int) -> np.ndarray:
-    """Trilinear lattice value noise in [0, 1] at (P, 3) points (smoothstep-interpolated)."""
-    q = np.asarray(points, dtype=np.float64) * frequency
-    base = np.floor(q).astype(np.int64)
-    f = q - base
-    f = f * f * (3 - 2 * f)
-    out = np.zeros(len(q))
-    for dx in (0, 1):
-        for dy in (0, 1):
-            for dz in (0, 1):
-                w = (f[:, 0] if dx else 1 - f[:, 0]) * (f[:, 1] if dy else 1 - f[:, 1]) * (f[:, 2] if dz else 1 - f[:, 2])
-                out += w * _hash3(base + np.array([dx, dy, dz]), seed)
-    return out
+from damcap.common.shapes import bumpy_blob, value_noise
 
 
 def procedural_albedo(points: np.ndarray, seed: int = 0) -> np.ndarray:
@@ -84,16 +63,6 @@ class PhotoExposure:
         return self.time_s * self.iso / self.f_number ** 2
 
 
-def linear_to_srgb(lin: np.ndarray) -> np.ndarray:
-    """The sRGB inverse EOTF on [0, 1] (values clipped first).
-
-    >>> round(float(linear_to_srgb(np.array(0.18))), 6)
-    0.461356
-    """
-    x = np.clip(np.asarray(lin, dtype=np.float64), 0, 1)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-
-
 def render_textured(raycaster: MeshRaycaster, world_from_cam: np.ndarray, intr: Intrinsics, light_dir_world: np.ndarray,
                     exposure: PhotoExposure, seed: int = 0, ambient: float = 0.25, gain: float = 2.0,
                     background_srgb: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -126,21 +95,6 @@ def render_textured(raycaster: MeshRaycaster, world_from_cam: np.ndarray, intr: 
     srgb = linear_to_srgb(sensor) * cov[..., None] + background_srgb * (1 - cov[..., None])
     photo = np.round(srgb * 255).astype(np.uint8)
     return photo, np.round(cov * 255).astype(np.uint8), radiance
-
-
-def bumpy_blob(subdivisions: int = 5, amplitude: float = 0.12, seed: int = 0) -> Mesh:
-    """A sphere with smooth radial bumps and one dent (not convex, not a sphere), radius about 1."""
-    import open3d as o3d
-
-    m = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=max(8, 2 ** subdivisions))
-    v = np.asarray(m.vertices, np.float64)
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
-    t = np.asarray(m.triangles, np.int32)
-    r = 1 + amplitude * (2 * value_noise(v * 0.9 + 3.0, 1.5, seed + 5) - 1)
-    r -= 0.25 * np.exp(-((v - np.array([0.6, 0.3, 0.74]) / np.linalg.norm([0.6, 0.3, 0.74])) ** 2).sum(1) / 0.08)
-    v = v * r[:, None]
-    v /= np.linalg.norm(v, axis=1).max()
-    return Mesh(v.astype(np.float32), t, vertex_normals_area_weighted(v, t).astype(np.float32), np.zeros(len(t), np.int32))
 
 
 def orbit_cameras(n_views: int, distance: float, elevations_deg: tuple[float, ...] = (20.0,), jitter_deg: float = 0.0,
@@ -221,27 +175,36 @@ def default_intrinsics(size: int, fov_deg: float = 45.0) -> Intrinsics:
     return Intrinsics(f, f, size / 2, size / 2, size, size)
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``python -m damcap.synth.photos OUT``: write a textured photo set (samples/)."""
-    import argparse
+@dataclass(frozen=True)
+class PhotoSetOptions:
+    """Options of ``damcap synth-photos`` (a textured bumpy blob photographed on one camera ring)."""
 
-    ap = argparse.ArgumentParser(description="Write JPEG photos (EXIF exposure), masks and ground-truth cameras of a textured synthetic object.")
-    ap.add_argument("out", type=Path)
-    ap.add_argument("--views", type=int, default=24)
-    ap.add_argument("--size", type=int, default=256, help="photo width and height, pixels")
-    ap.add_argument("--elevation", type=float, default=25.0, help="camera ring elevation, degrees")
-    ap.add_argument("--jitter", type=float, default=5.0, help="random azimuth/elevation jitter, degrees")
-    ap.add_argument("--distance", type=float, default=3.2, help="camera distance (object radius 1)")
-    ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args(argv)
-    if (args.out / "images").exists():
-        raise SystemExit(f"{args.out}/images exists; choose a new folder")
-    mesh = bumpy_blob(seed=args.seed)
-    cams = orbit_cameras(args.views, args.distance, (args.elevation,), jitter_deg=args.jitter, seed=args.seed)
-    names = write_photo_set(args.out, mesh, cams, default_intrinsics(args.size), exposure_series(args.views, args.seed), seed=args.seed)
-    print(f"wrote {len(names)} photos, masks and transforms.json (ground truth) to {args.out}")
-    return 0
+    views: int = 24
+    """photos, on one ring around the object"""
+    size: int = 256
+    """photo width and height, pixels"""
+    elevation_deg: float = field(default=25.0, metadata={"cli_flag": "--elevation"})
+    """camera ring elevation, degrees"""
+    jitter_deg: float = field(default=5.0, metadata={"cli_flag": "--jitter"})
+    """random azimuth and elevation jitter of each camera, degrees"""
+    distance: float = 3.2
+    """camera distance from the object's centre (object radius 1)"""
+    seed: int = 0
+    """seeds the shape, the texture, the jitter and the exposures"""
+
+    def validate(self) -> None:
+        """Raise DamcapError naming the first bad value."""
+        from damcap.common.errors import DamcapError
+
+        if self.views < 1 or self.size < 8:
+            raise DamcapError(f"--views must be >= 1 and --size >= 8, got {self.views} and {self.size}")
+        if not self.distance > 1:
+            raise DamcapError(f"--distance must be > 1 (the object's radius), got {self.distance}")
 
 
-if __name__ == "__main__":
-    raise SystemExit(main())
+def make_photo_set(out: str | os.PathLike, opts: PhotoSetOptions) -> list[str]:
+    """Write the photo set of ``opts`` into ``out`` (:func:`write_photo_set`); returns the photo names."""
+    opts.validate()
+    mesh = bumpy_blob(seed=opts.seed)
+    cams = orbit_cameras(opts.views, opts.distance, (opts.elevation_deg,), jitter_deg=opts.jitter_deg, seed=opts.seed)
+    return write_photo_set(out, mesh, cams, default_intrinsics(opts.size), exposure_series(opts.views, opts.seed), seed=opts.seed)

@@ -13,8 +13,12 @@ from damcap.appearance.fit import FitOptions, fit_dam, holdout_frames, weighted_
 from damcap.appearance.views import radiance_scale_of
 from damcap.appearance.views import load_views, samples_of
 from damcap.appearance.fit import training_frames
+from damcap.appearance.fit import refine_dam, training_l1
+from damcap.appearance.hyper.model import HyperArchitecture, HyperNet, predict_dam
 from damcap.common.capture_folder import read_capture
 from damcap.common.errors import DamcapError
+
+from tests.appearance.conftest import _crop_of
 
 
 @pytest.fixture(scope="module")
@@ -339,3 +343,16 @@ def test_the_stopping_rule_scores_held_out_views_with_the_fits_cost(small_sample
     expected = weighted_quantile_cost(pred, s.radiance_lin[held].float() / m.radiance_scale, s.weight[held], 0.8)
     assert result.best_step == 60
     assert math.isclose(result.history[-1]["holdout_l1"], float(expected), rel_tol=1e-4)
+
+
+def test_refinement_never_makes_the_training_cost_worse(small_capture):
+    samples = samples_of(load_views(read_capture(small_capture), "train"))
+    net = HyperNet(HyperArchitecture(input_size=32, channels=(4, 8)))
+    start = predict_dam(net, _crop_of(small_capture))
+    refined, before, after = refine_dam(start, samples, 60)
+    assert after <= before and math.isclose(before, training_l1(start, samples), rel_tol=1e-6)
+    assert math.isclose(after, training_l1(refined, samples), rel_tol=1e-6)
+    # from an already converged model a too-large step size cannot make it worse either
+    fitted = fit_dam(samples, FitOptions(steps=400, holdout_views=0, checkpoint_every=0)).model
+    again, b2, a2 = refine_dam(fitted, samples, 20, learning_rate=0.5)
+    assert a2 <= b2 and training_l1(again, samples) <= training_l1(fitted, samples) + 1e-9

@@ -1,4 +1,4 @@
-"""DSSIM against hand-computed values (capture-format.md convention)."""
+"""DSSIM against hand-computed values (docs/capture-format.md convention)."""
 
 from __future__ import annotations
 

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from damcap.capture.hdr import HALF_MAX, HdrOptions, merge_bracket_files, read_ldr_codes, write_hdr
+from damcap.capture.hdr import HALF_MAX, HdrOptions, hdr_record_path, merge_bracket_files, read_ldr_codes, read_response, write_hdr
 from damcap.capture.metrics import abs_log_ratio_error
 from damcap.synth.brackets import CameraModel, bracket_times, simulate_raw_bracket
 from damcap.common.errors import DamcapError
@@ -123,7 +123,7 @@ def test_bracket_from_known_radiance_and_known_response_merges_back(tmp_path):
 
 
 def test_16bit_bracket_with_srgb_curve(tmp_path):
-    from damcap.capture.response import linear_to_srgb
+    from damcap.common.colour import linear_to_srgb
 
     radiance = _smooth_radiance(seed=1)
     times = [0.05, 0.5, 5.0]
@@ -132,6 +132,30 @@ def test_16bit_bracket_with_srgb_curve(tmp_path):
     assert result.response.levels == 1024
     err = abs_log_ratio_error(result.radiance_lin, radiance)
     assert err.median < 0.005 and err.p90 < 0.015
+
+
+def test_response_curve_reads_back_from_the_record(tmp_path):
+    """The curve write_hdr saves beside its output (what ``damcap reconstruct --response`` reads)."""
+    radiance = _smooth_radiance(48, 64)
+    times = [1 / 16, 1 / 4, 1.0]
+    codes = np.stack([np.round(np.clip(radiance * t * 0.5, 0, 1) ** (1 / 2.2) * 255).astype(np.uint8) for t in times])
+    opts = HdrOptions(exposures_s=times, response_samples=500)
+    result = merge_bracket_files(write_png_bracket(tmp_path / "b", codes), opts)
+    record = write_hdr(tmp_path / "m.exr", result, opts)
+    assert record == hdr_record_path(tmp_path / "m.exr") == tmp_path / "m.exr.json"
+    for path in (record, tmp_path / "m.exr"):
+        curve = read_response(path)
+        assert curve.method == "debevec" and curve.levels == 256
+        assert np.allclose(curve.log_response, result.response.log_response, atol=1e-6)  # stored to 6 decimals
+        assert np.allclose(curve.level_weight, result.response.level_weight, atol=1e-6)
+    with pytest.raises(DamcapError, match=r"none\.exr\.json: response file not found"):
+        read_response(tmp_path / "none.exr")
+    (tmp_path / "raw.exr.json").write_text(json.dumps({"command": "hdr", "kind": "raw"}))
+    with pytest.raises(DamcapError, match=r"no response curve in this file \(a RAW bracket has none\)"):
+        read_response(tmp_path / "raw.exr.json")
+    (tmp_path / "bad.json").write_text(json.dumps({"response": {"log_response": [[0.0, 1.0]] * 2}}))
+    with pytest.raises(DamcapError, match=r"must be finite, \(3, L\) with L >= 2 code levels; got shape \(2, 2\)"):
+        read_response(tmp_path / "bad.json")
 
 
 # --------------------------------------------------------------------------------------------
@@ -170,7 +194,7 @@ def test_exr_output_metadata_and_record(sim_bracket, tmp_path):
 def test_half_output_beyond_range_is_refused(tmp_path):
     rng = np.random.default_rng(0)
     radiance = np.exp(rng.uniform(np.log(0.1), np.log(0.8), (8, 8, 3)))
-    from damcap.capture.response import linear_to_srgb
+    from damcap.common.colour import linear_to_srgb
 
     codes = np.stack([np.round(linear_to_srgb(np.clip(radiance * t, 0, 1)) * 255).astype(np.uint8) for t in (0.5, 1.0)])
     files = write_png_bracket(tmp_path / "in", codes)

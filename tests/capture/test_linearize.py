@@ -10,7 +10,8 @@ import pytest
 
 from damcap.capture.exif import Exposure, read_exposure
 from damcap.capture.linearize import LinearizeOptions, clipped_mask, linearize_files, linearize_photo, list_photos
-from damcap.capture.response import linear_to_srgb, srgb_log_response
+from damcap.capture.response import srgb_log_response
+from damcap.common.colour import linear_to_srgb
 from damcap.common.errors import DamcapError
 from damcap.common.exr import read_exr
 

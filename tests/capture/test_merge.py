@@ -6,13 +6,14 @@ import numpy as np
 import pytest
 
 from damcap.capture.merge import PoissonAccumulator, merge_ldr, merge_poisson
-from damcap.capture.response import hat_weights, srgb_log_response, srgb_to_linear
+from damcap.capture.response import hat_weights, srgb_log_response
+from damcap.common.colour import srgb_to_linear
 from damcap.common.errors import DamcapError
 
 
 def _srgb_bracket(radiance, exposures):
     """8-bit sRGB codes of linear radiance at each exposure (saturating at 1)."""
-    from damcap.capture.response import linear_to_srgb
+    from damcap.common.colour import linear_to_srgb
 
     return np.stack([np.round(linear_to_srgb(np.clip(radiance * h, 0, 1)) * 255).astype(np.uint16) for h in exposures])
 

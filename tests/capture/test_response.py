@@ -1,4 +1,4 @@
-"""Response curves: sRGB closed form and round trip, Debevec recovery of a known curve."""
+"""Response curves: the sRGB response table, Debevec recovery of a known curve (sRGB itself: tests/common/test_colour.py)."""
 
 from __future__ import annotations
 
@@ -9,37 +9,12 @@ from damcap.capture.response import (
     hat_weights,
     level_weights_from_residuals,
     linear_hat_weights,
-    linear_to_srgb,
     recover_response,
     sample_pixels_for_response,
     solve_response_Debevec1997,
     srgb_log_response,
-    srgb_to_linear,
 )
 from damcap.common.errors import DamcapError
-
-
-def test_srgb_closed_form_values():
-    # IEC 61966-2-1 values: the linear segment, the knee, mid-grey, the ends.
-    assert srgb_to_linear(np.array(0.04045)) == pytest.approx(0.04045 / 12.92, rel=1e-12)
-    assert srgb_to_linear(np.array(0.5)) == pytest.approx(0.21404114, abs=1e-8)
-    assert linear_to_srgb(np.array(0.18)) == pytest.approx(0.46135612, abs=1e-8)
-    assert srgb_to_linear(np.array([0.0, 1.0])).tolist() == [0.0, 1.0]
-
-
-def test_srgb_round_trip_and_monotone():
-    x = np.linspace(0, 1, 10001)
-    assert np.abs(linear_to_srgb(srgb_to_linear(x)) - x).max() < 1e-12
-    assert np.all(np.diff(srgb_to_linear(x)) > 0)
-    # continuity at the knee (the two segments meet within 1e-7)
-    knee = 0.0031308
-    assert abs(knee * 12.92 - (1.055 * knee ** (1 / 2.4) - 0.055)) < 1e-7
-
-
-def test_srgb_matches_colour_science():
-    colour = pytest.importorskip("colour")
-    x = np.linspace(0, 1, 257)
-    assert np.abs(srgb_to_linear(x) - colour.cctf_decoding(x, "sRGB")).max() < 1e-12
 
 
 def test_hat_and_linear_hat_weights():

@@ -43,3 +43,34 @@ def test_synth_set_dry_run_writes_the_plan(tmp_path, capsys, shared_data):
     assert len(doc["captures"]) == 720 and doc["counts"]["train"] + doc["counts"]["heldout"] == 720
     assert {"split", "object", "light", "materials", "seed"} <= set(doc["captures"][0])
     assert "not rendered 720" in stdout
+
+
+def test_synth_set_finds_the_shared_data_by_option_environment_or_current_folder(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("DAMCAP_SHARED_DATA", str(tmp_path / "from-env"))
+    code, _, err = run(["synth-set", tmp_path / "e", "--dry-run"], capsys)
+    assert_one_line_error(code, err, str(tmp_path / "from-env"), "--data-dir", "DAMCAP_SHARED_DATA")
+    code, _, err = run(["synth-set", tmp_path / "e", "--data-dir", tmp_path / "from-option", "--dry-run"], capsys)
+    assert_one_line_error(code, err, str(tmp_path / "from-option"))
+    monkeypatch.delenv("DAMCAP_SHARED_DATA")
+    monkeypatch.chdir(tmp_path)
+    code, _, err = run(["synth-set", tmp_path / "e", "--dry-run"], capsys)
+    assert_one_line_error(code, err, "../shared/data: no meshes/")
+
+
+def test_synth_photos_command_is_the_library_photo_set(tmp_path, capsys):
+    from damcap.synth.photos import PhotoSetOptions, make_photo_set
+
+    code, stdout, err = run(["synth-photos", tmp_path / "cli", "--views", "2", "--size", "32", "--elevation", "30",
+                             "--jitter", "2", "--seed", "3"], capsys)
+    assert code == 0, err
+    assert "wrote 2 photos" in stdout
+    make_photo_set(tmp_path / "lib", PhotoSetOptions(views=2, size=32, elevation_deg=30.0, jitter_deg=2.0, seed=3))
+    files = sorted(p.relative_to(tmp_path / "lib") for p in (tmp_path / "lib").rglob("*") if p.is_file())
+    assert [str(f) for f in files] == ["images/IMG_0000.jpg", "images/IMG_0001.jpg", "masks/IMG_0000.png", "masks/IMG_0001.png",
+                                       "transforms.json"]
+    for f in files:
+        assert (tmp_path / "cli" / f).read_bytes() == (tmp_path / "lib" / f).read_bytes(), f
+    code, _, err = run(["synth-photos", tmp_path / "cli"], capsys)
+    assert_one_line_error(code, err, "images exists")
+    code, _, err = run(["synth-photos", tmp_path / "x", "--distance", "0.5"], capsys)
+    assert_one_line_error(code, err, "--distance")

@@ -1,4 +1,4 @@
-"""The capture folder: round trip and every validation error (capture-format.md)."""
+"""The capture folder: round trip and every validation error (docs/capture-format.md)."""
 
 from __future__ import annotations
 

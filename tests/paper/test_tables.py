@@ -8,8 +8,8 @@ import statistics
 import pytest
 
 from damcap.appearance.fit import FitOptions
-from damcap.appearance.hyper_file import load_predictor, shipped_predictor_path
-from damcap.appearance.segment import SegmentOptions
+from damcap.appearance.hyper.file import load_predictor, shipped_predictor_path
+from damcap.appearance.segment.options import SegmentOptions
 from damcap.paper.tables import (
     TableOptions, heldout_entries, rows_from_json, summarise, table1_markdown, table1_rows, table2_markdown, table2_rows,
 )

@@ -14,7 +14,6 @@ from damcap.reconstruct.geometry import (
     align_mesh,
     build_geometry,
     fit_sphere_points,
-    icosphere_mesh,
     parse_mode,
     poisson_mesh,
     project_points,
@@ -22,6 +21,7 @@ from damcap.reconstruct.geometry import (
 )
 from damcap.common.mesh import Mesh
 from damcap.common.raycast import MeshRaycaster
+from damcap.common.shapes import sphere_mesh
 
 SIZE = 64
 RADIUS = 0.8
@@ -51,7 +51,7 @@ def _masks(mesh: Mesh, cams: np.ndarray, intr: list[Intrinsics]) -> list[np.ndar
 @pytest.fixture(scope="module")
 def sphere_scene() -> GeometryInputs:
     cams, intr = _cameras()
-    sphere = icosphere_mesh(CENTRE, RADIUS, subdivisions=5)
+    sphere = sphere_mesh(CENTRE, RADIUS, subdivisions=5)
     return GeometryInputs(cams, intr, _masks(sphere, cams, intr))
 
 
@@ -87,7 +87,7 @@ def test_sphere_fit_from_silhouettes_and_auto_picks_it(sphere_scene):
 
 
 def test_auto_picks_the_visual_hull_for_a_non_sphere():
-    from damcap.synth.photos import bumpy_blob
+    from damcap.common.shapes import bumpy_blob
 
     cams, intr = _cameras()
     blob = bumpy_blob(subdivisions=4)
@@ -127,7 +127,7 @@ def test_poisson_needs_points():
 
 def test_align_mesh_recovers_a_similarity():
     from damcap.reconstruct.normalize import similarity, transform_points
-    from damcap.synth.photos import bumpy_blob
+    from damcap.common.shapes import bumpy_blob
 
     blob = bumpy_blob(subdivisions=4)
     a = np.radians(35)
@@ -143,7 +143,7 @@ def test_align_mesh_recovers_a_similarity():
 def test_user_mesh_the_cameras_do_not_see(tmp_path, sphere_scene):
     import open3d as o3d
 
-    far = icosphere_mesh(np.array([40.0, 0.0, 0.0]), 0.5, subdivisions=2)
+    far = sphere_mesh(np.array([40.0, 0.0, 0.0]), 0.5, subdivisions=2)
     path = tmp_path / "far.ply"
     o3d.io.write_triangle_mesh(str(path), o3d.geometry.TriangleMesh(
         o3d.utility.Vector3dVector(far.vertices.astype(np.float64)), o3d.utility.Vector3iVector(far.triangles)))
@@ -155,7 +155,7 @@ def test_user_mesh_the_cameras_do_not_see(tmp_path, sphere_scene):
 def test_user_mesh_as_given(tmp_path, sphere_scene):
     import open3d as o3d
 
-    sphere = icosphere_mesh(CENTRE, RADIUS, subdivisions=4)
+    sphere = sphere_mesh(CENTRE, RADIUS, subdivisions=4)
     path = tmp_path / "sphere.ply"
     o3d.io.write_triangle_mesh(str(path), o3d.geometry.TriangleMesh(
         o3d.utility.Vector3dVector(sphere.vertices.astype(np.float64)), o3d.utility.Vector3iVector(sphere.triangles)))

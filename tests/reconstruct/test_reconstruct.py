@@ -19,8 +19,8 @@ from damcap.common.errors import DamcapError
 from damcap.reconstruct.normalize import rotation_agreement_deg, similarity_scale, transform_world_from_cam, umeyama_similarity
 from damcap.reconstruct.pipeline import ReconstructOptions, reconstruct_capture, split_indices
 from damcap.common.raycast import MeshRaycaster
+from damcap.common.shapes import bumpy_blob
 from damcap.synth.photos import (
-    bumpy_blob,
     default_intrinsics,
     exposure_series,
     orbit_cameras,

@@ -36,7 +36,8 @@ from damcap.reconstruct.normalize import normalization_transform, similarity_sca
 from damcap.reconstruct.pipeline import ReconstructOptions, reconstruct_capture
 from damcap.reconstruct.poses import llff_of_world_from_cam
 from damcap.common.mesh import vertex_normals_area_weighted
-from damcap.synth.photos import bumpy_blob, default_intrinsics, orbit_cameras, write_photo_set
+from damcap.common.shapes import bumpy_blob
+from damcap.synth.photos import default_intrinsics, orbit_cameras, write_photo_set
 
 from tests.conftest import assert_one_line_error, run_cli
 
@@ -140,7 +141,7 @@ def test_the_capture_does_not_depend_on_the_scene_scale(photo_set, mode, k):
         p_in_1 = transform_points(np.linalg.inv(norm_1), a.position_world[both])
         p_in_k = transform_points(np.linalg.inv(norm_k), b.position_world[both])
         np.testing.assert_allclose(p_in_k / k, p_in_1, rtol=0, atol=GEOMETRY_ATOL / similarity_scale(norm_1))
-        # view directions V = normalize(camera centre - P), derived as capture-format.md defines them
+        # view directions V = normalize(camera centre - P), derived as docs/capture-format.md defines them
         v_1 = f_ref.world_from_cam[:3, 3] - a.position_world[both]
         v_k = f.world_from_cam[:3, 3] - b.position_world[both]
         v_1 /= np.linalg.norm(v_1, axis=1, keepdims=True)

@@ -1,0 +1,82 @@
+"""Predictor files: one safetensors file, the network's tensors plus a JSON metadata block.
+
+Like ``.dam`` files (:mod:`.dam_file`), opening a stranger's predictor executes nothing. Metadata
+key ``damcap`` holds JSON with ``format_version``, ``kind`` = ``"dam-predictor"``,
+``architecture`` (:class:`.hyper.HyperArchitecture`) and ``training`` (command, data, options,
+validation curve, ...).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors.torch import save as st_save
+
+from damcap.common.atomic import atomic_path
+from damcap.common.errors import DamcapError
+
+from damcap.appearance.dam_file import METADATA_KEY, read_damcap_safetensors
+from damcap.appearance.hyper.model import HyperArchitecture, HyperNet
+
+PREDICTOR_FORMAT_VERSION = 1
+KIND = "dam-predictor"
+SHIPPED_NAME = "dam-predictor-v1.safetensors"
+"""the trained predictor shipped in ``damcap.appearance.hyper/predictors/`` (its recipe: the .json beside it)"""
+
+
+def shipped_predictor_path() -> Path:
+    """Where the shipped predictor lives in the installed package."""
+    return Path(str(resources.files("damcap.appearance.hyper") / "predictors" / SHIPPED_NAME))
+
+
+def save_predictor(path: str | os.PathLike, net: HyperNet, training: dict[str, Any]) -> None:
+    """Write a predictor atomically (float32 tensors + metadata)."""
+    meta = {"format_version": PREDICTOR_FORMAT_VERSION, "kind": KIND, "architecture": net.arch.to_json(), "training": training}
+    tensors = {k: v.detach().float().contiguous().cpu() for k, v in net.state_dict().items()}
+    blob = st_save(tensors, metadata={METADATA_KEY: json.dumps(meta)})
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(blob)
+
+
+def load_predictor(path: str | os.PathLike) -> tuple[HyperNet, dict[str, Any]]:
+    """Read a predictor file; refuses anything else with a clear error.
+
+    Raises:
+        DamcapError: missing file, not safetensors (random bytes, a pickle, truncated), not a
+            predictor, a newer format version, tensors that do not match the stated architecture,
+            non-finite tensors.
+    """
+    path = Path(path)
+    tensors, meta_text = read_damcap_safetensors(path, "predictor", "predictor")
+    try:
+        meta = json.loads(meta_text)
+    except ValueError as e:
+        raise DamcapError(f"{path}: not a damcap predictor file (not valid safetensors: {str(e).splitlines()[0][:120]})") from None
+    if not isinstance(meta, dict) or meta.get("kind") != KIND:
+        raise DamcapError(f"{path}: damcap file of kind {meta.get('kind') if isinstance(meta, dict) else None!r}, not a predictor "
+                          f"(a .dam model? use it with render/evaluate instead)")
+    version = meta.get("format_version")
+    if not isinstance(version, int) or version > PREDICTOR_FORMAT_VERSION:
+        raise DamcapError(f"{path}: predictor format version {version!r} is newer than this damcap reads ({PREDICTOR_FORMAT_VERSION}); upgrade damcap")
+    try:
+        arch = HyperArchitecture.from_json(meta["architecture"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise DamcapError(f"{path}: predictor architecture metadata is invalid ({e!r})") from None
+    net = HyperNet(arch)
+    expected = {k: tuple(v.shape) for k, v in net.state_dict().items()}
+    found = {k: tuple(v.shape) for k, v in tensors.items()}
+    if expected != found:
+        diff = sorted(set(expected.items()) ^ set(found.items()))[:3]
+        raise DamcapError(f"{path}: tensors do not match the stated architecture (first differences: {diff}); "
+                          f"the file is damaged or was written by another damcap version")
+    bad = [k for k, v in tensors.items() if not torch.isfinite(v).all()]
+    if bad:
+        raise DamcapError(f"{path}: tensor(s) {bad[:3]} contain NaN or inf")
+    net.load_state_dict(tensors)
+    net.eval()
+    return net, meta

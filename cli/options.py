@@ -1,0 +1,391 @@
+"""A command's options derived from its stage's options dataclass: one source for every option.
+
+style.md: "One source per option: the stage's dataclass, with a docstring under each field; the
+CLI is derived from it". Each field of the dataclass becomes one typer option:
+
+- the flag is ``--kebab-name`` (``batch_size`` -> ``--batch-size``); a nested options dataclass
+  (``TableOptions.fit``) contributes its fields as ``--fit-steps``, ...;
+- the help is the field's attribute docstring (the string literal under it, read from the class
+  source with :mod:`ast`; cached), the default is the dataclass's own (never restated here);
+- ``Literal[...]`` -> those choices; any other value ends in one line,
+  ``--init-colour must be one of pixel, darkest-view, got 'brightest'`` (exit 2);
+- ``bool`` -> ``--x/--no-x``; ``X | None`` -> optional, default None;
+- ``int`` / ``float`` are parsed here so that a bad value is one line naming the flag; a float
+  must be finite (NaN passes every ``x <= 1`` check, so it is refused before any check runs);
+- ``tuple[int, ...]`` / ``list[float]`` -> comma-separated values (``--channels 16,32,64``).
+
+Per-field metadata (plain keys, so the library never imports ``cli``):
+
+- ``cli_flag``: the flag where an existing spelling differs from the field name
+  (``{"cli_flag": "--res"}``; for a bool ``"--single-camera/--camera-per-photo"``);
+- ``cli_exclude``: True for a field that is not a user option;
+- ``cli_parse``: ``str -> value`` for a value with its own syntax (raises DamcapError);
+- ``cli_what``: what a rejected choice is called (``"DAM input encoding"`` -> ``unknown DAM
+  input encoding 'polar'; ...``) where a library message already names it so.
+
+"Given by the user": a command that must know whether an option was typed (``fit
+--target-dssim`` chooses width and depth itself and refuses ``--width``) declares a keyword
+parameter ``given``; it receives the names of the dataclass fields set on the command line
+(click's parameter source), so defaults are never ``None`` stand-ins for "not given".
+
+Commands are built lazily: a command's dataclass (and the torch it may import) is imported only
+when that command runs or shows its help (``damcap --help`` and ``damcap --version`` stay fast).
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import functools
+import importlib
+import inspect
+import math
+import textwrap
+import types
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Literal, Union, get_args, get_origin
+
+import typer
+
+from damcap.common.errors import DamcapError
+
+CLI_FLAG = "cli_flag"
+CLI_EXCLUDE = "cli_exclude"
+CLI_PARSE = "cli_parse"
+CLI_WHAT = "cli_what"
+GIVEN = "given"
+"""name of the keyword parameter that receives the fields given on the command line"""
+
+
+# --------------------------------------------------------------------------------------------
+# Reading a dataclass
+# --------------------------------------------------------------------------------------------
+
+
+@functools.cache
+def field_docs(cls: type) -> dict[str, str]:
+    """Attribute docstrings of a dataclass and its dataclass bases: ``{field: one-line text}``.
+
+    The docstring of a field is the string literal right under its annotated assignment.
+    """
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(klass):
+            continue
+        try:
+            tree = ast.parse(textwrap.dedent(inspect.getsource(klass)))
+        except (OSError, TypeError, SyntaxError):
+            continue
+        body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
+        for a, b in zip(body, body[1:]):
+            if (isinstance(a, ast.AnnAssign) and isinstance(a.target, ast.Name) and isinstance(b, ast.Expr)
+                    and isinstance(b.value, ast.Constant) and isinstance(b.value.value, str)):
+                docs[a.target.id] = " ".join(inspect.cleandoc(b.value.value).split())
+    return docs
+
+
+def kebab(name: str) -> str:
+    return name.replace("_", "-")
+
+
+def _strip_optional(tp: Any) -> tuple[Any, bool]:
+    """(X, True) for ``X | None`` / ``Optional[X]``, else (tp, False)."""
+    if get_origin(tp) in (Union, types.UnionType):
+        args = [a for a in get_args(tp) if a is not type(None)]
+        if len(args) < len(get_args(tp)) and len(args) == 1:
+            return args[0], True
+    return tp, False
+
+
+def _default_of(f: dataclasses.Field, instance: Any) -> Any:
+    if instance is not None:
+        return getattr(instance, f.name)
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+        return f.default_factory()  # type: ignore[misc]
+    return ...  # required
+
+
+# --------------------------------------------------------------------------------------------
+# Parsers: every bad value is one line naming the flag (DamcapError -> "error: ...", exit 2)
+# --------------------------------------------------------------------------------------------
+
+
+def parse_int(flag: str) -> Callable[[Any], Any]:
+    def parse(text: Any) -> Any:
+        if not isinstance(text, str):
+            return text
+        try:
+            return int(text)
+        except ValueError:
+            raise DamcapError(f"{flag} must be an integer, got {text!r}") from None
+    return parse
+
+
+def parse_float(flag: str) -> Callable[[Any], Any]:
+    def parse(text: Any) -> Any:
+        if not isinstance(text, str):
+            return text
+        try:
+            value = float(text)
+        except ValueError:
+            raise DamcapError(f"{flag} must be a number, got {text!r}") from None
+        if not math.isfinite(value):
+            raise DamcapError(f"{flag} must be a finite number, got {text!r}")
+        return value
+    return parse
+
+
+def parse_choice(flag: str, choices: tuple, what: str | None = None) -> Callable[[Any], Any]:
+    by_text = {str(c): c for c in choices}
+
+    def parse(text: Any) -> Any:
+        if not isinstance(text, str) or text in by_text:
+            return by_text.get(text, text) if isinstance(text, str) else text
+        listed = ", ".join(by_text)
+        if what:
+            raise DamcapError(f"unknown {what} {text!r}; use one of {listed} ({flag})")
+        raise DamcapError(f"{flag} must be one of {listed}, got {text!r}")
+    return parse
+
+
+def parse_list(flag: str, item: type, container: type) -> Callable[[Any], Any]:
+    one = parse_float(flag) if item is float else parse_int(flag) if item is int else (lambda s: s)
+    kind = {int: "integers", float: "numbers"}.get(item, "values")
+
+    def parse(text: Any) -> Any:
+        if not isinstance(text, str):
+            return text
+        try:
+            return container(one(s.strip()) for s in text.split(","))
+        except DamcapError:
+            raise DamcapError(f"{flag} must be comma-separated {kind}, got {text!r}") from None
+    return parse
+
+
+# --------------------------------------------------------------------------------------------
+# Fields -> options
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class OptionSpec:
+    """One command-line option derived from one dataclass field."""
+
+    param: str
+    """the Python parameter name (nested fields: ``fit__steps``)"""
+    path: tuple[str, ...]
+    """the field's path from the top dataclass (``("fit", "steps")``)"""
+    flags: tuple[str, ...]
+    """the flag spelling(s), e.g. ``("--batch-size",)`` or ``("--video/--no-video",)``"""
+    default: Any
+    annotation: Any
+    """the annotation typer sees"""
+    info: Any
+    """the ``typer.Option(...)`` default"""
+
+
+def option_specs(cls: type, *, exclude: frozenset[str] = frozenset(), prefix: tuple[str, ...] = (),
+                 instance: Any = None, panel: str | None = None) -> list[OptionSpec]:
+    """One :class:`OptionSpec` per field of the options dataclass ``cls`` (nested dataclasses
+    flattened with their field name as prefix); ``exclude`` lists field names to leave out."""
+    hints = typing.get_type_hints(cls)
+    docs = field_docs(cls)
+    specs: list[OptionSpec] = []
+    for f in dataclasses.fields(cls):
+        if f.name in exclude or f.metadata.get(CLI_EXCLUDE) or not f.init:
+            continue
+        path = prefix + (f.name,)
+        default = _default_of(f, instance)
+        tp, optional = _strip_optional(hints[f.name])
+        if dataclasses.is_dataclass(tp):
+            specs += option_specs(tp, prefix=path, instance=default, panel=panel or f"{kebab(f.name)} options")
+            continue
+        flag = f.metadata.get(CLI_FLAG) or "--" + "-".join(kebab(p) for p in path)
+        first = flag.split(",")[0].split("/")[0]
+        help_text = docs.get(f.name, "")
+        kw: dict[str, Any] = {"help": help_text, "rich_help_panel": panel}
+        parse = f.metadata.get(CLI_PARSE)
+        origin = get_origin(tp)
+        if parse is not None:
+            annotation: Any = str
+            kw.update(parser=_passthrough(parse), metavar="TEXT")
+        elif origin is Literal:
+            choices = get_args(tp)
+            annotation = str
+            kw.update(parser=parse_choice(first, choices, f.metadata.get(CLI_WHAT)), metavar="[" + "|".join(map(str, choices)) + "]")
+        elif tp is bool:
+            annotation = bool
+            if "/" not in flag and not f.metadata.get(CLI_FLAG):
+                flag = f"{first}/--no-{first[2:]}"
+        elif tp is int:
+            annotation = int
+            kw.update(parser=parse_int(first), metavar="INTEGER")
+        elif tp is float:
+            annotation = float
+            kw.update(parser=parse_float(first), metavar="FLOAT")
+        elif origin in (tuple, list) and get_args(tp):
+            item = get_args(tp)[0]
+            annotation = str
+            kw.update(parser=parse_list(first, item, origin), metavar=f"{item.__name__.upper()},...")
+            if default not in (None, ...):
+                kw["show_default"] = ",".join(map(str, default))
+        elif tp is str or tp is Path:
+            annotation = tp
+        else:
+            raise TypeError(f"{cls.__name__}.{f.name}: no command-line form for {tp!r}; "
+                            f"give it metadata {{{CLI_PARSE!r}: ...}} or {{{CLI_EXCLUDE!r}: True}}")
+        if optional:
+            annotation = typing.Optional[annotation]
+        flags = tuple(flag.split(",")) if "," in flag else (flag,)
+        info = typer.Option(default, *flags, **kw)
+        specs.append(OptionSpec("__".join(path), path, flags, default, annotation, info))
+    return specs
+
+
+def _passthrough(parse: Callable[[str], Any]) -> Callable[[Any], Any]:
+    return lambda value: parse(value) if isinstance(value, str) else value
+
+
+def build_options(cls: type, values: dict[tuple[str, ...], Any], prefix: tuple[str, ...] = (), instance: Any = None) -> Any:
+    """The dataclass ``cls`` from parsed values keyed by field path (nested ones rebuilt)."""
+    hints = typing.get_type_hints(cls)
+    kwargs: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        path = prefix + (f.name,)
+        tp, _ = _strip_optional(hints[f.name])
+        if dataclasses.is_dataclass(tp) and any(k[:len(path)] == path for k in values):
+            kwargs[f.name] = build_options(tp, values, path, _default_of(f, instance))
+        elif path in values:
+            kwargs[f.name] = values[path]
+    if instance is not None:
+        return dataclasses.replace(instance, **kwargs)
+    return cls(**kwargs)
+
+
+def import_object(path: str | type) -> Any:
+    """``"damcap.appearance.fit:FitOptions"`` -> the class (a class is returned as it is)."""
+    if not isinstance(path, str):
+        return path
+    module, _, name = path.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+# --------------------------------------------------------------------------------------------
+# Commands
+# --------------------------------------------------------------------------------------------
+
+
+class DerivedCommand:
+    """A command function whose keyword parameters named in ``sources`` are options dataclasses
+    filled from the command line (one option per field); the other parameters are the command's
+    own (positional paths, ``-o``). Calling it calls the function; ``__signature__`` is what
+    typer sees (the command's own parameters, then one per field)."""
+
+    def __init__(self, fn: Callable[..., Any], name: str, sources: dict[str, str | type], exclude: dict[str, frozenset[str]]):
+        self.fn = fn
+        self.name = name
+        self.sources = sources
+        self.exclude = exclude
+        self.wants_given = GIVEN in inspect.signature(fn).parameters
+        functools.update_wrapper(self, fn)  # type: ignore[arg-type]
+        del self.__wrapped__  # inspect must use __signature__, not the function's own
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        return self.fn(*args, **kwargs)
+
+    def classes(self) -> dict[str, type]:
+        return {p: import_object(path) for p, path in self.sources.items()}
+
+    def specs(self) -> dict[str, list[OptionSpec]]:
+        """Per dataclass parameter, its fields' options (imports the dataclasses)."""
+        return {p: option_specs(cls, exclude=self.exclude.get(p, frozenset())) for p, cls in self.classes().items()}
+
+    def _own_parameters(self) -> tuple[list[inspect.Parameter], dict[str, Any]]:
+        sig = inspect.signature(self.fn)
+        glob = getattr(self.fn, "__globals__", {})
+        params, ann = [], {}
+        for p in sig.parameters.values():
+            if p.name in self.sources or p.name == GIVEN:
+                continue
+            a = eval(p.annotation, glob) if isinstance(p.annotation, str) else p.annotation  # noqa: S307 (our own source)
+            params.append(p.replace(annotation=a, kind=inspect.Parameter.KEYWORD_ONLY))
+            ann[p.name] = a
+        return params, ann
+
+    @property
+    def __signature__(self) -> inspect.Signature:  # type: ignore[override]
+        """The command's parameters as the user sees them: its own, then one per field."""
+        sig = inspect.signature(self.typer_function(full=True))
+        return sig.replace(parameters=[p for p in sig.parameters.values() if p.name != "_ctx"])
+
+    def typer_function(self, full: bool) -> Callable[..., Any]:
+        """The function typer registers: with every derived option (``full``), or, for a command
+        that is not run this time, only its own parameters (nothing imported)."""
+        params, ann = self._own_parameters()
+        specs = self.specs() if full else {}
+        classes = self.classes() if full else {}
+        names = {p.name for p in params}
+        for pname, group in specs.items():
+            for s in group:
+                if s.param in names:
+                    raise TypeError(f"damcap {self.name}: option {s.param!r} of {pname} clashes with another option")
+                names.add(s.param)
+                params.append(inspect.Parameter(s.param, inspect.Parameter.KEYWORD_ONLY, default=s.info, annotation=s.annotation))
+                ann[s.param] = s.annotation
+        params.append(inspect.Parameter("_ctx", inspect.Parameter.KEYWORD_ONLY, annotation=typer.Context))
+        ann["_ctx"] = typer.Context
+
+        def run(**kwargs: Any) -> Any:
+            ctx = kwargs.pop("_ctx")
+            if self.sources and not full:
+                raise RuntimeError(f"damcap {self.name} was built without its options")
+            given: set[str] = set()
+            for pname, group in specs.items():
+                values = {}
+                for s in group:
+                    values[s.path] = kwargs.pop(s.param)
+                    source = ctx.get_parameter_source(s.param)
+                    if source is not None and source.name in ("COMMANDLINE", "ENVIRONMENT"):
+                        given.add(".".join(s.path))
+                kwargs[pname] = build_options(classes[pname], values)
+            if self.wants_given:
+                kwargs[GIVEN] = frozenset(given)
+            return self.fn(**kwargs)
+
+        run.__name__ = self.fn.__name__
+        run.__doc__ = self.fn.__doc__
+        run.__signature__ = inspect.Signature(params)  # type: ignore[attr-defined]
+        run.__annotations__ = ann
+        return run
+
+    def flags(self) -> dict[str, tuple[str, ...]]:
+        """Every derived option's flags by field path (``"fit.steps"``), for help and tests."""
+        return {".".join(s.path): s.flags for group in self.specs().values() for s in group}
+
+
+COMMANDS: list[DerivedCommand] = []
+"""every ``damcap`` command, in the order ``damcap --help`` lists them"""
+
+
+def command(name: str | None = None, exclude: dict[str, tuple[str, ...]] | None = None,
+            **sources: str | type) -> Callable[[Callable[..., Any]], DerivedCommand]:
+    """Register a ``damcap`` command.
+
+    Args:
+        name: the command's name (default: the function's, dashes for underscores).
+        exclude: per dataclass parameter, fields that the command replaces by options of its own
+            (``segment``'s ``--materials`` takes 'auto' or a number).
+        sources: keyword parameter -> ``"module:OptionsClass"`` (imported when the command is
+            built: a class given as a string costs nothing until its command runs) or the class;
+            the parameter receives the options dataclass built from the command line.
+    """
+    def register(fn: Callable[..., Any]) -> DerivedCommand:
+        cmd = DerivedCommand(fn, name or fn.__name__.replace("_", "-"), dict(sources),
+                             {k: frozenset(v) for k, v in (exclude or {}).items()})
+        COMMANDS.append(cmd)
+        return cmd
+    return register

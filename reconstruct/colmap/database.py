@@ -1,0 +1,137 @@
+"""COLMAP's database and masks: pycolmap import, feature masks, verified-match and keypoint counts,
+why a photo stayed unregistered."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+
+
+def pair_inliers(db_path: Path, names: list[str]) -> dict[tuple[int, int], int]:
+    """Verified inliers of every matched pair, by photo index (i < j)."""
+    pycolmap = import_pycolmap()
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        index = {im.image_id: names.index(im.name) for im in db.read_all_images() if im.name in names}
+        out: dict[tuple[int, int], int] = {}
+        ids, counts = db.read_two_view_geometry_num_inliers()
+        for pid, k in zip(ids, counts):
+            a, b = pycolmap.pair_id_to_image_pair(pid)
+            if a in index and b in index:
+                i, j = sorted((index[a], index[b]))
+                out[(i, j)] = int(k)
+        return out
+    finally:
+        db.close()
+
+
+def unregistered_reasons(names: list[str], registered: set[str], keypoints: dict[str, int],
+                         best_inliers: dict[str, int], other_models: dict[str, int], min_num_inliers: int) -> dict[str, str]:
+    """Why each photo outside the kept model has no camera, as one short sentence each.
+
+    Args:
+        names: all photo names.
+        registered: names in the kept model.
+        keypoints: name -> features kept (after masking).
+        best_inliers: name -> most verified matches with any other photo.
+        other_models: name -> size of the other (smaller) model it was registered in.
+        min_num_inliers: verified matches a pair needs.
+    """
+    out = {}
+    for n in names:
+        if n in registered:
+            continue
+        kp, inl = keypoints.get(n, 0), best_inliers.get(n, 0)
+        if kp < 50:
+            out[n] = f"too few features ({kp}); blurred, textureless, or masked out"
+        elif inl < min_num_inliers:
+            out[n] = f"no photo shares enough verified matches with it (best {inl} < {min_num_inliers}); too little overlap"
+        elif n in other_models:
+            out[n] = f"registered only in a separate model of {other_models[n]} photos that does not connect to the main one"
+        else:
+            out[n] = f"its pose could not be estimated (best pair {inl} verified matches; the matches may be on moving background)"
+    return out
+
+
+def import_pycolmap():
+    """pycolmap, imported after OpenImageIO and OpenCV.
+
+    pycolmap's wheel bundles its own libpng/zlib; when it is loaded first, OpenImageIO's and
+    OpenCV's PNG writers crash later in the same process (``free(): invalid pointer``).
+    """
+    import cv2  # noqa: F401
+    import OpenImageIO  # noqa: F401
+    import pycolmap
+
+    pycolmap.logging.minloglevel = 2  # warnings and below stay quiet; damcap reports progress itself
+    return pycolmap
+
+
+def feature_mask(mask: np.ndarray, erode_fraction: float = 0.01, threshold: float = 0.5) -> np.ndarray:
+    """Where features may be kept: the object mask, eroded by ``erode_fraction`` of the longer
+    image side (at least 1 pixel), so that keypoints whose descriptors straddle the silhouette
+    (and see the background) are dropped.
+
+    Args:
+        mask: (H, W) float in [0, 1], 1 = object.
+
+    Returns:
+        (H, W) uint8, 255 = keep features, 0 = drop (COLMAP's mask convention).
+    """
+    import cv2
+
+    r = max(1, round(erode_fraction * max(mask.shape)))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    return cv2.erode(np.where(mask > threshold, 255, 0).astype(np.uint8), kernel)
+
+
+def write_colmap_masks(masks: dict[str, Path], out_dir: Path, erode_fraction: float = 0.01) -> None:
+    """Feature masks (:func:`feature_mask`) in COLMAP's naming (``IMG_1.JPG`` -> ``IMG_1.JPG.png``)."""
+    from damcap.common.exr import write_png
+
+    from damcap.reconstruct.photos import read_mask
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for name, path in masks.items():
+        target = out_dir / f"{name}.png"
+        if not target.exists():
+            write_png(target, feature_mask(read_mask(path), erode_fraction))
+
+
+def database_summary(db_path: Path, names: list[str]) -> tuple[dict[str, int], dict[str, int]]:
+    """Per photo: kept features, and the most verified inliers with any other photo."""
+    pycolmap = import_pycolmap()
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        images = {im.name: im.image_id for im in db.read_all_images()}
+        id_to_name = {v: k for k, v in images.items()}
+        keypoints = {n: db.num_keypoints_for_image(images[n]) if n in images else 0 for n in names}
+        best: dict[str, int] = {n: 0 for n in names}
+        pair_ids, inliers = db.read_two_view_geometry_num_inliers()
+        for pid, k in zip(pair_ids, inliers):
+            a, b = pycolmap.pair_id_to_image_pair(pid)
+            for i in (a, b):
+                n = id_to_name.get(i)
+                if n is not None:
+                    best[n] = max(best[n], int(k))
+        return keypoints, best
+    finally:
+        db.close()
+
+
+def read_descriptors(db_path: Path, names: list[str]) -> list[np.ndarray]:
+    pycolmap = import_pycolmap()
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        images = {im.name: im.image_id for im in db.read_all_images()}
+        out = []
+        for n in names:
+            d = db.read_descriptors(images[n]) if n in images else None
+            data = getattr(d, "data", d)
+            out.append(np.asarray(data) if data is not None else np.zeros((0, 128), np.uint8))
+        return out
+    finally:
+        db.close()

@@ -1,0 +1,77 @@
+"""A COLMAP reconstruction (pycolmap) as a :class:`~damcap.reconstruct.poses.Registration`."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from damcap.common.errors import DamcapError
+
+from damcap.reconstruct.undistort import camera_from_colmap
+from damcap.reconstruct.poses import RegisteredPhoto, Registration, photos_by_stem, finish_registration, world_from_cam_of_colmap
+
+
+def registration_of_reconstruction(rec: Any, photo_names: list[str], source: str, where: str) -> Registration:
+    """Cameras and points of a ``pycolmap.Reconstruction``, in OpenGL camera axes.
+
+    Images are matched to photos by name, then by base name; points keep one observing photo.
+    """
+    stems = photos_by_stem(photo_names)
+    found: dict[str, RegisteredPhoto] = {}
+    id_to_name: dict[int, str] = {}
+    for image_id in rec.reg_image_ids():
+        img = rec.image(image_id)
+        name = img.name if img.name in photo_names else stems.get(Path(img.name).stem)
+        if name is None:
+            continue
+        cam = rec.camera(img.camera_id)
+        pc = camera_from_colmap(cam.model.name, cam.width, cam.height, np.asarray(cam.params))
+        m = world_from_cam_of_colmap(img.cam_from_world().matrix())
+        found[name] = RegisteredPhoto(name, m, pc)
+        id_to_name[image_id] = name
+    reg = finish_registration(source, Path(where), found, photo_names, "", {})
+    index = {p.name: k for k, p in enumerate(reg.photos)}
+    pts, seen = [], []
+    for _, p3d in rec.points3D.items():
+        for el in p3d.track.elements:
+            n = id_to_name.get(el.image_id)
+            if n is not None:
+                pts.append(p3d.xyz)
+                seen.append(index[n])
+                break
+    if pts:
+        reg.points_world = np.asarray(pts, dtype=np.float64)
+        reg.points_seen_from = np.asarray(seen, dtype=np.int64)
+    return reg
+
+
+def read_colmap_model(folder: str | os.PathLike, photo_names: list[str]) -> Registration:
+    """Cameras and sparse points from a COLMAP model folder (``cameras/images/points3D`` .bin or .txt).
+
+    Raises:
+        DamcapError: the folder is missing or holds no readable model.
+    """
+    from damcap.reconstruct.colmap.database import import_pycolmap
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DamcapError(f"{folder}: COLMAP model folder not found")
+    have = {p.name for p in folder.iterdir()}
+    if not ({"cameras.bin", "images.bin"} <= have or {"cameras.txt", "images.txt"} <= have):
+        sub = sorted(p for p in folder.iterdir() if p.is_dir() and (p / "images.bin").is_file())
+        if len(sub) >= 1:
+            folder = sub[0]
+        else:
+            raise DamcapError(f"{folder}: no COLMAP model here (need cameras.bin + images.bin or the .txt files)")
+    pycolmap = import_pycolmap()
+    try:
+        rec = pycolmap.Reconstruction(str(folder))
+    except (RuntimeError, ValueError) as e:
+        raise DamcapError(f"{folder}: cannot read the COLMAP model ({e})") from None
+    reg = registration_of_reconstruction(rec, photo_names, "colmap", str(folder))
+    for n in reg.unregistered:
+        reg.unregistered[n] = f"not registered in {folder}"
+    return reg

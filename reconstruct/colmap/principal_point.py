@@ -1,0 +1,108 @@
+"""Where the photos put the principal point: one bundle adjustment with it free, its 1-sigma from
+COLMAP's covariance (``BACovariance``) scaled by the residual variance."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+
+
+
+@dataclass
+class PrincipalPointEstimate:
+    """Where the photos put the principal point of their one shared camera.
+
+    From a bundle adjustment with the principal point free (on a copy of the reconstruction when
+    the registration keeps it at the centre) and that adjustment's covariance (COLMAP's
+    ``BACovariance``) scaled by the residual variance. The standard deviation measures noise
+    only: a camera model that does not fit the lens can move the point by more.
+    """
+
+    offset_px: list[float]
+    """(dx, dy): principal point minus the image centre, photo pixels"""
+    sd_px: list[float]
+    """1-sigma of (dx, dy), photo pixels"""
+    tilt_deg: float
+    """atan(|offset| / focal): how far every camera turns when this point replaces the centre"""
+    used: bool
+    """the registration's cameras use this point (``refine_principal_point``); else the centre"""
+
+
+def residual_variance(final_cost: float, residuals: int, parameters: int) -> float:
+    """Variance of one residual after a least-squares fit: ``2 cost / (residuals - parameters)``.
+
+    Args:
+        final_cost: Ceres' cost, half the sum of squared residuals (px^2).
+        residuals: number of scalar residuals.
+        parameters: number of free parameters (effective, after the gauge is fixed).
+
+    Returns:
+        sigma^2 in px^2 (the cost's own mean when there are no spare residuals).
+
+    >>> residual_variance(50.0, 110, 10)
+    1.0
+    """
+    return 2.0 * final_cost / max(residuals - parameters, 1)
+
+
+def principal_point_tilt_deg(offset_px: Sequence[float], focal_px: float) -> float:
+    """How far a camera turns when its principal point moves by ``offset_px``: atan(|offset| / f).
+
+    >>> round(principal_point_tilt_deg([3.0, 4.0], 5.0 / math.tan(math.radians(1.0))), 6)
+    1.0
+    """
+    return math.degrees(math.atan2(math.hypot(*offset_px), focal_px))
+
+
+def offset_in_sigmas(offset_px: Sequence[float], sd_px: Sequence[float]) -> float:
+    """How many standard deviations a principal point lies from the image centre:
+    hypot(dx / sx, dy / sy).
+
+    >>> offset_in_sigmas([3.0, -4.0], [1.0, 1.0])
+    5.0
+    """
+    return math.hypot(*(d / max(sd, 1e-9) for d, sd in zip(offset_px, sd_px)))
+
+
+def adjust_principal_point(rec: Any, pycolmap: Any, apply: bool) -> PrincipalPointEstimate | None:
+    """One global bundle adjustment with the principal point free (colmap2nerf's last step),
+    and where it puts the point.
+
+    Args:
+        rec: a ``pycolmap.Reconstruction``.
+        pycolmap: the module.
+        apply: adjust ``rec`` itself (its cameras then use the point); else a copy, and ``rec``
+            is unchanged.
+
+    Returns:
+        The estimate, or None when the photos use several cameras or COLMAP cannot estimate the
+        covariance (the adjustment is made all the same).
+    """
+    if rec.num_cameras() != 1 and not apply:
+        return None
+    work = rec if apply else pycolmap.Reconstruction(rec)
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.refine_principal_point = True
+    ba.print_summary = False
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in work.reg_image_ids():
+        config.add_image(image_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.THREE_POINTS)
+    adjuster = pycolmap.create_default_ceres_bundle_adjuster(ba, config, work)
+    summary = adjuster.solve().ceres_summary
+    if work.num_cameras() != 1:
+        return None
+    camera = work.cameras[next(iter(work.cameras))]
+    cov = pycolmap.estimate_ba_covariance(pycolmap.BACovarianceOptions(), work, adjuster)
+    block = cov.get_other_params_cov(camera.params) if cov is not None else None
+    if block is None or block.shape != (len(camera.params), len(camera.params)):
+        return None
+    var = residual_variance(summary.final_cost, summary.num_residuals_reduced, summary.num_effective_parameters_reduced)
+    sd = np.sqrt(np.maximum(np.diag(block)[list(camera.principal_point_idxs())], 0.0) * var)
+    offset = [camera.principal_point_x - camera.width / 2, camera.principal_point_y - camera.height / 2]
+    return PrincipalPointEstimate(offset_px=[round(float(v), 2) for v in offset], sd_px=[round(float(v), 3) for v in sd],
+                                  tilt_deg=round(principal_point_tilt_deg(offset, camera.mean_focal_length()), 3), used=apply)

@@ -1,0 +1,484 @@
+"""Camera registration with COLMAP (pycolmap, CPU): features, pairing, matching, incremental mapping.
+
+Choices that make a 2-core CPU run practical (bench/reconstruct.md measures them):
+
+- SIFT on images downscaled to ``max_image_size`` with a feature budget ``max_num_features``;
+  keypoints come back in full-resolution coordinates, so cameras are those of the photos.
+- The turntable trap (the background stands still in the image while the object turns) is
+  handled without masks: matches that do not move between two photos are dropped
+  (``filter_stationary_matches``). Masks may also restrict features to the object (``masks``
+  argument; eroded so descriptors do not straddle the silhouette), which a turntable with a
+  textured, moving background needs; when the camera moves around a fixed object the static
+  background helps: on mold_gold_cape masked features register 95/119 photos, unmasked 119/119.
+- Pairing: exhaustive for small sets; for longer ones the photos' file order as a ring
+  (``sequential_overlap`` neighbours each side; the ring closes the loop of an orbit) plus, per
+  photo, the ``retrieval_neighbours`` most similar photos by VLAD descriptors whose vocabulary
+  is learned from the set's own features (no pretrained vocabulary tree to download), plus
+  two-hop neighbours in the verified match graph (``transitive_neighbours``).
+- Incremental mapping; the largest model is kept and every other photo is listed with a reason.
+- The report says where the photos put the principal point (a bundle adjustment with it free,
+  on a copy unless ``refine_principal_point``, and its 1-sigma from COLMAP's covariance), so a
+  user sees how far the centred default is from what the photos support.
+
+Resumable: each stage records a fingerprint of its inputs and options in ``work_dir/state.json``;
+a finished stage with the same fingerprint is not redone (an interrupted extraction or matching
+continues where COLMAP's database stops), and a finished registration is loaded from
+``work_dir/model``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any, Callable, Literal
+
+import numpy as np
+
+from damcap.common.atomic import write_json_atomic
+from damcap.common.errors import DamcapError
+
+from damcap.reconstruct.poses import Registration
+from damcap.reconstruct.colmap.model import registration_of_reconstruction
+from damcap.reconstruct.colmap.database import database_summary, pair_inliers, read_descriptors, import_pycolmap, unregistered_reasons, write_colmap_masks
+from damcap.reconstruct.colmap.pairs import exhaustive_pairs, retrieval_pairs, ring_pairs, transitive_pairs, vlad_similarity
+from damcap.reconstruct.colmap.principal_point import adjust_principal_point
+
+
+#: progress callback: (stage, done, total)
+StageProgress = Callable[[str, int, int], None]
+
+
+Pairing = Literal["auto", "exhaustive", "sequential", "retrieval"]
+
+
+CameraModelName = Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"]
+
+
+#: photos per feature-extraction call (progress granularity)
+EXTRACT_CHUNK = 8
+
+
+#: image pairs per matching call (progress granularity)
+MATCH_CHUNK = 150
+
+
+@dataclass(frozen=True)
+class SfmOptions:
+    """Options of camera registration (``damcap reconstruct`` mirrors them)."""
+
+    max_image_size: int = 1024
+    """longest image side for feature extraction, pixels (photos are not modified; keypoints are
+    rescaled to the photos' resolution)"""
+    max_num_features: int = 4096
+    """SIFT feature budget per photo (before masking)"""
+    upsample_below: int = 800
+    """SIFT starts one octave up (doubles the image) only when the longer side, after
+    ``max_image_size``, is below this; large photos skip that costly octave"""
+    pairing: Pairing = "auto"
+    """'exhaustive' (all pairs), 'sequential' (file order as a ring), 'retrieval' (ring + most
+    similar photos by a vocabulary learned from the set), 'auto' (exhaustive up to
+    ``exhaustive_max_images`` photos, else retrieval)"""
+    exhaustive_max_images: int = 40
+    """'auto' matches all pairs up to this many photos"""
+    sequential_overlap: int = 5
+    """ring pairing: neighbours on each side in file-name order"""
+    loop_closure: bool = True
+    """ring pairing wraps around (the last photos of an orbit meet the first ones)"""
+    retrieval_neighbours: int = 8
+    """retrieval pairing: most similar photos matched per photo, besides the ring"""
+    transitive_neighbours: int = 5
+    """after the first matching round, each photo is also matched with this many of its
+    neighbours' neighbours (strongest two-hop links in the verified match graph; 0 = off;
+    not used with exhaustive pairing)"""
+    vocabulary_words: int = 64
+    """retrieval pairing: VLAD vocabulary size, learned from the set's own descriptors"""
+    camera_model: CameraModelName = "SIMPLE_RADIAL"
+    """COLMAP camera model fitted to the photos"""
+    refine_principal_point: bool = False
+    """after mapping, one more global bundle adjustment that also refines the principal point
+    (instant-ngp's colmap2nerf does this; COLMAP and LLFF keep it at the image centre). It moves
+    every rotation by about atan(offset / focal): on the fox photos the principal point sits
+    ~15 px off centre (0.6 deg), on the cape ~8 px (0.24 deg); see bench/reconstruct.md"""
+    single_camera: bool = True
+    """photos of the same size share one camera (one lens, one zoom); False = one per photo"""
+    min_num_inliers: int = 15
+    """verified matches a pair needs to count"""
+    filter_stationary_matches: bool = True
+    """drop matches that do not move between two photos (a static background on a turntable)"""
+    mask_erode: float = 0.01
+    """masks are eroded by this fraction of the longer image side before they restrict features
+    (descriptors at the silhouette see the background)"""
+    num_threads: int = -1
+    """CPU threads for COLMAP (-1 = all)"""
+    seed: int = 0
+    """COLMAP's random seed (RANSAC, mapping): same seed, same result"""
+
+
+@dataclass
+class SfmReport:
+    """What registration did, for the user and the bench."""
+
+    photos: int
+    registered: int
+    points: int
+    mean_reprojection_error_px: float
+    pairs: int
+    pairing: str
+    seconds: dict[str, float]
+    unregistered: dict[str, str]
+    resumed: list[str]
+    principal_point: dict[str, Any] | None = None
+    """:class:`PrincipalPointEstimate` as a dict; None with several cameras or no covariance"""
+
+
+def fingerprint(obj: Any) -> str:
+    """Short stable hash of a JSON-able object (which inputs and options made a stage)."""
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _load_state(path: Path) -> dict[str, Any]:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError):
+        return {}
+
+
+class _Stages:
+    """Fingerprints of finished stages in ``work_dir/state.json`` (what makes a run resumable)."""
+
+    order = ("features", "matches", "mapping")
+
+    def __init__(self, work_dir: Path) -> None:
+        self.path = work_dir / "state.json"
+        self.state = _load_state(self.path)
+
+    def status(self, stage: str, fp: str) -> str:
+        """'done', 'started' (same inputs, unfinished) or 'new'."""
+        s = self.state.get(stage, {})
+        if s.get("fingerprint") != fp:
+            return "new"
+        return "done" if s.get("done") else "started"
+
+    def mark(self, stage: str, fp: str, done: bool) -> None:
+        self.state[stage] = {"fingerprint": fp, "done": done}
+        if not done:  # a stage that restarts invalidates everything after it
+            for later in self.order[self.order.index(stage) + 1:]:
+                self.state.pop(later, None)
+        write_json_atomic(self.path, self.state)
+
+
+def _fingerprints(photo_dir: Path, names: list[str], opts: SfmOptions, masks: dict[str, Path] | None,
+                  content: dict[str, str] | None = None) -> tuple[str, str, str]:
+    """(features, matches, pairing) fingerprints: which inputs and options made each stage.
+
+    ``content`` identifies each image (e.g. a digest of a registration proxy); without it, the
+    file sizes do."""
+    files = {nm: content[nm] for nm in names} if content is not None else {nm: (photo_dir / nm).stat().st_size for nm in names}
+    mask_files = {nm: str(p.resolve()) for nm, p in (masks or {}).items()}
+    fp_features = fingerprint({"files": files, "masks": mask_files, "max_image_size": opts.max_image_size,
+                               "max_num_features": opts.max_num_features, "camera_model": opts.camera_model,
+                               "upsample_below": opts.upsample_below, "mask_erode": opts.mask_erode if masks else None,
+                               "single_camera": opts.single_camera})
+    pairing = opts.pairing
+    if pairing == "auto":
+        pairing = "exhaustive" if len(names) <= opts.exhaustive_max_images else "retrieval"
+    pair_opts = {k: getattr(opts, k) for k in ("sequential_overlap", "loop_closure", "retrieval_neighbours",
+                                               "vocabulary_words", "min_num_inliers", "seed", "transitive_neighbours",
+                                               "filter_stationary_matches")}
+    return fp_features, fingerprint([fp_features, pairing, pair_opts]), pairing
+
+
+def _features_and_matches(photo_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions, masks: dict[str, Path] | None,
+                          progress: StageProgress, stages: "_Stages", seconds: dict[str, float], resumed: list[str],
+                          wipe: tuple[Path, ...] = (), content: dict[str, str] | None = None) -> tuple[Path, int, str]:
+    """COLMAP features and verified matches in ``work_dir/database.db`` (stages resumed by fingerprint).
+
+    Returns:
+        database path, number of matched pairs, the pairing used.
+    """
+    from damcap.reconstruct.photos import image_size
+
+    pycolmap = import_pycolmap()
+    n = len(names)
+    db_path = work_dir / "database.db"
+    fp_features, fp_matches, pairing = _fingerprints(photo_dir, names, opts, masks, content)
+    # ---- features ----------------------------------------------------------------------
+    st = stages.status("features", fp_features)
+    if st == "new":
+        for p in (db_path, work_dir / "masks") + wipe:
+            if p.is_dir():
+                shutil.rmtree(p)
+            elif p.exists():
+                p.unlink()
+    if st != "done":
+        stages.mark("features", fp_features, done=False)
+        t0 = time.perf_counter()
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = opts.camera_model
+        if masks:
+            write_colmap_masks(masks, work_dir / "masks", opts.mask_erode)
+            reader.mask_path = str(work_dir / "masks")
+        sizes = {image_size(photo_dir / nm) for nm in names}
+        mode = pycolmap.CameraMode.SINGLE if opts.single_camera and len(sizes) == 1 else (
+            pycolmap.CameraMode.AUTO if opts.single_camera else pycolmap.CameraMode.PER_IMAGE)
+        pycolmap.Database.open(str(db_path)).close()  # import_images needs an existing database
+        pycolmap.import_images(str(db_path), str(photo_dir), camera_mode=mode, image_names=names, options=reader)
+        ext = pycolmap.FeatureExtractionOptions()
+        ext.max_image_size = opts.max_image_size
+        ext.num_threads = opts.num_threads
+        ext.sift.max_num_features = opts.max_num_features
+        longest = min(max(max(s) for s in sizes), opts.max_image_size)
+        ext.sift.first_octave = -1 if longest < opts.upsample_below else 0
+        for k in range(0, n, EXTRACT_CHUNK):
+            progress("features", k, n)
+            pycolmap.extract_features(str(db_path), str(photo_dir), image_names=names[k:k + EXTRACT_CHUNK], camera_mode=mode,
+                                      reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu)
+        progress("features", n, n)
+        seconds["features"] = time.perf_counter() - t0
+        stages.mark("features", fp_features, done=True)
+    else:
+        resumed.append("features")
+
+    # ---- pairs + matches ---------------------------------------------------------------
+    st = stages.status("matches", fp_matches)
+    if st == "new":
+        db = pycolmap.Database.open(str(db_path))
+        try:
+            db.clear_matches()
+            db.clear_two_view_geometries()
+        finally:
+            db.close()
+    if st != "done":
+        t0 = time.perf_counter()
+        stages.mark("matches", fp_matches, done=False)
+        if pairing == "exhaustive":
+            pairs = exhaustive_pairs(n)
+        else:
+            pairs = ring_pairs(n, opts.sequential_overlap, opts.loop_closure)
+            if pairing == "retrieval":
+                progress("vocabulary", 0, 1)
+                sim = vlad_similarity(read_descriptors(db_path, names), opts.vocabulary_words, seed=opts.seed)
+                pairs = sorted(set(pairs) | set(retrieval_pairs(sim, opts.retrieval_neighbours)))
+                progress("vocabulary", 1, 1)
+        match = pycolmap.FeatureMatchingOptions()
+        match.num_threads = opts.num_threads
+        verify = pycolmap.TwoViewGeometryOptions()
+        verify.min_num_inliers = opts.min_num_inliers
+        verify.filter_stationary_matches = opts.filter_stationary_matches
+        verify.ransac.random_seed = opts.seed
+
+        def match_pairs(stage: str, todo: list[tuple[int, int]]) -> None:
+            for k in range(0, len(todo), MATCH_CHUNK):
+                progress(stage, k, len(todo))
+                lst = work_dir / "pairs.txt"
+                lst.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in todo[k:k + MATCH_CHUNK]), encoding="utf-8")
+                po = pycolmap.ImportedPairingOptions()
+                po.match_list_path = str(lst)
+                pycolmap.match_image_pairs(str(db_path), matching_options=match, pairing_options=po,
+                                           verification_options=verify, device=pycolmap.Device.cpu)
+            progress(stage, len(todo), len(todo))
+
+        match_pairs("matching", pairs)
+        if pairing != "exhaustive" and opts.transitive_neighbours > 0:
+            extra = transitive_pairs(n, pair_inliers(db_path, names), opts.transitive_neighbours, opts.min_num_inliers)
+            match_pairs("matching (two-hop)", extra)
+            pairs = sorted(set(pairs) | set(extra))
+        seconds["matching"] = time.perf_counter() - t0
+        write_json_atomic(work_dir / "matched_pairs.json", {"pairs": len(pairs)})
+        stages.mark("matches", fp_matches, done=True)
+        n_pairs = len(pairs)
+    else:
+        resumed.append("matches")
+        saved = _load_state(work_dir / "matched_pairs.json").get("pairs")  # absent in older work folders
+        n_pairs = int(saved) if saved is not None else len(pair_inliers(db_path, names))
+
+    return db_path, n_pairs, pairing
+
+
+def register_photos(photo_dir: str | Path, names: list[str], work_dir: str | Path, opts: SfmOptions = SfmOptions(),
+                    masks: dict[str, Path] | None = None, progress: StageProgress | None = None,
+                    content: dict[str, str] | None = None) -> tuple[Registration, SfmReport]:
+    """Register a photo set with COLMAP; resume what a previous run in ``work_dir`` finished.
+
+    Args:
+        photo_dir: folder of the photos (read only).
+        names: photo file names to register, sorted (their order is the ring order).
+        work_dir: folder for the database, masks, model and state (created).
+        opts: registration options.
+        masks: photo name -> mask file (white = object) to restrict features to the object, or None.
+        progress: called as (stage, done, total).
+        content: image name -> what identifies its content for the resumable stages (e.g. a
+            digest of a registration proxy); None: the file sizes.
+
+    Returns:
+        registration: cameras (OpenGL axes) and sparse points of the largest model.
+        report: counts, timings and the reason for every unregistered photo.
+
+    Raises:
+        DamcapError: fewer than 2 photos, or COLMAP registered none.
+    """
+    pycolmap = import_pycolmap()
+    photo_dir, work_dir = Path(photo_dir), Path(work_dir)
+    if len(names) < 2:
+        raise DamcapError(f"{photo_dir}: registration needs at least 2 photos, got {len(names)}")
+    work_dir.mkdir(parents=True, exist_ok=True)
+    stages = _Stages(work_dir)
+    report_path = work_dir / "registration.json"
+    model_dir = work_dir / "model"
+    progress = progress or (lambda stage, done, total: None)
+    n = len(names)
+    seconds: dict[str, float] = {}
+    resumed: list[str] = []
+
+    _, fp_matches, _ = _fingerprints(photo_dir, names, opts, masks, content)
+    # refining the principal point is a later step of mapping (older mapping states stay valid)
+    fp_mapping = fingerprint([fp_matches, opts.seed] + (["refine_principal_point"] if opts.refine_principal_point else []))
+
+    if stages.status("mapping", fp_mapping) == "done" and model_dir.is_dir() and report_path.is_file():
+        rec = pycolmap.Reconstruction(str(model_dir))
+        rep = SfmReport(**json.loads(report_path.read_text(encoding="utf-8")))
+        rep.resumed = ["features", "matches", "mapping"]
+        if rep.principal_point is None and rec.num_cameras() == 1:  # a registration from before the estimate
+            principal = adjust_principal_point(rec, pycolmap, apply=False)  # on a copy: the model stays as it was
+            if principal is not None:
+                rep.principal_point = asdict(replace(principal, used=opts.refine_principal_point))
+                write_json_atomic(report_path, asdict(rep))
+        reg = registration_of_reconstruction(rec, names, "sfm", str(model_dir))
+        reg.unregistered = dict(rep.unregistered)
+        reg.stats = asdict(rep)
+        progress("registration (reused)", 1, 1)
+        return reg, rep
+
+    db_path, n_pairs, pairing = _features_and_matches(photo_dir, names, work_dir, opts, masks, progress, stages, seconds,
+                                                      resumed, wipe=(model_dir, work_dir / "models", report_path), content=content)
+
+    # ---- mapping -----------------------------------------------------------------------
+    stages.mark("mapping", fp_mapping, done=False)
+    t0 = time.perf_counter()
+    pycolmap.set_random_seed(opts.seed)
+    mopts = pycolmap.IncrementalPipelineOptions()
+    mopts.num_threads = opts.num_threads
+    mopts.random_seed = opts.seed
+    mopts.min_num_matches = opts.min_num_inliers
+    mopts.min_model_size = 3
+    counter = {"k": 0}
+
+    def next_image() -> None:
+        counter["k"] += 1
+        progress("mapping", min(counter["k"], n), n)
+
+    models_dir = work_dir / "models"
+    if models_dir.exists():
+        shutil.rmtree(models_dir)
+    models_dir.mkdir()
+    progress("mapping", 0, n)
+    recs = pycolmap.incremental_mapping(str(db_path), str(photo_dir), str(models_dir), options=mopts,
+                                        next_image_callback=next_image)
+    seconds["mapping"] = time.perf_counter() - t0
+    keypoints, best_inliers = database_summary(db_path, names)
+    if not recs:
+        reasons = unregistered_reasons(names, set(), keypoints, best_inliers, {}, opts.min_num_inliers)
+        worst = sorted(reasons.items())[:3]
+        raise DamcapError(
+            f"{photo_dir}: COLMAP could not register the photos (no initial pair among {n} photos; e.g. "
+            + "; ".join(f"{k}: {v}" for k, v in worst)
+            + "). Photos need overlap and texture; try --masks, more photos, or --poses"
+        )
+    ranked = sorted(recs.values(), key=lambda r: r.num_reg_images(), reverse=True)
+    rec = ranked[0]
+    progress("principal point", 0, 1)
+    t0 = time.perf_counter()
+    principal = adjust_principal_point(rec, pycolmap, apply=opts.refine_principal_point)
+    seconds["principal_point"] = time.perf_counter() - t0
+    progress("principal point", 1, 1)
+    others: dict[str, int] = {}
+    for r in ranked[1:]:
+        for iid in r.reg_image_ids():
+            others.setdefault(r.image(iid).name, r.num_reg_images())
+    if model_dir.exists():
+        shutil.rmtree(model_dir)
+    model_dir.mkdir()
+    rec.write_binary(str(model_dir))
+    reg = registration_of_reconstruction(rec, names, "sfm", str(model_dir))
+    registered = {p.name for p in reg.photos}
+    reg.unregistered = unregistered_reasons(names, registered, keypoints, best_inliers, others, opts.min_num_inliers)
+    rep = SfmReport(photos=n, registered=len(registered), points=int(rec.num_points3D()),
+                    mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()), pairs=n_pairs,
+                    pairing=pairing, seconds={k: round(v, 2) for k, v in seconds.items()},
+                    unregistered=reg.unregistered, resumed=resumed,
+                    principal_point=asdict(principal) if principal is not None else None)
+    write_json_atomic(report_path, asdict(rep))
+    stages.mark("mapping", fp_mapping, done=True)
+    reg.stats = asdict(rep)
+    progress("mapping", n, n)
+    return reg, rep
+
+
+def triangulate_known(photo_dir: str | Path, registration: Registration, work_dir: str | Path, opts: SfmOptions = SfmOptions(),
+                      masks: dict[str, Path] | None = None, progress: StageProgress | None = None,
+                      content: dict[str, str] | None = None) -> Registration:
+    """Sparse points for known cameras (COLMAP's point triangulator; cameras held fixed).
+
+    Features and matches are made as for registration (same options, same resumable stages),
+    then every track is triangulated with the given poses and intrinsics.
+
+    Args:
+        photo_dir: folder of the photos.
+        registration: known cameras (OpenGL axes, any distortion of :class:`PhotoCamera`).
+        work_dir: work folder (database, triangulated model).
+        opts: feature and matching options.
+        masks: photo name -> mask to restrict features, or None.
+        progress: called as (stage, done, total).
+        content: see :func:`register_photos`.
+
+    Returns:
+        the same registration with ``points_world`` / ``points_seen_from`` filled in.
+    """
+    from damcap.reconstruct.poses import colmap_of_world_from_cam
+
+    pycolmap = import_pycolmap()
+    photo_dir, work_dir = Path(photo_dir), Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    progress = progress or (lambda stage, done, total: None)
+    names = [p.name for p in registration.photos]
+    seconds: dict[str, float] = {}
+    opts = replace(opts, single_camera=False)  # one database camera per photo, set to its known intrinsics below
+    db_path, _, _ = _features_and_matches(photo_dir, names, work_dir, opts, masks, progress, _Stages(work_dir), seconds, [],
+                                          content=content)
+    progress("triangulation", 0, 1)
+    rec = pycolmap.Reconstruction()
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        images = {im.name: im for im in db.read_all_images()}
+        for p in registration.photos:
+            c, im = p.camera, images[p.name]
+            cam = pycolmap.Camera.create_from_model_name(im.camera_id, "FULL_OPENCV", c.fx, c.width, c.height)
+            cam.params = [c.fx, c.fy, c.cx, c.cy, *c.distortion]
+            db.update_camera(cam)
+            rec.add_camera_with_trivial_rig(cam)
+            img = pycolmap.Image(name=p.name, camera_id=im.camera_id, image_id=im.image_id)
+            rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(colmap_of_world_from_cam(p.world_from_cam)))
+    finally:
+        db.close()
+    out_dir = work_dir / "triangulated"
+    out_dir.mkdir(exist_ok=True)
+    mopts = pycolmap.IncrementalPipelineOptions()
+    mopts.num_threads = opts.num_threads
+    mopts.random_seed = opts.seed
+    rec = pycolmap.triangulate_points(rec, str(db_path), str(photo_dir), str(out_dir), clear_points=True, options=mopts,
+                                      refine_intrinsics=False)
+    index = {p.name: k for k, p in enumerate(registration.photos)}
+    pts, seen = [], []
+    for _, p3d in rec.points3D.items():
+        el = p3d.track.elements[0]
+        pts.append(p3d.xyz)
+        seen.append(index[rec.image(el.image_id).name])
+    progress("triangulation", 1, 1)
+    registration.points_world = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+    registration.points_seen_from = np.asarray(seen, dtype=np.int64)
+    registration.stats = {**registration.stats, "triangulated_points": len(pts), **{f"{k}_s": round(v, 2) for k, v in seconds.items()}}
+    return registration

@@ -1,0 +1,139 @@
+"""Per-frame buffers of ``damcap reconstruct`` (step 6): each photo linearised and resampled once
+into its pinhole target, the geometry ray cast into normals, positions and coverage (limited to the
+mask when given, and to the pixels not flagged clipped), written as one frame of the capture
+folder. Frames the geometry misses are dropped with a reason."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from damcap.common.capture_folder import Capture, Frame, FrameData, Intrinsics, write_frame
+from damcap.common.errors import DamcapError
+from damcap.common.mesh import Mesh
+from damcap.common.raycast import MeshRaycaster
+
+from damcap.reconstruct.photos import read_photo_radiance
+from damcap.reconstruct.undistort import PhotoCamera, resample_to_pinhole
+
+
+@dataclass
+class FramePhoto:
+    """One registered photo and what its frame needs."""
+
+    name: str
+    """the photo's name in the photo folder"""
+    path: Path
+    """the photo file"""
+    camera: PhotoCamera
+    """its (possibly distorted) camera"""
+    target: Intrinsics
+    """the pinhole camera of its frame"""
+    exposure_factor: float
+    """what its pixel values are divided by to be comparable across photos (exposure time x ISO / N^2)"""
+    exposure: dict[str, Any] | None
+    """its EXIF exposure, as written into the frame (None when unknown)"""
+    mask: np.ndarray | None
+    """(H, W) object mask in [0, 1] in the target camera, when coverage is limited to the mask"""
+
+
+def frame_data_from_buffers(radiance_lin: np.ndarray, normal_world: np.ndarray, position_world: np.ndarray,
+                            coverage: np.ndarray, mask: np.ndarray | None = None) -> FrameData:
+    """Compose one frame: coverage (limited to the mask when given), background zeroed.
+
+    Args:
+        radiance_lin: (H, W, 3) float32 linear radiance of the whole photo.
+        normal_world, position_world: (H, W, 3) ray-cast buffers.
+        coverage: (H, W) ray-cast coverage in [0, 1].
+        mask: optional (H, W) object mask in [0, 1].
+    """
+    a = coverage if mask is None else np.minimum(coverage, np.clip(mask, 0, 1))
+    a = np.where(a > 1e-3, a, 0).astype(np.float32)
+    on = a[..., None] > 0
+    return FrameData(
+        radiance_lin=np.where(on, np.maximum(radiance_lin, 0), 0).astype(np.float32),
+        normal_world=np.where(on, normal_world, 0).astype(np.float32),
+        position_world=np.where(on, position_world, 0).astype(np.float32),
+        coverage=a,
+    )
+
+
+def unclipped_fraction(clipped: np.ndarray, camera: PhotoCamera, target: Intrinsics) -> np.ndarray:
+    """Where a photo's clipped pixels land in its pinhole target: 1 where no clipped pixel
+    contributes, 0 where any does (a conservative mask: resampling spreads a clipped pixel).
+
+    Args:
+        clipped: (H, W) bool of the photo's size.
+        camera, target: as for :func:`damcap.reconstruct.undistort.resample_to_pinhole`.
+
+    Returns:
+        (target.h, target.w) float32 in {0, 1}.
+    """
+    c = resample_to_pinhole(np.asarray(clipped, np.float32), camera, target)
+    return (c <= 0).astype(np.float32)
+
+
+def write_frames(out: Path, photos: list[FramePhoto], world_from_cams: np.ndarray, mesh: Mesh,
+                 sphere: tuple[np.ndarray, float] | None, reference: float, supersample: int, dtype: str,
+                 progress: Callable[[str, int, int], None], log: Callable[[str], None],
+                 log_response: np.ndarray | None = None, keep_clipped: bool = False) -> tuple[list[Frame], dict[str, str]]:
+    """Write one frame per photo that sees the geometry (each file atomically).
+
+    Args:
+        out: the capture folder.
+        photos: the registered photos, in order.
+        world_from_cams: (N, 4, 4) their cameras in the capture's world.
+        mesh: the geometry in the capture's world.
+        sphere: (centre, radius) of an analytic sphere, whose exact normals replace the mesh's.
+        reference: the exposure factor that maps to radiance scale 1.
+        supersample: sub-pixel grid per axis for coverage at silhouettes.
+        dtype: 'half' or 'float' EXR channels.
+        progress, log: progress(stage, done, total) and one-line messages.
+        log_response: (3, L) response curve undone for 8-bit photos instead of sRGB, or None.
+        keep_clipped: keep pixels the photo flags clipped (linear EXR, RAW) in the coverage;
+            by default their coverage is 0.
+
+    Returns:
+        the frames written, and the dropped photos with their reasons.
+    """
+    rc = MeshRaycaster(mesh)
+    frames: list[Frame] = []
+    dropped: dict[str, str] = {}
+    for k, p in enumerate(photos):
+        progress("frames", k, len(photos))
+        tgt = p.target
+        photo = read_photo_radiance(p.path, p.exposure_factor, reference, log_response)
+        if (photo.radiance_lin.shape[1], photo.radiance_lin.shape[0]) != (p.camera.width, p.camera.height):
+            raise DamcapError(f"{p.path}: the photo is {photo.radiance_lin.shape[1]}x{photo.radiance_lin.shape[0]} but its "
+                              f"camera is {p.camera.width}x{p.camera.height}")
+        radiance = resample_to_pinhole(photo.radiance_lin, p.camera, tgt)
+        mask = p.mask
+        clipped_px = 0
+        if photo.clipped is not None and photo.clipped.any() and not keep_clipped:
+            keep = unclipped_fraction(photo.clipped, p.camera, tgt)
+            clipped_px = int((keep == 0).sum())
+            mask = keep if mask is None else np.minimum(mask, keep)
+        b = rc.buffers(world_from_cams[k], tgt.fl_x, tgt.fl_y, tgt.cx, tgt.cy, tgt.w, tgt.h, supersample=supersample)
+        normal = b.normal_world
+        if sphere is not None:  # analytic normals of the analytic sphere
+            hit = b.coverage > 0
+            d = b.position_world[hit] - sphere[0]
+            normal = normal.copy()
+            normal[hit] = d / np.linalg.norm(d, axis=1, keepdims=True)
+        data = frame_data_from_buffers(radiance, normal, b.position_world, b.coverage, mask)
+        if not (data.coverage > 0.5).any():
+            dropped[p.name] = "the geometry is not seen from this camera (no covered pixel)"
+            log(f"dropped: {p.name}: {dropped[p.name]}")
+            continue
+        stem = Path(p.name).stem
+        frame = Frame(file_path=f"images/{stem}.exr", geometry_path=f"geometry/{stem}.exr", world_from_cam=world_from_cams[k],
+                      intrinsics=tgt, exposure=p.exposure,
+                      extra={"photo": p.name, "exposure_relative": float(p.exposure_factor / reference),
+                             **({"clipped_pixels": clipped_px} if clipped_px else {})})
+        write_frame(Capture(out, [frame], [], []), frame, data, dtype=dtype)
+        frames.append(frame)
+    progress("frames", len(photos), len(photos))
+    return frames, dropped

@@ -1,0 +1,33 @@
+"""Choosing the number of materials from held-out views."""
+
+from __future__ import annotations
+
+import pytest
+
+from damcap.appearance.segment.choose import choose_materials
+from damcap.appearance.segment.options import SegmentOptions
+
+from tests.appearance.segment.conftest import FAST, _torus_capture
+
+
+@pytest.fixture(scope="module")
+def one_material(tmp_path_factory):
+    return _torus_capture(tmp_path_factory, 1)[1:]
+
+
+def test_auto_picks_one_material_for_a_single_material_capture(one_material):
+    train, test = one_material
+    choice = choose_materials(train, test, SegmentOptions(**FAST), max_materials=2)
+    assert choice.materials == 1, choice.curve
+    assert [c["materials"] for c in choice.curve] == [1, 2] and len(choice.curve[0]["restarts"]) == 2
+
+
+def test_auto_picks_two_materials_for_a_two_material_capture(two_materials):
+    _, train, test = two_materials
+    choice = choose_materials(train, test, SegmentOptions(**FAST), max_materials=3)
+    assert choice.materials == 2, choice.curve
+    assert choice.model.materials == 2 and "n = 3" in choice.reason
+    # the fewest materials that reach an accuracy asked for: 1 material cannot reach what 2 do
+    two = choice.curve[1]["heldout_dssim"]
+    target = choose_materials(train, test, SegmentOptions(**FAST), max_materials=3, target_dssim=1.001 * two)
+    assert target.materials == 2 and "fewest" in target.reason

@@ -1,0 +1,58 @@
+"""The segmentation model carried onto meshes (mesh_material_weights, through segment-labels)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from damcap.appearance.segment.score import match_materials
+
+from tests.conftest import assert_one_line_error, run_cli
+
+
+def _torus_obj(path, scale=1.0, shift=(0.0, 0.0, 0.0)):
+    """The closed-form torus (axis y, radii 0.9 and 0.4) as an OBJ, optionally scaled and moved."""
+    import open3d as o3d
+
+    from damcap.common.mesh import to_open3d
+    from damcap.common.shapes import torus_mesh
+
+    m = to_open3d(torus_mesh(0.9, 0.4))
+    v = np.asarray(m.vertices).copy()
+    m.vertices = o3d.utility.Vector3dVector(v * scale + np.asarray(shift))
+    o3d.io.write_triangle_mesh(str(path), m)
+    return v
+
+
+def test_segmentation_carries_onto_meshes(two_materials, segmented, tmp_path, capsys):
+    from scipy.spatial import cKDTree
+
+    from damcap.appearance.segment.file import save_segmentation
+    from damcap.synth.closed_form import two_material_weights
+    from damcap.common.mesh import load_mesh
+
+    seg = tmp_path / "seg"
+    save_segmentation(seg, segmented, colorspace="lin_rec709", provenance={})
+    same = tmp_path / "torus.obj"
+    _torus_obj(same)
+    verts = load_mesh(same).vertices  # the vertices as damcap reads them (labels follow this order)
+    code, out, err = run_cli(["segment-labels", seg, "--mesh", same, "-o", tmp_path / "l.npy", "--align", "none"], capsys)
+    assert code == 0, err
+    labels = np.load(tmp_path / "l.npy")
+    assert labels.shape == (len(verts),) and "damcap export" in out
+    # on the surface the training views saw, the labels are the true materials (labels matched)
+    seen = cKDTree(segmented.points_world).query(verts)[0] < 0.02 * segmented.scene_radius
+    assert seen.mean() > 0.3
+    iou = match_materials(np.eye(2)[labels[seen]], two_material_weights(verts[seen]))[1]
+    assert iou > 0.85, iou
+    # a new shape elsewhere and 100x larger: 'sphere' alignment puts the materials back in place
+    moved = tmp_path / "moved.ply"
+    _torus_obj(moved, scale=100.0, shift=(5.0, -3.0, 40.0))
+    code, _, err = run_cli(["segment-labels", seg, "--mesh", moved, "-o", tmp_path / "m.txt", "--weights", tmp_path / "w.npy"], capsys)
+    assert code == 0, err
+    moved_labels = np.loadtxt(tmp_path / "m.txt", dtype=np.int64)
+    assert len(moved_labels) == len(verts) and np.load(tmp_path / "w.npy").shape == (len(verts), 2)
+    assert (moved_labels[seen] == labels[seen]).mean() > 0.9
+    code, _, err = run_cli(["segment-labels", seg, "--mesh", same, "-o", tmp_path / "l.csv"], capsys)
+    assert_one_line_error(code, err, "l.csv", ".npy")
+    code, _, err = run_cli(["segment-labels", seg, "--mesh", same, "-o", tmp_path / "l2.npy", "--align", "box"], capsys)
+    assert_one_line_error(code, err, "'box'")

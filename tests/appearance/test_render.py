@@ -1,0 +1,57 @@
+"""Rendering a DAM into a frame: covered pixels only, in closed form for an all-zero DAM."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
+from damcap.appearance.pixels import view_dir_world
+from damcap.appearance.render import render_frame
+from damcap.common.capture_folder import FrameData
+
+
+def _frame(h: int = 6, w: int = 5, seed: int = 0) -> FrameData:
+    rng = np.random.default_rng(seed)
+    n = rng.normal(size=(h, w, 3))
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    cov = np.zeros((h, w), np.float32)
+    cov[1:5, 1:4] = 1.0
+    cov[0, 0] = 0.2  # partially covered: rendered too (A > 0)
+    return FrameData(np.full((h, w, 3), -1.0, np.float32), n.astype(np.float32), rng.normal(size=(h, w, 3)).astype(np.float32), cov)
+
+
+def test_all_zero_dam_renders_softplus_0_times_the_scale():
+    """With every weight 0 the network outputs softplus(0) = ln 2 per channel, times the radiance scale."""
+    arch = DamArchitecture()
+    model = DeepAppearanceMap(arch, radiance_scale=2.0, weights_flat=torch.zeros(arch.num_weights))
+    data = _frame()
+    out = render_frame(model, data, np.array([0.0, 0.0, 5.0]))
+    assert out.shape == (6, 5, 3) and out.dtype == np.float32
+    covered = data.coverage > 0
+    np.testing.assert_allclose(out[covered], 2.0 * math.log(2.0), rtol=1e-6)
+    assert np.all(out[~covered] == 0)  # background is 0, and the frame's radiance is never read
+
+
+def test_render_equals_the_model_on_the_covered_pixels_in_any_chunks():
+    model = DeepAppearanceMap(DamArchitecture(width=8, depth=3), radiance_scale=1.5, generator=torch.Generator().manual_seed(3))
+    data = _frame(seed=1)
+    centre = np.array([1.0, 2.0, 3.0])
+    covered = data.coverage > 0
+    with torch.no_grad():
+        want = model(torch.from_numpy(view_dir_world(data.position_world[covered], centre)),
+                     torch.from_numpy(data.normal_world[covered])).numpy()
+    full = render_frame(model, data, centre)
+    np.testing.assert_allclose(full[covered], want, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(render_frame(model, data, centre, chunk=4), full, rtol=1e-6, atol=1e-7)  # batch size changes the float32 sums
+    assert int(covered.sum()) == 13
+
+
+def test_a_frame_without_coverage_renders_black():
+    model = DeepAppearanceMap(DamArchitecture(width=4, depth=2))
+    data = _frame()
+    empty = FrameData(data.radiance_lin, data.normal_world, data.position_world, np.zeros_like(data.coverage))
+    out = render_frame(model, empty, np.zeros(3))
+    assert out.shape == (6, 5, 3) and not out.any()

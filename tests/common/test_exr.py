@@ -1,0 +1,113 @@
+"""EXR and 8-bit image I/O: exact float round trips, half precision, channel selection, clear errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from damcap.common.errors import DamcapError
+from damcap.common.exr import read_exr, read_exr_channels, read_image_u8, write_exr, write_image_u8, write_png
+
+
+def _ramp(h: int = 5, w: int = 7, c: int = 3) -> np.ndarray:
+    return (np.arange(h * w * c, dtype=np.float32).reshape(h, w, c) * 0.37 - 3.1).astype(np.float32)
+
+
+def test_float_round_trip_is_exact(tmp_path):
+    px = _ramp()
+    write_exr(tmp_path / "a.exr", px, ("R", "G", "B"), dtype="float")
+    back, names = read_exr(tmp_path / "a.exr")
+    assert names == ("R", "G", "B") and back.dtype == np.float32 and back.shape == (5, 7, 3)
+    np.testing.assert_array_equal(back, px)
+
+
+def test_half_round_trip_within_half_precision(tmp_path):
+    px = np.abs(_ramp()) + 1e-2
+    write_exr(tmp_path / "h.exr", px, ("R", "G", "B"))  # half is the default
+    back, _ = read_exr(tmp_path / "h.exr")
+    np.testing.assert_array_equal(back, px.astype(np.float16).astype(np.float32))
+    assert np.max(np.abs(back - px) / px) <= 2.0 ** -11
+
+
+def test_half_keeps_65504_nan_and_inf_and_overflows_above(tmp_path):
+    px = np.array([[[65504.0, np.nan, np.inf], [70000.0, -np.inf, -2.5]]], np.float32)
+    write_exr(tmp_path / "x.exr", px, ("R", "G", "B"))
+    back, _ = read_exr(tmp_path / "x.exr")
+    assert back[0, 0, 0] == 65504.0 and np.isnan(back[0, 0, 1]) and back[0, 0, 2] == np.inf
+    assert back[0, 1, 0] == np.inf and back[0, 1, 1] == -np.inf and back[0, 1, 2] == -2.5
+
+
+def test_a_2d_image_is_one_channel_and_names_are_kept(tmp_path):
+    write_exr(tmp_path / "a.exr", np.full((3, 4), 0.5, np.float32), ("A",))
+    back, names = read_exr(tmp_path / "a.exr")
+    assert names == ("A",) and back.shape == (3, 4, 1) and np.all(back == 0.5)
+    px = _ramp(2, 2, 3)
+    write_exr(tmp_path / "n.exr", px, ("N.X", "N.Y", "N.Z"), dtype="float")
+    assert read_exr(tmp_path / "n.exr")[1] == ("N.X", "N.Y", "N.Z")
+
+
+def test_channels_in_the_order_asked(tmp_path):
+    px = _ramp(2, 3, 4)
+    write_exr(tmp_path / "a.exr", px, ("R", "G", "B", "A"), dtype="float")
+    got = read_exr_channels(tmp_path / "a.exr", ["A", "R"])
+    assert got.shape == (2, 3, 2)
+    np.testing.assert_array_equal(got[..., 0], px[..., 3])
+    np.testing.assert_array_equal(got[..., 1], px[..., 0])
+    with pytest.raises(DamcapError, match=r"a\.exr: missing channel\(s\) W\.0, Z; the file has R, G, B, A"):
+        read_exr_channels(tmp_path / "a.exr", ["R", "W.0", "Z"])
+
+
+def test_shape_that_does_not_match_the_channels():
+    with pytest.raises(ValueError, match=r"pixels shape \(2, 2, 3\) does not match channels \['R', 'G'\]"):
+        write_exr("unused.exr", np.zeros((2, 2, 3)), ("R", "G"))
+
+
+def test_missing_damaged_and_truncated_files(tmp_path):
+    with pytest.raises(DamcapError, match=r"nope\.exr: file not found"):
+        read_exr(tmp_path / "nope.exr")
+    (tmp_path / "junk.exr").write_bytes(b"junk" * 16)
+    with pytest.raises(DamcapError, match=r"junk\.exr: cannot read image \(.*not an OpenEXR file"):
+        read_exr(tmp_path / "junk.exr")
+    write_exr(tmp_path / "ok.exr", _ramp(16, 16), ("R", "G", "B"))
+    data = (tmp_path / "ok.exr").read_bytes()
+    (tmp_path / "cut.exr").write_bytes(data[: len(data) // 2])
+    with pytest.raises(DamcapError, match=r"cut\.exr: cannot read (image|pixels)"):
+        read_exr(tmp_path / "cut.exr")
+
+
+def test_no_temporary_file_is_left_behind(tmp_path):
+    write_exr(tmp_path / "a.exr", _ramp(), ("R", "G", "B"))
+    assert [p.name for p in tmp_path.iterdir()] == ["a.exr"]
+
+
+def test_u8_png_round_trip_is_exact(tmp_path):
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (6, 5, 3), dtype=np.uint8)
+    write_png(tmp_path / "a.png", rgb)
+    np.testing.assert_array_equal(read_image_u8(tmp_path / "a.png"), rgb)
+    rgba = rng.integers(0, 256, (4, 3, 4), dtype=np.uint8)
+    rgba[..., 3] = 255  # opaque (partial alpha: below)
+    write_png(tmp_path / "b.png", rgba)
+    np.testing.assert_array_equal(read_image_u8(tmp_path / "b.png"), rgba)
+    grey = rng.integers(0, 256, (4, 3, 1), dtype=np.uint8)
+    write_image_u8(tmp_path / "g.png", grey)
+    np.testing.assert_array_equal(read_image_u8(tmp_path / "g.png"), grey)
+
+
+def test_u8_unreadable_file(tmp_path):
+    (tmp_path / "x.png").write_bytes(b"not a png")
+    with pytest.raises(DamcapError, match=r"x\.png: cannot read image"):
+        read_image_u8(tmp_path / "x.png")
+
+
+def test_u8_png_round_trip_with_partial_alpha(tmp_path):
+    rgba = np.array([[[240, 245, 230, 100], [104, 120, 179, 0]]], np.uint8)
+    write_png(tmp_path / "a.png", rgba)
+    np.testing.assert_array_equal(read_image_u8(tmp_path / "a.png"), rgba)
+
+
+@pytest.mark.parametrize("shape", [(4, 4), (3, 5)])
+def test_u8_png_round_trip_of_a_2d_image(tmp_path, shape):
+    grey = (np.arange(np.prod(shape)).reshape(shape) * 11).astype(np.uint8)
+    write_png(tmp_path / "g.png", grey)
+    np.testing.assert_array_equal(read_image_u8(tmp_path / "g.png")[..., 0], grey)

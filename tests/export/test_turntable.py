@@ -1,0 +1,92 @@
+"""Frames of a DAM on a new shape (the export command), one DAM per vertex label, bad inputs."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import torch
+
+from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
+from damcap.appearance.dam_file import save_dam
+from damcap.cli.main import main
+from damcap.common.colour import display_srgb8
+from damcap.common.exr import read_exr, read_image_u8
+from damcap.export.turntable import parts_from_vertex_labels
+
+from tests.conftest import tree_digest
+
+
+def test_export_frames_png_video(model_file, bunny, tmp_path, capsys):
+    before = tree_digest(bunny.parent)
+    out = tmp_path / "out"
+    assert main(["export", str(model_file), "--mesh", str(bunny), "-o", str(out), "--views", "4", "--resolution", "64", "--video"]) == 0
+    meta = json.loads((out / "export.json").read_text())
+    assert len(meta["world_from_cam"]) == 4
+    px, names = read_exr(out / "frames" / "0002.exr")
+    assert names == ("R", "G", "B", "A") and px.shape == (64, 64, 4)
+    fg = px[..., 3] > 0.5
+    assert 0.1 < fg.mean() < 0.8 and (px[fg, :3] > 0).all() and (px[~(px[..., 3] > 0), :3] == 0).all()
+    png = read_image_u8(out / "display" / "0002.png")
+    np.testing.assert_array_equal(png, display_srgb8(px[..., :3], meta["exposure_scale"]))
+    assert (out / "turntable.mp4").stat().st_size > 1000
+    import cv2
+    cap = cv2.VideoCapture(str(out / "turntable.mp4"))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 4
+    assert tree_digest(bunny.parent) == before
+
+
+def test_vertex_labels_to_parts():
+    tris = np.array([[0, 1, 2], [1, 2, 3], [0, 3, 2]])
+    labels = np.array([0, 1, 1, 0])
+    assert parts_from_vertex_labels(tris, labels).tolist() == [1, 1, 0]
+    assert parts_from_vertex_labels(tris, np.array([2, 0, 1, 1])).tolist() == [2, 1, 1]
+
+
+def test_bad_meshes_and_models(model_file, tmp_path, capsys):
+    (tmp_path / "empty.obj").write_text("# nothing\n")
+    assert main(["export", str(model_file), "--mesh", str(tmp_path / "empty.obj"), "-o", str(tmp_path / "o")]) == 2
+    assert "no triangles" in capsys.readouterr().err
+    (tmp_path / "degen.obj").write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n")
+    assert main(["export", str(model_file), "--mesh", str(tmp_path / "degen.obj"), "-o", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "degen.obj" in err and ("zero area" in err or "degenerate" in err)
+    # no normals in the file: recomputed
+    (tmp_path / "tet.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    assert main(["export", str(model_file), "--mesh", str(tmp_path / "tet.obj"), "-o", str(tmp_path / "o"), "--views", "1", "--resolution", "32"]) == 0
+    # a model from a newer format version
+    from safetensors.torch import save as st_save
+    meta = {"format_version": 2, "architecture": DamArchitecture().to_json(), "radiance_scale": 1.0}
+    (tmp_path / "new.dam").write_bytes(st_save({"weights": torch.zeros(3360)}, metadata={"damcap": json.dumps(meta)}))
+    assert main(["export", str(tmp_path / "new.dam"), "--mesh", str(tmp_path / "tet.obj"), "-o", str(tmp_path / "o2")]) == 2
+    assert "newer than this damcap reads" in capsys.readouterr().err
+    assert main(["export", str(model_file), str(model_file), "--mesh", str(tmp_path / "tet.obj"), "-o", str(tmp_path / "o3"),
+                 "--labels", str(tmp_path / "missing.npy")]) == 2
+    assert "label file not found" in capsys.readouterr().err
+
+
+def test_several_dams_by_vertex_labels(model_file, bunny, tmp_path):
+    from damcap.appearance.dam_file import load_dam
+    from damcap.common.mesh import load_mesh
+
+    dam, meta = load_dam(model_file)
+    brighter = DeepAppearanceMap(dam.arch, dam.radiance_scale * 2, dam.get_flat_weights())
+    save_dam(tmp_path / "b.dam", brighter, colorspace="lin_rec709", made_by="fit")
+    verts = load_mesh(bunny).vertices
+    labels = (verts[:, 0] > np.median(verts[:, 0])).astype(np.int64)
+    np.save(tmp_path / "labels.npy", labels)
+    out = tmp_path / "two"
+    args = ["export", str(model_file), str(tmp_path / "b.dam"), "--mesh", str(bunny), "--labels", str(tmp_path / "labels.npy"),
+            "-o", str(out), "--views", "1", "--resolution", "64"]
+    assert main(args) == 0
+    assert main(["export", str(model_file), "--mesh", str(bunny), "-o", str(tmp_path / "one"), "--views", "1", "--resolution", "64"]) == 0
+    two = read_exr(out / "frames" / "0000.exr")[0][..., :3]
+    one = read_exr(tmp_path / "one" / "frames" / "0000.exr")[0][..., :3]
+    fg = one.sum(-1) > 0
+    ratio = two[fg].sum(-1) / one[fg].sum(-1)
+    # every covered pixel is rendered by exactly one of the two DAMs: ratio 1 or 2
+    assert np.all(np.isclose(ratio, 1.0, rtol=1e-4) | np.isclose(ratio, 2.0, rtol=1e-4))
+    assert 0.2 < np.isclose(ratio, 2.0, rtol=1e-4).mean() < 0.8
+    np.save(tmp_path / "bad.npy", labels + 5)
+    args[args.index(str(tmp_path / "labels.npy"))] = str(tmp_path / "bad.npy")
+    assert main(args) == 2

@@ -1,0 +1,17 @@
+"""What the COLMAP database says about photos that did not register."""
+
+from __future__ import annotations
+
+from damcap.reconstruct.colmap.database import unregistered_reasons
+
+
+def test_unregistered_reasons_each_branch():
+    names = ["a.jpg", "b.jpg", "c.jpg", "d.jpg", "e.jpg"]
+    reasons = unregistered_reasons(names, {"a.jpg"}, keypoints={"a.jpg": 900, "b.jpg": 10, "c.jpg": 900, "d.jpg": 900, "e.jpg": 900},
+                                   best_inliers={"a.jpg": 200, "b.jpg": 0, "c.jpg": 3, "d.jpg": 100, "e.jpg": 100},
+                                   other_models={"d.jpg": 4}, min_num_inliers=15)
+    assert set(reasons) == {"b.jpg", "c.jpg", "d.jpg", "e.jpg"}
+    assert "too few features (10)" in reasons["b.jpg"]
+    assert "best 3 < 15" in reasons["c.jpg"]
+    assert "separate model of 4 photos" in reasons["d.jpg"]
+    assert "could not be estimated" in reasons["e.jpg"]

@@ -1,0 +1,457 @@
+"""reconstruct/photos.py: photos of every kind the capture stage writes, through ``damcap reconstruct``.
+
+One small scene with a known answer (:mod:`damcap.synth.photos`: a textured blob, 6 views of
+128 px, cameras known, JPEGs with auto-exposure-like EXIF) is written several ways: as the
+JPEGs themselves, as linear EXRs made by ``damcap linearize``'s library function, as LDR
+brackets merged by ``damcap hdr`` (with its response curve saved beside each EXR), and as RAW
+(DNG) files. Each set goes through ``reconstruct_capture`` with the known poses and the true mesh,
+at the photos' own size, so every frame pixel is its photo pixel (no resampling) and the routes
+compare pixel for pixel.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from damcap.capture.hdr import HdrOptions, merge_bracket_files, read_ldr_codes, read_response, write_hdr
+from damcap.capture.linearize import LinearizeOptions, linearize_files
+from damcap.capture.linearize import list_photos as linearize_list
+from damcap.common.capture_folder import FrameData, inspect_capture, read_frame
+from damcap.common.colour import srgb_to_linear
+from damcap.common.errors import DamcapError
+from damcap.common.exr import read_exr, write_exr, write_image_u8
+from damcap.common.raycast import MeshRaycaster
+from damcap.reconstruct.photos import (
+    exposure_factors,
+    list_photos,
+    match_masks,
+    photo_kind,
+    proxy_srgb_u8,
+    read_photo_radiance,
+)
+from damcap.reconstruct.pipeline import ReconstructOptions, ReconstructReport, reconstruct_capture
+from damcap.synth.photos import (
+    PhotoExposure,
+    bumpy_blob,
+    default_intrinsics,
+    exposure_series,
+    orbit_cameras,
+    render_textured,
+    write_photo_set,
+)
+
+N_VIEWS = 6
+SIZE = 128
+LIGHT = np.array([0.4, 0.8, 0.45]) / np.linalg.norm([0.4, 0.8, 0.45])
+#: half-float storage (linearize's default): relative rounding 2^-11, two roundings at most
+HALF_RTOL = 1e-3
+#: float32 arithmetic on the same codes
+FLOAT_RTOL = 1e-5
+
+
+@dataclass
+class Scene:
+    root: Path
+    cams: np.ndarray
+    exposures: list[PhotoExposure]
+    truth: dict[str, np.ndarray]
+    """photo stem -> (H, W, 3) scene radiance"""
+
+    @property
+    def images(self) -> Path:
+        return self.root / "images"
+
+
+def _digests(folder: Path) -> dict[str, str]:
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir()) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Scene:
+    import open3d as o3d
+
+    root = tmp_path_factory.mktemp("scene")
+    mesh = bumpy_blob(subdivisions=4)
+    cams = orbit_cameras(N_VIEWS, 3.2, (25.0,), jitter_deg=4, seed=0)
+    exposures = exposure_series(N_VIEWS, 0)
+    names = write_photo_set(root, mesh, cams, default_intrinsics(SIZE), exposures, light_dir_world=LIGHT)
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices.astype(np.float64)),
+                                  o3d.utility.Vector3iVector(mesh.triangles))
+    o3d.io.write_triangle_mesh(str(root / "blob.ply"), m)
+    rc = MeshRaycaster(mesh)
+    truth = {Path(n).stem: render_textured(rc, c, default_intrinsics(SIZE), LIGHT, e)[2] for n, c, e in zip(names, cams, exposures)}
+    return Scene(root, cams, exposures, truth)
+
+
+def _options(scene: Scene, **kw) -> ReconstructOptions:
+    """Known poses, the true mesh, the photos' own size: frame pixel (i, j) is photo pixel (i, j)."""
+    return ReconstructOptions(geometry=f"mesh:{scene.root / 'blob.ply'}", mesh_align="none", capture_size=SIZE,  # type: ignore[arg-type]
+                              dtype="float", supersample=1, train_views=3, **kw)
+
+
+def _reconstruct(scene: Scene, photos: Path, out: Path, **kw) -> tuple[dict[str, FrameData], ReconstructReport]:
+    cap, report = reconstruct_capture(photos, out, _options(scene, **kw), masks_dir=scene.root / "masks",
+                                      poses=str(scene.root / "transforms.json"))
+    assert inspect_capture(out).problems == []
+    return {Path(f.extra["photo"]).stem: read_frame(cap, f) for f in cap.frames}, report
+
+
+@pytest.fixture(scope="module")
+def jpeg_frames(scene, tmp_path_factory) -> dict[str, FrameData]:
+    """The reference route: the JPEGs themselves (sRGB curve undone, EXIF exposure divided out)."""
+    frames, report = _reconstruct(scene, scene.images, tmp_path_factory.mktemp("jpeg") / "capture")
+    assert "tone curve (sRGB) undone" in report.linearisation and len(frames) == N_VIEWS
+    return frames
+
+
+@pytest.fixture(scope="module")
+def linearized(scene, tmp_path_factory) -> Path:
+    """``damcap linearize``'s EXRs of the JPEGs (half floats, relative to the median exposure)."""
+    out = tmp_path_factory.mktemp("lin") / "linear"
+    linearize_files(linearize_list(scene.images), out, LinearizeOptions())
+    return out
+
+
+def read_photo_header_reference(path: Path) -> float:
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    try:
+        return float(inp.spec().getattribute("damcap:reference_exposure"))
+    finally:
+        inp.close()
+
+
+def _ratio_medians(frames: dict[str, FrameData], reference: dict[str, np.ndarray], min_reference: float) -> np.ndarray:
+    """(views, 3) median over each frame's fully covered pixels of frame / reference radiance."""
+    out = []
+    for stem, d in sorted(frames.items()):
+        ref = reference[stem]
+        on = (d.coverage > 0.99) & (ref.min(axis=-1) > min_reference)
+        out.append(np.median(d.radiance_lin[on] / ref[on], axis=0))
+    return np.array(out)
+
+
+# ---- listing and pure functions ----------------------------------------------------------------
+
+def test_photo_kinds_listing_and_masks(tmp_path):
+    assert [photo_kind(n) for n in ("a.JPG", "a.tiff", "a.EXR", "a.hdr", "a.dng", "a.CR2", "a.nef")] == \
+        ["display", "display", "linear", "linear", "raw", "raw", "raw"]
+    linear = tmp_path / "linear"
+    linear.mkdir()
+    for n in ("IMG_1.exr", "IMG_2.hdr", "IMG_1.exr.json", "linearize.json"):
+        (linear / n).write_bytes(b"")
+    assert list_photos(linear) == ["IMG_1.exr", "IMG_2.hdr"]  # damcap hdr / linearize records are not photos
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    for n in ("IMG_1.jpg", "IMG_2.exr"):
+        (mixed / n).write_bytes(b"")
+    with pytest.raises(DamcapError, match=r"mixes 8-bit photos \(e\.g\. IMG_1\.jpg\) and linear EXR/HDR files \(e\.g\. IMG_2\.exr\); "
+                                          "their radiance scales are not comparable"):
+        list_photos(mixed)
+    (mixed / "IMG_1.jpg").unlink()
+    (mixed / "IMG_3.dng").write_bytes(b"")
+    with pytest.raises(DamcapError, match=r"mixes linear EXR/HDR files .* and RAW files \(e\.g\. IMG_3\.dng\)"):
+        list_photos(mixed)
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    (masks / "IMG_1.exr").write_bytes(b"")  # not a mask image
+    (masks / "IMG_1.png").write_bytes(b"")
+    assert match_masks(["IMG_1.exr"], masks) == {"IMG_1.exr": masks / "IMG_1.png"}
+
+
+def test_registration_proxy_is_an_exposure_normalised_srgb_encoding():
+    rad = np.ones((10, 20, 3))
+    rad[0, 0] = 0.18
+    proxy = proxy_srgb_u8(rad)
+    assert proxy.dtype == np.uint8 and proxy[5, 5].tolist() == [255, 255, 255]
+    assert proxy[0, 0].tolist() == [118, 118, 118]  # 0.18 of white: sRGB 0.4613561 -> 118
+    assert np.array_equal(proxy_srgb_u8(rad * 37.0), proxy)  # the exposure does not matter
+    assert proxy_srgb_u8(np.zeros((2, 2, 3))).max() == 0
+
+
+def test_exposure_of_linear_exrs_comes_from_their_headers(tmp_path):
+    px = np.full((4, 4, 3), 0.5, np.float32)
+    paths = []
+    for name, ref in (("a.exr", 0.01), ("b.exr", 0.04), ("c.exr", 0.02)):
+        write_exr(tmp_path / name, px, ("R", "G", "B"), attributes={"damcap:reference_exposure": ref})
+        paths.append(tmp_path / name)
+    factors, _, reference, note = exposure_factors(paths)
+    assert factors.tolist() == [0.01, 0.04, 0.02] and reference == 0.02 and "rescaled to the median 0.02" in note
+    assert read_photo_radiance(paths[1], factors[1], reference).radiance_lin[0, 0, 0] == pytest.approx(0.25)
+    ones, _, reference, note = exposure_factors(paths, ignore_exposure=True)
+    assert ones.tolist() == [1, 1, 1] and reference == 1.0 and "--ignore-exposure" in note
+    write_exr(tmp_path / "plain.exr", px, ("R", "G", "B"))
+    write_exr(tmp_path / "plain2.exr", px, ("R", "G", "B"))
+    ones, _, reference, note = exposure_factors([tmp_path / "plain.exr", tmp_path / "plain2.exr"])
+    assert ones.tolist() == [1, 1] and reference == 1.0
+    assert "values used as stored, exposure factor 1 for every photo (no file's header has damcap:reference_exposure" in note
+    with pytest.raises(DamcapError, match=r"plain\.exr: its header has no damcap:reference_exposure while other photos' do"):
+        exposure_factors(paths + [tmp_path / "plain.exr"])
+
+
+def test_linear_files_grey_acescg_and_bad_values(tmp_path):
+    from damcap.capture.working_space import rec709_to_working
+
+    rgb = np.array([[[0.2, 0.5, 0.1], [1.0, 0.25, 0.05]]], np.float32)
+    write_exr(tmp_path / "aces.exr", rec709_to_working(rgb, "acescg"), ("R", "G", "B"), dtype="float",
+              attributes={"damcap:colorspace": "acescg"})
+    assert np.allclose(read_photo_radiance(tmp_path / "aces.exr", 1.0, 1.0).radiance_lin, rgb, rtol=1e-5, atol=1e-6)
+    write_exr(tmp_path / "grey.exr", np.full((2, 3), 0.3, np.float32), ("Y",), dtype="float")
+    grey = read_photo_radiance(tmp_path / "grey.exr", 2.0, 1.0).radiance_lin
+    assert grey.shape == (2, 3, 3) and np.allclose(grey, 0.15)
+    write_exr(tmp_path / "cam.exr", rgb, ("R", "G", "B"), attributes={"damcap:colorspace": "camera_rgb"})
+    with pytest.raises(DamcapError, match=r"cam\.exr: radiance is in 'camera_rgb'"):
+        read_photo_radiance(tmp_path / "cam.exr", 1.0, 1.0)
+    bad = rgb.copy()
+    bad[0, 0, 1] = np.nan
+    write_exr(tmp_path / "nan.exr", bad, ("R", "G", "B"), dtype="float")
+    with pytest.raises(DamcapError, match=r"nan\.exr: 1 pixel value\(s\) are NaN or infinite"):
+        read_photo_radiance(tmp_path / "nan.exr", 1.0, 1.0)
+
+
+# ---- linear EXRs from damcap linearize ----------------------------------------------------------
+
+def test_linearize_output_reconstructs_like_the_jpegs(scene, jpeg_frames, linearized, tmp_path):
+    """Same codes, same sRGB curve, same EXIF exposure, same median reference: the EXR route
+    equals the JPEG route to half precision (linearize stores half floats; measured 4.7e-4 at
+    most, relative)."""
+    before = _digests(linearized)
+    frames, report = _reconstruct(scene, linearized, tmp_path / "capture")
+    assert "linear EXR/HDR radiance, no tone curve undone" in report.linearisation
+    reference = exposure_factors(sorted(scene.images.iterdir()))[2]  # the JPEGs' median EXIF exposure
+    assert f"rescaled to the median {reference:.6g}" in report.linearisation
+    assert sorted(frames) == sorted(jpeg_frames)
+    for stem, d in frames.items():
+        ref = jpeg_frames[stem]
+        assert np.array_equal(d.coverage, ref.coverage)  # nothing clipped in these photos
+        on = ref.coverage > 0
+        assert np.allclose(d.radiance_lin[on], ref.radiance_lin[on], rtol=HALF_RTOL, atol=1e-6)
+    assert _digests(linearized) == before  # inputs are only read
+
+
+def test_exrs_of_several_linearize_runs_are_made_comparable_by_their_headers(scene, jpeg_frames, linearized, tmp_path):
+    """Half the photos linearised again relative to 4x the median exposure: their values are 4x
+    larger, their headers say so, and reconstruct brings every photo to the set's median
+    reference, (1 + 4) / 2 of the JPEG route's: one constant for all frames, as predicted."""
+    photos = tmp_path / "photos"
+    shutil.copytree(linearized, photos)
+    reference = exposure_factors(sorted(scene.images.iterdir()))[2]  # the JPEGs' median EXIF exposure
+    first = sorted(scene.images.iterdir())[: N_VIEWS // 2]
+    linearize_files(first, photos, LinearizeOptions(reference_exposure=4 * reference))
+    assert read_exr(photos / first[0].with_suffix(".exr").name)[0][..., :3].max() > 3 * read_exr(linearized / first[0].with_suffix(".exr").name)[0][..., :3].max()
+    frames, _ = _reconstruct(scene, photos, tmp_path / "capture")
+    for stem, d in frames.items():
+        on = jpeg_frames[stem].coverage > 0
+        assert np.allclose(d.radiance_lin[on], 2.5 * jpeg_frames[stem].radiance_lin[on], rtol=HALF_RTOL, atol=1e-6)
+
+
+def test_clipped_pixels_leave_the_coverage(scene, jpeg_frames, linearized, tmp_path):
+    photos = tmp_path / "photos"
+    shutil.copytree(linearized, photos)
+    path = photos / "IMG_0002.exr"
+    pixels, names = read_exr(path)
+    pixels[60:70, 60:70, names.index("clipped")] = 1.0  # on the object in every view
+    write_exr(path, pixels, names, attributes={"damcap:reference_exposure": read_photo_header_reference(path)})
+    frames, _ = _reconstruct(scene, photos, tmp_path / "excluded")
+    cov, ref_cov = frames["IMG_0002"].coverage, jpeg_frames["IMG_0002"].coverage
+    assert (ref_cov[60:70, 60:70] > 0.99).all() and (cov[60:70, 60:70] == 0).all()
+    outside = np.ones_like(cov, bool)
+    outside[60:70, 60:70] = False
+    assert np.array_equal(cov[outside], ref_cov[outside])
+    assert (frames["IMG_0002"].radiance_lin[60:70, 60:70] == 0).all()
+    doc = json.loads((tmp_path / "excluded" / "transforms.json").read_text())
+    assert [f.get("clipped_pixels") for f in doc["frames"] if f["photo"] == "IMG_0002.exr"] == [100]
+    kept, _ = _reconstruct(scene, photos, tmp_path / "kept", keep_clipped=True)
+    assert np.array_equal(kept["IMG_0002"].coverage, ref_cov)
+
+
+# ---- LDR brackets merged by damcap hdr, and its response curve ----------------------------------
+
+@pytest.fixture(scope="module")
+def hdr_photos(scene, tmp_path_factory) -> Path:
+    """One 3-frame bracket per view (PNG with EXIF, 2 stops apart around the view's exposure)
+    merged by damcap hdr (Debevec response) into ``IMG_000k.exr`` + ``IMG_000k.exr.json``.
+    The sample pixels come from the whole image (flat_fraction 1): the flattest 10% would all be
+    the black background, which says nothing about the response."""
+    mesh = bumpy_blob(subdivisions=4)
+    rc = MeshRaycaster(mesh)
+    root = tmp_path_factory.mktemp("hdr")
+    out = root / "merged"
+    out.mkdir()
+    opts = HdrOptions(flat_fraction=1.0)
+    for k, (cam, ex) in enumerate(zip(scene.cams, scene.exposures)):
+        files = []
+        for j, stops in enumerate((-2, 0, 2)):
+            e = PhotoExposure(ex.time_s * 2.0 ** stops, ex.iso, ex.f_number)
+            photo, _, _ = render_textured(rc, cam, default_intrinsics(SIZE), LIGHT, e)
+            files.append(root / f"IMG_{k:04d}_{j}.png")
+            write_image_u8(files[-1], photo, {"ExposureTime": e.time_s, "FNumber": e.f_number,
+                                              "Exif:PhotographicSensitivity": int(e.iso)})
+        write_hdr(out / f"IMG_{k:04d}.exr", merge_bracket_files(files, opts), opts)
+    return out
+
+
+def test_hdr_output_reconstructs_in_proportion_to_the_scene(scene, jpeg_frames, hdr_photos, tmp_path):
+    """Merged brackets: each view's frame is proportional to the scene radiance, as the JPEG
+    route's is. Per view and channel, the median of frame / scene radiance stays within 1.3% of
+    its mean over the views (measured; each merge recovers and normalises its own curve), the
+    JPEG route's within 0.9%; the channels agree within 0.15%; and the hdr route's frames are
+    one constant times the JPEG route's within 1.3% per view."""
+    frames, report = _reconstruct(scene, hdr_photos, tmp_path / "capture")
+    assert "relative to its damcap:reference_exposure" in report.linearisation
+    hdr = _ratio_medians(frames, scene.truth, 0.05)
+    jpeg = _ratio_medians(jpeg_frames, scene.truth, 0.05)
+    assert np.abs(jpeg / jpeg.mean(axis=0) - 1).max() < 0.02
+    assert np.abs(hdr / hdr.mean(axis=0) - 1).max() < 0.03
+    assert np.abs(hdr.mean(axis=0) / hdr.mean() - 1).max() < 0.02  # a curve per channel, no colour cast
+    vs_jpeg = _ratio_medians(frames, {k: d.radiance_lin for k, d in jpeg_frames.items()}, 0.02)
+    assert np.abs(vs_jpeg / vs_jpeg.mean(axis=0) - 1).max() < 0.03
+
+
+def test_the_response_curve_hdr_saved_is_undone_for_8bit_photos(scene, jpeg_frames, hdr_photos, tmp_path):
+    """--response: each JPEG pixel becomes exp(g(code)) instead of the sRGB curve's value, with the
+    same exposure division, so frame / sRGB-route frame = exp(g(code)) / srgb_to_linear(code) at
+    every pixel; a curve scaled by (2, 1, 0.5) scales the frames by exactly that."""
+    record = hdr_photos / "IMG_0000.exr.json"
+    g = read_response(record).log_response
+    frames, report = _reconstruct(scene, scene.images, tmp_path / "recovered", response=str(record))
+    assert "tone curve (response curve of IMG_0000.exr.json (debevec, 256 levels" in report.linearisation
+    for stem, d in frames.items():
+        codes, _ = read_ldr_codes(scene.images / f"{stem}.jpg")
+        on = (d.coverage > 0) & (codes.min(axis=-1) > 0)
+        srgb_lin = srgb_to_linear(np.maximum(codes, 1) / 255.0)
+        predicted = np.stack([np.exp(g[c][codes[..., c]]) for c in range(3)], axis=-1) / srgb_lin
+        assert np.allclose(d.radiance_lin[on] / jpeg_frames[stem].radiance_lin[on], predicted[on], rtol=FLOAT_RTOL)
+    # the recovered curve is the camera's sRGB curve up to one scale in the mid-tones (measured 0.01)
+    mid = np.arange(60, 200)
+    assert np.ptp(g[:, mid] - np.log(srgb_to_linear(mid / 255.0)), axis=1).max() < 0.05
+
+    doctored = tmp_path / "doctored.exr"
+    doc = json.loads(record.read_text())
+    doc["response"]["log_response"] = (np.asarray(doc["response"]["log_response"]) + np.log([[2.0], [1.0], [0.5]])).tolist()
+    (tmp_path / "doctored.exr.json").write_text(json.dumps(doc))
+    scaled, _ = _reconstruct(scene, scene.images, tmp_path / "doctored", response=str(doctored))  # the EXR's name finds its record
+    for stem, d in scaled.items():
+        on = d.coverage > 0
+        assert np.allclose(d.radiance_lin[on], frames[stem].radiance_lin[on] * np.float32([2.0, 1.0, 0.5]), rtol=FLOAT_RTOL)
+
+
+def test_a_response_curve_for_linear_photos_or_a_missing_one_is_refused(scene, linearized, hdr_photos, tmp_path):
+    with pytest.raises(DamcapError, match=r"a response curve undoes the tone curve of 8-bit photos, but .* holds linear EXR/HDR files"):
+        reconstruct_capture(linearized, tmp_path / "a", _options(scene, response=str(hdr_photos / "IMG_0000.exr.json")),
+                            poses=str(scene.root / "transforms.json"))
+    with pytest.raises(DamcapError, match=r"nothing\.exr\.json: response file not found"):
+        reconstruct_capture(scene.images, tmp_path / "b", _options(scene, response=str(tmp_path / "nothing.exr")),
+                            poses=str(scene.root / "transforms.json"))
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()  # refused before any work
+
+
+# ---- RAW files ----------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def raw_photos(scene, tmp_path_factory) -> Path:
+    """One DNG per view: the scene radiance through a Bayer sensor (shot and read noise, 14 bits,
+    a real camera's colour matrix) at the view's EXIF exposure."""
+    from damcap.synth.brackets import CameraModel, camera_rgb_from_rec709, expose, mosaic, write_dng
+
+    out = tmp_path_factory.mktemp("raw") / "dng"
+    out.mkdir()
+    model = CameraModel()
+    rng = np.random.default_rng(0)
+    for stem, ex in zip(sorted(scene.truth), scene.exposures):
+        site = mosaic(camera_rgb_from_rec709(scene.truth[stem], np.asarray(model.camera_from_xyz)), model.cfa)
+        h = ex.time_s * ex.iso / 100 / ex.f_number ** 2
+        raw = expose(site * (50.0 * model.full_well_e), h, model, rng)  # brightest photosites at about 15% of the full well
+        write_dng(out / f"{stem}.dng", raw, model, ex.time_s, int(ex.iso), ex.f_number)
+    return out
+
+
+def test_raw_photos_reconstruct_in_proportion_to_the_scene(scene, jpeg_frames, raw_photos, tmp_path):
+    """Decoded linearly with the EXIF exposure divided out: one scale for every view (medians of
+    frame / scene radiance within 0.5% of their mean, measured: shot noise and demosaicing of a
+    sharp texture), and the colour matrix brings camera RGB to Rec.709 (channels within 1.2%)."""
+    frames, report = _reconstruct(scene, raw_photos, tmp_path / "capture")
+    assert "RAW sensor values decoded linearly" in report.linearisation and "EXIF exposure" in report.linearisation
+    raw = _ratio_medians(frames, scene.truth, 0.05)
+    assert np.abs(raw / raw.mean(axis=0) - 1).max() < 0.015
+    assert np.abs(raw.mean(axis=0) / raw.mean() - 1).max() < 0.03
+    # against the JPEG route: one scale for all views and channels (the JPEGs' chroma subsampling
+    # makes single pixels noisy, so medians per view; measured 1.7%)
+    vs_jpeg = _ratio_medians(frames, {k: d.radiance_lin for k, d in jpeg_frames.items()}, 0.02)
+    assert np.abs(vs_jpeg / vs_jpeg.mean() - 1).max() < 0.03
+    doc = json.loads((tmp_path / "capture" / "transforms.json").read_text())
+    ex = {f["photo"]: f["exposure"] for f in doc["frames"]}
+    assert ex["IMG_0000.dng"]["time_s"] == pytest.approx(scene.exposures[0].time_s, rel=1e-5)
+
+
+# ---- files that cannot be read ------------------------------------------------------------------
+
+def test_truncated_exr_and_raw_files_are_named(scene, linearized, raw_photos, tmp_path):
+    from damcap.cli.main import main
+
+    for source, name in ((linearized, "IMG_0003.exr"), (raw_photos, "IMG_0003.dng")):
+        photos = tmp_path / source.name
+        shutil.copytree(source, photos)
+        data = (photos / name).read_bytes()
+        (photos / name).write_bytes(data[: len(data) // 2])
+        with pytest.raises(DamcapError, match=rf"{name}: cannot read"):
+            reconstruct_capture(photos, tmp_path / f"out_{name}", _options(scene), poses=str(scene.root / "transforms.json"))
+        (photos / name).write_bytes(data[:64])  # not even a header
+        with pytest.raises(DamcapError, match=rf"{name}: cannot read"):
+            reconstruct_capture(photos, tmp_path / f"out2_{name}", _options(scene), poses=str(scene.root / "transforms.json"))
+    assert main(["reconstruct", str(tmp_path / linearized.name), "-o", str(tmp_path / "cli"),
+                 "--poses", str(scene.root / "transforms.json")]) == 2
+
+
+# ---- through the commands, and through COLMAP ----------------------------------------------------
+
+def test_damcap_linearize_output_goes_straight_into_damcap_reconstruct(scene, jpeg_frames, tmp_path):
+    from damcap.cli.main import main
+
+    assert main(["linearize", str(scene.images), "-o", str(tmp_path / "linear")]) == 0
+    out = tmp_path / "capture"
+    assert main(["reconstruct", str(tmp_path / "linear"), "-o", str(out), "--poses", str(scene.root / "transforms.json"),
+                 "--masks", str(scene.root / "masks"), "--geometry", f"mesh:{scene.root / 'blob.ply'}", "--mesh-align", "none",
+                 "--capture-size", str(SIZE), "--supersample", "1", "--train-views", "3"]) == 0
+    from damcap.common.capture_folder import read_capture
+
+    cap = read_capture(out)
+    assert inspect_capture(out).problems == [] and len(cap.frames) == N_VIEWS
+    for f in cap.frames:
+        d, ref = read_frame(cap, f), jpeg_frames[Path(f.extra["photo"]).stem]
+        on = ref.coverage > 0
+        assert np.allclose(d.radiance_lin[on], ref.radiance_lin[on], rtol=2 * HALF_RTOL, atol=1e-5)  # half in, half out
+
+
+def test_sfm_registers_linear_exrs_through_8bit_proxies(tmp_path):
+    """No poses: COLMAP registers the EXRs through sRGB proxies in the work folder (same base
+    names), the cameras agree with the truth, and a rerun reuses every stage, also after the
+    proxies were written again (they are deterministic)."""
+    from damcap.reconstruct.normalize import rotation_agreement_deg
+    from damcap.common.capture_folder import read_capture
+
+    n = 16
+    cams = orbit_cameras(n, 3.2, (25.0,), jitter_deg=4, seed=0)
+    names = write_photo_set(tmp_path, bumpy_blob(subdivisions=5), cams, default_intrinsics(256), exposure_series(n, 0))
+    linearize_files(linearize_list(tmp_path / "images"), tmp_path / "linear", LinearizeOptions())
+    opts = ReconstructOptions(capture_size=64, voxels=48, train_views=3, supersample=1)
+    out = tmp_path / "capture"
+    _, report = reconstruct_capture(tmp_path / "linear", out, opts, masks_dir=tmp_path / "masks")
+    assert report.registered == n and report.registration["source"] == "sfm"
+    proxies = out / "reconstruction" / "proxies"
+    assert sorted(p.name for p in proxies.glob("*.png")) == sorted(Path(nm).stem + ".png" for nm in names)
+    cap = read_capture(out)
+    est = np.stack([f.world_from_cam for f in cap.frames])
+    gt = np.stack([cams[names.index(Path(f.extra["photo"]).stem + ".jpg")] for f in cap.frames])
+    assert rotation_agreement_deg(est, gt)[0].max() < 1.5  # degrees, as for the JPEGs themselves
+    (proxies / "manifest.json").unlink()  # every proxy is written again
+    _, again = reconstruct_capture(tmp_path / "linear", out, opts, masks_dir=tmp_path / "masks")
+    assert again.registration["resumed"] == ["features", "matches", "mapping"]

@@ -18,11 +18,14 @@ from torch import nn
 
 from damcap.common.errors import DamcapError
 from damcap.common.numerics import reflect, safe_normalize
+from damcap.common.validate import MAX_DAM_DEPTH, MAX_DAM_WIDTH, bounded_int, finite_in
 
 Encoding = Literal["vn", "nr", "vnr"]
 Activation = Literal["leaky_relu", "relu", "softplus", "shifted_softplus", "tanh"]
 ACTIVATIONS: tuple[str, ...] = get_args(Activation)
 LN2 = math.log(2.0)
+#: smallest positive normal float32
+FLOAT32_TINY = 1.1754943508222875e-38
 
 ENCODING_DIMS = {"vn": 6, "nr": 6, "vnr": 9}
 
@@ -51,8 +54,11 @@ class DamArchitecture:
     mirrored view. ``width`` counts both halves; the structural zeros are not stored"""
 
     def __post_init__(self) -> None:
-        if self.width < 1 or self.depth < 1:
-            raise DamcapError(f"DAM width and depth must be >= 1, got width={self.width}, depth={self.depth}")
+        # bounded before anything (layer_shapes, the weight vector) is built from them
+        bounded_int(self.width, 1, MAX_DAM_WIDTH, "DAM width")
+        bounded_int(self.depth, 1, MAX_DAM_DEPTH, "DAM depth")
+        if not isinstance(self.bias, bool) or not isinstance(self.separable, bool):
+            raise DamcapError(f"DAM bias and separable must be true or false, got bias={self.bias!r}, separable={self.separable!r}")
         if self.encoding not in ENCODING_DIMS:
             raise DamcapError(f"unknown DAM input encoding {self.encoding!r}; use one of {sorted(ENCODING_DIMS)}")
         if self.activation not in ACTIVATIONS:
@@ -213,9 +219,11 @@ class DeepAppearanceMap(nn.Module):
     def __init__(self, arch: DamArchitecture, radiance_scale: float = 1.0, weights_flat: torch.Tensor | None = None, generator: torch.Generator | None = None) -> None:
         super().__init__()
         self.arch = arch
-        if not (math.isfinite(radiance_scale) and radiance_scale > 0):
-            raise DamcapError(f"radiance scale must be a positive finite number, got {radiance_scale}")
-        self.radiance_scale = float(radiance_scale)
+        # float32: the scale multiplies float32 radiance; 1e39 is finite in float64 but renders inf
+        scale = finite_in(radiance_scale, "float32", "radiance scale")
+        if not scale >= FLOAT32_TINY:  # positive in float32 too (1e-50 would round to 0)
+            raise DamcapError(f"radiance scale must be a positive finite number (>= {FLOAT32_TINY:.4g}), got {radiance_scale}")
+        self.radiance_scale = scale
         w = init_weights(arch, generator) if weights_flat is None else weights_flat.detach().float().clone()
         if w.shape != (arch.num_weights,):
             raise DamcapError(f"weight vector has shape {tuple(w.shape)}, the architecture needs ({arch.num_weights},)")

@@ -20,8 +20,9 @@ from safetensors.torch import save as st_save
 
 from damcap.common.atomic import atomic_path
 from damcap.common.errors import DamcapError
+from damcap.common.validate import finite_in, loads_json
 
-from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
+from damcap.appearance.dam import FLOAT32_TINY, DamArchitecture, DeepAppearanceMap
 
 DAM_FORMAT_VERSION = 1
 METADATA_KEY = "damcap"
@@ -63,25 +64,41 @@ def load_dam(path: str | os.PathLike) -> tuple[DeepAppearanceMap, dict[str, Any]
     """
     path = Path(path)
     tensors, meta_text = read_damcap_safetensors(path, "model", ".dam model")
+    meta = loads_json(meta_text, path, "damcap metadata")
     try:
-        meta = json.loads(meta_text)
         version = meta["format_version"]
         arch_json = meta["architecture"]
-        scale = float(meta["radiance_scale"])
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+        scale_raw = meta["radiance_scale"]
+    except (KeyError, TypeError) as e:
         raise DamcapError(f"{path}: damcap metadata is invalid ({e!r})") from None
     if not isinstance(version, int) or version > DAM_FORMAT_VERSION:
         raise DamcapError(f"{path}: .dam format version {version!r} is newer than this damcap reads ({DAM_FORMAT_VERSION}); upgrade damcap")
+    # every number is checked before anything is built from it: the architecture's bounds
+    # (DamArchitecture), the scale in float32 (it multiplies float32 radiance)
+    if isinstance(scale_raw, str):
+        try:
+            scale_raw = float(scale_raw)
+        except ValueError:
+            pass
+    scale = finite_in(scale_raw, "float32", "radiance_scale", path)
+    if not scale >= FLOAT32_TINY:
+        raise DamcapError(f"{path}: radiance_scale must be positive (>= {FLOAT32_TINY:.4g} in float32), got {scale_raw!r}")
+    if not isinstance(arch_json, dict):
+        raise DamcapError(f"{path}: damcap metadata 'architecture' must be an object, got {type(arch_json).__name__}")
     try:
         arch = DamArchitecture(**arch_json)
     except TypeError as e:
         raise DamcapError(f"{path}: unknown architecture fields ({e})") from None
+    except DamcapError as e:
+        raise DamcapError(f"{path}: invalid architecture: {e}") from None
     if set(tensors) != {"weights"}:
         raise DamcapError(f"{path}: expected one tensor 'weights', found {sorted(tensors)}")
     w = tensors["weights"]
     if w.dim() != 1 or w.shape[0] != arch.num_weights:
         raise DamcapError(f"{path}: weights have shape {tuple(w.shape)}, the stated architecture needs ({arch.num_weights},)")
-    if not torch.isfinite(w).all():
+    if not w.dtype.is_floating_point:
+        raise DamcapError(f"{path}: weights are {w.dtype}, expected float32")
+    if not torch.isfinite(w.float()).all():
         raise DamcapError(f"{path}: weights contain NaN or inf")
     return DeepAppearanceMap(arch, scale, w), meta
 
@@ -104,7 +121,7 @@ def read_damcap_safetensors(path: Path, noun: str, kind: str) -> tuple[dict[str,
     try:
         tensors = st_load(data)
         meta_raw = read_safetensors_metadata(data)
-    except (SafetensorError, ValueError, OverflowError, UnicodeDecodeError) as e:
+    except (SafetensorError, ValueError, OverflowError, UnicodeDecodeError, RecursionError) as e:
         raise DamcapError(f"{path}: not a damcap {kind} file (not valid safetensors: {str(e).splitlines()[0][:120]})") from None
     if METADATA_KEY not in meta_raw:
         raise DamcapError(f"{path}: a safetensors file without damcap metadata; not a {kind}")
@@ -115,4 +132,7 @@ def read_safetensors_metadata(data: bytes) -> dict[str, str]:
     """The ``__metadata__`` block of a safetensors blob (already validated by ``st_load``)."""
     n = int.from_bytes(data[:8], "little")
     header = json.loads(data[8:8 + n].decode("utf-8"))
-    return header.get("__metadata__") or {}
+    meta = header.get("__metadata__") or {}
+    if not isinstance(meta, dict):
+        raise ValueError("__metadata__ is not an object")
+    return meta

@@ -33,7 +33,10 @@ import torch
 
 from damcap.common.atomic import atomic_path
 from damcap.common.device import resolve_device
-from damcap.common.errors import DamcapError, require_options
+from damcap.common.errors import DamcapError
+from damcap.common.validate import require_options
+from damcap.common.fingerprint import FINGERPRINT_KEY, fingerprint
+from damcap.common.version import damcap_version
 
 from damcap.appearance.adversarial import PatchDiscriminator, discriminator_loss, generator_loss
 from damcap.appearance.dam import Activation, DamArchitecture, DeepAppearanceMap, Encoding, dam_forward, encode_inputs
@@ -113,6 +116,9 @@ class FitOptions:
             raise DamcapError(f"--quantile must lie in (0, 1) (0.5 = L1), got {self.quantile}")
         if self.precision not in PRECISIONS:
             raise DamcapError(f"--precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")
+        if not self.adversarial_alpha >= 0:  # NaN-proof; inf refused by require_options
+            raise DamcapError(f"--adversarial-alpha must be >= 0, got {self.adversarial_alpha}")
+        self.architecture  # width and depth within DamArchitecture's bounds (named in its error)
 
     @property
     def architecture(self) -> DamArchitecture:
@@ -196,6 +202,59 @@ def _state_json(opts: FitOptions) -> str:
     return json.dumps(asdict(opts), sort_keys=True)
 
 
+STALE_SUFFIX = ".stale"
+"""a checkpoint made from other inputs is kept aside as ``CKPT.stale`` (one generation) instead of
+being resumed or deleted"""
+
+
+def fit_fingerprint(samples: PixelSamples, opts: FitOptions, frames_for_adversarial: list[TrainingFrame] | None = None,
+                    init_model: DeepAppearanceMap | None = None) -> str:
+    """What a fit's result depends on: the training pixels (every tensor of ``samples``, bit for
+    bit), the adversarial cost's whole frames, the initial model, the resolved options and the
+    damcap version. A checkpoint is resumed only by a fit with the same fingerprint."""
+    parts: list[Any] = ["fit", damcap_version(), asdict(opts), samples.view_dir_world, samples.normal_world,
+                        samples.radiance_lin, samples.weight, samples.frame_index]
+    for f in frames_for_adversarial or []:
+        parts += [f.radiance_norm, f.inputs, f.foreground]
+    if init_model is not None:
+        parts += [init_model.get_flat_weights(), float(init_model.radiance_scale)]
+    return fingerprint(*parts)
+
+
+def set_aside_stale(path: Path, why: str, say: Callable[[str], None]) -> None:
+    """Move a checkpoint that must not be resumed to ``path.stale`` (replacing an older one) and
+    say so in one line; the job then starts afresh."""
+    stale = path.with_name(path.name + STALE_SUFFIX)
+    try:
+        os.replace(path, stale)
+        kept = f"kept as {stale.name}"
+    except OSError as e:  # cannot move it: the new run's first checkpoint overwrites it
+        kept = f"could not be moved aside ({e.__class__.__name__}); the new run overwrites it"
+    say(f"{path.name} was written for {why}; starting afresh (the old checkpoint {kept})")
+
+
+def _warn(message: str) -> None:
+    import warnings
+
+    warnings.warn(message, stacklevel=3)
+
+
+def interrupted_note(path: Path | None, step: int, steps: int, kept_step: int | None) -> str:
+    """The line an interrupted job adds to its exception (``e.__notes__``): what was kept.
+
+    Args:
+        path: the job's checkpoint file (None: the job does not checkpoint).
+        step: steps completed when the job stopped; steps: of all.
+        kept_step: the step of the checkpoint left at ``path``, None when none is there.
+
+    >>> interrupted_note(Path("m.dam.ckpt"), 120, 2000, 100)
+    'stopped after step 120 of 2000; kept m.dam.ckpt (step 100): rerun the same command to resume'
+    """
+    if path is None or kept_step is None:
+        return f"stopped after step {step} of {steps}; no checkpoint kept"
+    return f"stopped after step {step} of {steps}; kept {path} (step {kept_step}): rerun the same command to resume"
+
+
 def compute_precision(device: torch.device, precision: Precision) -> ContextManager:
     """The context a training step's forward pass and cost run in: ``torch.autocast`` to
     bfloat16 on ``device``'s type for 'bfloat16', a no-op for 'float32'."""
@@ -212,6 +271,8 @@ def fit_dam(
     checkpoint_path: str | os.PathLike | None = None,
     progress: Callable[[int, int, dict[str, float]], None] | None = None,
     init_model: DeepAppearanceMap | None = None,
+    log: Callable[[str], None] | None = None,
+    remove_checkpoint: bool = True,
 ) -> FitResult:
     """Fit one DAM to pixel samples.
 
@@ -219,11 +280,26 @@ def fit_dam(
         samples: training pixels (frame_index says which training frame each came from).
         opts: options.
         frames_for_adversarial: whole training frames (needed when opts.adversarial).
-        checkpoint_path: where to checkpoint; an existing checkpoint made with the same options is
-            resumed (the result is the same as an uninterrupted run).
+        checkpoint_path: where to checkpoint (atomically, every ``opts.checkpoint_every`` steps
+            and when interrupted). An existing checkpoint is resumed only when its
+            :func:`fit_fingerprint` (training pixels, options, initial model, damcap version)
+            equals this fit's, and then the result is the same as an uninterrupted run, bit for
+            bit. Any other checkpoint (another capture at the same output path, other options,
+            an old one without a fingerprint, an unreadable one) is never loaded: it is moved
+            to ``CKPT.stale``, ``log`` says so, and the fit starts afresh. On completion the
+            checkpoint is removed unless ``remove_checkpoint`` is False (a caller that still has
+            to save the result removes it itself once the result is safe).
         progress: called as progress(step, steps, stats) after every step.
         init_model: optional initial DAM (e.g. a predicted one) instead of random weights; its
             architecture must be opts' and its radiance scale is kept.
+        log: one-line messages (resuming; starting afresh); without it, starting afresh is a
+            ``warnings.warn`` and resuming is silent.
+
+    Raises:
+        KeyboardInterrupt, SystemExit and any other exception of the loop propagate unchanged
+        after the state of the last completed step is checkpointed (when ``checkpoint_path``
+        and ``opts.checkpoint_every`` are set and the step had completed); a note
+        (``e.__notes__``, :func:`interrupted_note`) says what was kept.
 
     Returns:
         the fitted model (on CPU) and its training history.
@@ -270,9 +346,14 @@ def fit_dam(
     history: list[dict[str, float]] = []
     elapsed_before = 0.0
     ckpt = Path(checkpoint_path) if checkpoint_path else None
+    say = log or _warn
+    fp = fit_fingerprint(samples, opts, frames_for_adversarial, init_model) if ckpt else ""
     if ckpt and ckpt.is_file():
         state = load_checkpoint(ckpt)
-        if state.get("options") == _state_json(opts) and int(state["n_samples"]) == len(samples):
+        if state.get(FINGERPRINT_KEY) != fp:
+            set_aside_stale(ckpt, "other inputs (capture, options or damcap version differ)" if state
+                            else "nothing readable", say)
+        else:
             model.set_flat_weights(state["weights"].to(device))
             optim.load_state_dict(state["optim"])
             gen.set_state(state["generator"])
@@ -283,50 +364,74 @@ def fit_dam(
             if disc is not None and "disc" in state:
                 disc.load_state_dict(state["disc"])
                 d_optim.load_state_dict(state["d_optim"])  # type: ignore[union-attr]
+            if log:
+                log(f"resuming {ckpt.name} at step {start} of {opts.steps}")
     resumed_from = start
+
+    def snapshot() -> dict[str, Any]:
+        """The training state after the last completed step (what a checkpoint holds)."""
+        return {
+            FINGERPRINT_KEY: fp, "damcap_version": damcap_version(), "options": _state_json(opts), "n_samples": len(samples),
+            "step": completed, "weights": model.get_flat_weights().cpu(), "optim": optim.state_dict(),
+            "generator": gen_after, "best_loss": best_loss, "best_step": best_step, "best_weights": best_weights,
+            "history": json.dumps(history), "elapsed": elapsed_before + time.perf_counter() - t0,
+            **({"disc": disc.state_dict(), "d_optim": d_optim.state_dict()} if disc is not None else {}),  # type: ignore[union-attr]
+        }
 
     t0 = time.perf_counter()
     n_tr = x_tr.shape[0]
-    for step in range(start, opts.steps):
-        for g in optim.param_groups:
-            g["lr"] = lr_at(step)
-        idx = torch.randint(0, n_tr, (min(opts.batch_size, n_tr),), generator=gen).to(device)
-        with compute_precision(device, opts.precision):
-            pred = dam_forward(model.weights_flat, x_tr[idx], arch)
-            loss = weighted_quantile_cost(pred, y_tr[idx], w_tr[idx], opts.quantile)
-        stats = {"loss": float(loss.detach())}
-        if disc is not None:
-            real, fake = _patches(model, adv_frames, arch, gen, device)  # type: ignore[arg-type]
-            d_optim.zero_grad()  # type: ignore[union-attr]
-            discriminator_loss(disc, real, fake).backward()
-            d_optim.step()  # type: ignore[union-attr]
-            adv = generator_loss(disc, fake)
-            loss = loss + opts.adversarial_alpha * adv
-            stats["adv"] = float(adv.detach())
-        optim.zero_grad()
-        loss.backward()
-        optim.step()
-        done = step + 1
-        if done % opts.eval_every == 0 or done == opts.steps:
-            ho = _evaluate_cost(model, x_ho, y_ho, w_ho, arch, opts.quantile) if x_ho.shape[0] else stats["loss"]
-            record = {"step": done, "train_l1": stats["loss"], "holdout_l1": ho, "seconds": elapsed_before + time.perf_counter() - t0}
-            history.append(record)
-            if x_ho.shape[0] == 0 or ho < best_loss:
-                best_loss, best_step, best_weights = ho, done, model.get_flat_weights().cpu()
-            stats["holdout"] = ho
-        if progress:
-            progress(done, opts.steps, stats)
-        if ckpt and opts.checkpoint_every and done % opts.checkpoint_every == 0 and done < opts.steps:
-            save_checkpoint(ckpt, {
-                "options": _state_json(opts), "n_samples": len(samples), "step": done,
-                "weights": model.get_flat_weights().cpu(), "optim": optim.state_dict(),
-                "generator": gen.get_state(),
-                "best_loss": best_loss, "best_step": best_step, "best_weights": best_weights,
-                "history": json.dumps(history), "elapsed": elapsed_before + time.perf_counter() - t0,
-                **({"disc": disc.state_dict(), "d_optim": d_optim.state_dict()} if disc is not None else {}),  # type: ignore[union-attr]
-            })
+    # ``completed``/``gen_after``: the last step whose update and bookkeeping finished and the
+    # generator state after it; ``mutating``: a step is changing weights, optimiser or records
+    # (an interrupt there cannot be checkpointed exactly: the last periodic checkpoint stays).
+    completed, gen_after, mutating, saved_step = start, gen.get_state(), False, start
+    try:
+        for step in range(start, opts.steps):
+            for g in optim.param_groups:
+                g["lr"] = lr_at(step)
+            idx = torch.randint(0, n_tr, (min(opts.batch_size, n_tr),), generator=gen).to(device)
+            with compute_precision(device, opts.precision):
+                pred = dam_forward(model.weights_flat, x_tr[idx], arch)
+                loss = weighted_quantile_cost(pred, y_tr[idx], w_tr[idx], opts.quantile)
+            stats = {"loss": float(loss.detach())}
+            if disc is not None:
+                real, fake = _patches(model, adv_frames, arch, gen, device)  # type: ignore[arg-type]
+                d_optim.zero_grad()  # type: ignore[union-attr]
+                discriminator_loss(disc, real, fake).backward()
+                mutating = True
+                d_optim.step()  # type: ignore[union-attr]
+                adv = generator_loss(disc, fake)
+                loss = loss + opts.adversarial_alpha * adv
+                stats["adv"] = float(adv.detach())
+            optim.zero_grad()
+            loss.backward()
+            mutating = True
+            optim.step()
+            done = step + 1
+            if done % opts.eval_every == 0 or done == opts.steps:
+                ho = _evaluate_cost(model, x_ho, y_ho, w_ho, arch, opts.quantile) if x_ho.shape[0] else stats["loss"]
+                record = {"step": done, "train_l1": stats["loss"], "holdout_l1": ho, "seconds": elapsed_before + time.perf_counter() - t0}
+                history.append(record)
+                if x_ho.shape[0] == 0 or ho < best_loss:
+                    best_loss, best_step, best_weights = ho, done, model.get_flat_weights().cpu()
+                stats["holdout"] = ho
+            completed, gen_after, mutating = done, gen.get_state(), False
+            if progress:
+                progress(done, opts.steps, stats)
+            if ckpt and opts.checkpoint_every and done % opts.checkpoint_every == 0 and done < opts.steps:
+                save_checkpoint(ckpt, snapshot())
+                saved_step = done
+    except BaseException as e:  # Ctrl-C, SIGTERM or an error: keep the last completed step, then re-raise
+        if ckpt and opts.checkpoint_every and not mutating and completed > saved_step:
+            try:
+                save_checkpoint(ckpt, snapshot())
+                saved_step = completed
+            except Exception as save_error:  # the original exception matters more; say why nothing new was kept
+                e.add_note(f"{ckpt}: could not checkpoint the interrupted fit ({save_error.__class__.__name__}: {save_error})")
+        kept = saved_step if ckpt is not None and saved_step > 0 and ckpt.is_file() else None
+        e.add_note(interrupted_note(ckpt, completed, opts.steps, kept))
+        raise
     final = DeepAppearanceMap(arch, scale, best_weights.cpu())
-    if ckpt and ckpt.is_file():
+    if remove_checkpoint and ckpt and ckpt.is_file():
         ckpt.unlink()
     return FitResult(final, history, best_step, elapsed_before + time.perf_counter() - t0, resumed_from)
 

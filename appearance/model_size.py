@@ -32,6 +32,7 @@ from damcap.appearance.evaluate import score_view
 from damcap.appearance.fit import FitOptions, fit_dam, holdout_frames, load_checkpoint, save_checkpoint
 from damcap.appearance.render import render_frame
 from damcap.appearance.views import samples_of
+from damcap.appearance.pixels import PixelSamples
 
 #: (width, depth) candidates; tried in order of weight count. (32, 4) is the paper's 3360 weights.
 SIZE_LADDER: tuple[tuple[int, int], ...] = ((8, 2), (16, 2), (16, 3), (32, 3), (32, 4), (64, 4))
@@ -92,10 +93,16 @@ def remove_target_checkpoints(checkpoint_path: str | os.PathLike, ladder: tuple[
         p.unlink(missing_ok=True)
 
 
-def _ladder_key(opts: FitOptions, train: list[ViewData], n_samples: int) -> str:
-    """What finished sizes depend on: the fit options other than width/depth, and the views."""
+def _ladder_key(opts: FitOptions, train: list[ViewData], samples: PixelSamples) -> str:
+    """What finished sizes depend on: the fit options other than width/depth, the views, their
+    pixels (bit for bit: another capture under the same frame names differs) and the version."""
+    from damcap.common.fingerprint import fingerprint
+    from damcap.common.version import damcap_version
+
     o = {k: v for k, v in asdict(opts).items() if k not in ("width", "depth")}
-    return json.dumps({"options": o, "frames": [v.name for v in train], "n_samples": n_samples}, sort_keys=True)
+    data = fingerprint(damcap_version(), samples.view_dir_world, samples.normal_world, samples.radiance_lin, samples.weight,
+                       samples.frame_index)
+    return json.dumps({"options": o, "frames": [v.name for v in train], "n_samples": len(samples), "data": data}, sort_keys=True)
 
 
 def _load_finished(path: Path, key: str, progress: Callable[[str], None] | None) -> dict[tuple[int, int], dict[str, Any]]:
@@ -105,7 +112,7 @@ def _load_finished(path: Path, key: str, progress: Callable[[str], None] | None)
     state = load_checkpoint(path)  # an unreadable record warns and reads as {}
     if state and state.get("key") != key:
         if progress:
-            progress(f"{path}: recorded with other fit options or training views; fitting every size afresh")
+            progress(f"{path}: recorded with other fit options, training views or damcap version; fitting every size afresh")
         return {}
     return {(int(r["width"]), int(r["depth"])): r for r in state.get("finished", [])}
 
@@ -136,7 +143,7 @@ def fit_to_target(train: list[ViewData], target_dssim: float, opts: FitOptions,
         raise DamcapError(f"--target-dssim needs held-out training views: use --holdout-views >= 1 and at least 3 train views "
                           f"(got {opts.holdout_views} and {len(train)})")
     samples = samples_of(train)
-    key = _ladder_key(opts, train, len(samples))
+    key = _ladder_key(opts, train, samples)
     record = sizes_record_path(checkpoint_path) if checkpoint_path is not None else None
     finished = _load_finished(record, key, progress) if record is not None else {}
     tried: list[dict[str, float]] = []

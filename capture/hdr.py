@@ -20,6 +20,7 @@ from typing import Literal, Sequence
 import numpy as np
 
 from damcap.common.errors import DamcapError
+from damcap.common.validate import bounded_int, check_float_fields
 
 from damcap.capture.align import chain_shifts, preview_u8, shift_image
 from damcap.capture.exif import Exposure, is_raw_path, parse_exposure_list, read_exposure, resolve_exposure_factors
@@ -41,6 +42,10 @@ from damcap.capture.working_space import CAMERA_RGB, COLORSPACES, rec709_to_work
 HALF_MAX = 65504.0
 #: code levels used for the response of 16-bit LDR images (codes are binned to this many)
 LEVELS_16BIT = 1024
+#: most sample pixels of a response recovery (its least-squares system grows with them)
+MAX_RESPONSE_SAMPLES = 10 ** 6
+#: most reweighting rounds of a response recovery
+MAX_ITERATIONS = 100
 
 
 @dataclass
@@ -74,9 +79,12 @@ class HdrOptions:
     """EXR storage: float (32-bit) or half (16-bit, values up to 65504)."""
 
     def validate(self) -> None:
-        """Raise DamcapError on values outside their documented ranges."""
+        """Raise DamcapError on values outside their documented ranges (NaN and inf included)."""
+        check_float_fields(self)
         if self.colorspace not in COLORSPACES:
             raise DamcapError(f"--colorspace must be one of {', '.join(COLORSPACES)}, got {self.colorspace!r}")
+        bounded_int(self.response_samples, 16, MAX_RESPONSE_SAMPLES, "--response-samples")
+        bounded_int(self.iterations, 0, MAX_ITERATIONS, "--iterations")
         if self.response not in ("debevec", "srgb"):
             raise DamcapError(f"--response must be debevec or srgb, got {self.response!r}")
         if self.dtype not in ("float", "half"):
@@ -134,6 +142,8 @@ def read_ldr_codes(path: str | os.PathLike) -> tuple[np.ndarray, int]:
     """
     import OpenImageIO as oiio
 
+    from damcap.common.exr import check_header_size
+
     path = Path(path)
     if not path.is_file():
         raise DamcapError(f"{path}: file not found")
@@ -147,6 +157,7 @@ def read_ldr_codes(path: str | os.PathLike) -> tuple[np.ndarray, int]:
         if fmt not in ("uint8", "uint16"):
             raise DamcapError(f"{path}: pixel format {fmt}; damcap hdr merges 8/16-bit photos or RAW files "
                               "(a floating-point image is already linear)")
+        check_header_size(path, spec.width, spec.height, spec.nchannels, 2)
         pixels = inp.read_image(0, 0, 0, spec.nchannels, fmt)
         err = inp.geterror()
     finally:

@@ -9,6 +9,8 @@ relative to a reference exposure, so equal radiance gives equal values in every 
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Literal, Sequence
@@ -16,6 +18,7 @@ from typing import Literal, Sequence
 import numpy as np
 
 from damcap.common.errors import DamcapError
+from damcap.common.validate import check_float_fields
 
 from damcap.capture.exif import Exposure, exposure_factor, is_raw_path, read_exposure, resolve_exposure_factors
 from damcap.common.colour import srgb_to_linear
@@ -120,7 +123,8 @@ class LinearizeOptions:
     """Encoded value at or above which a pixel is flagged clipped, in (0, 1]."""
 
     def validate(self) -> None:
-        """Raise DamcapError on values outside their documented ranges."""
+        """Raise DamcapError on values outside their documented ranges (NaN and inf included)."""
+        check_float_fields(self)
         if self.colorspace not in COLORSPACES:
             raise DamcapError(f"--colorspace must be one of {', '.join(COLORSPACES)}, got {self.colorspace!r}")
         if self.dtype not in ("float", "half"):
@@ -153,10 +157,6 @@ def linearize_files(photos: Sequence[Path], out_dir: Path, opts: LinearizeOption
         DamcapError: unreadable photos, missing exposure metadata (names --ignore-exposure),
             two photos with one base name, values beyond half precision.
     """
-    from damcap.common.exr import write_exr
-
-    from damcap.capture.hdr import HALF_MAX, read_ldr_codes
-
     opts.validate()
     stems = [p.stem for p in photos]
     dup = {s for s in stems if stems.count(s) > 1}
@@ -169,7 +169,34 @@ def linearize_files(photos: Sequence[Path], out_dir: Path, opts: LinearizeOption
         factors = resolve_exposure_factors(photos, exposures, missing_hint=(
             "if all photos were taken at one exposure, pass --ignore-exposure to only undo the tone curve"))
     ref = float(opts.reference_exposure) if opts.reference_exposure else float(np.median(factors))
+    created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
+    # outputs are staged in a hidden folder and moved into place only once every photo has been
+    # read: a bad photo late in the list leaves no partial set of EXRs behind
+    stage = Path(tempfile.mkdtemp(prefix=".linearize-", dir=out_dir))
+    try:
+        records = _linearize_into(photos, exposures, factors, ref, stage, opts)
+        for rec in records:
+            os.replace(stage / rec["output"], out_dir / rec["output"])
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        if created:
+            try:
+                out_dir.rmdir()  # only when empty: the folder this call made
+            except OSError:
+                pass
+        raise
+    shutil.rmtree(stage, ignore_errors=True)
+    return {"command": "linearize", "options": asdict(opts), "reference_exposure": ref, "photos": records}
+
+
+def _linearize_into(photos: Sequence[Path], exposures: list[Exposure], factors: np.ndarray, ref: float, out_dir: Path,
+                    opts: LinearizeOptions) -> list[dict]:
+    """Write every photo's EXR into ``out_dir``; the per-photo records."""
+    from damcap.common.exr import write_exr
+
+    from damcap.capture.hdr import HALF_MAX, read_ldr_codes
+
     records = []
     for path, exp, h in zip(photos, exposures, factors):
         colorspace = opts.colorspace
@@ -193,7 +220,7 @@ def linearize_files(photos: Sequence[Path], out_dir: Path, opts: LinearizeOption
                               "damcap:reference_exposure": ref, "damcap:source": path.name})
         records.append({"file": path.name, "output": out.name, "exposure": exp.to_json(), "factor": float(h),
                         "scale": ref / float(h), "colorspace": colorspace, "clipped_fraction": float(clipped.mean())})
-    return {"command": "linearize", "options": asdict(opts), "reference_exposure": ref, "photos": records}
+    return records
 
 
 def _linear_raw(path: Path) -> tuple[np.ndarray, np.ndarray, bool]:

@@ -53,13 +53,12 @@ def progress_bar(total: int, desc: str):
 
 
 def refuse_input_overlap(out: Path, *inputs: Path) -> None:
-    """Outputs never land on or inside an input (inputs are never modified).
+    """Outputs never land on or inside an input (inputs are never modified): the file-output case
+    of :func:`damcap.cli.paths.check_paths`, which every writing command uses.
 
     Raises:
         DamcapError: ``out`` is an input or lies inside an input folder.
     """
-    o = out.resolve()
-    for i in inputs:
-        r = i.resolve()
-        if o == r or (r.is_dir() and r in o.parents):
-            raise DamcapError(f"{out}: output would overwrite or write into the input {i}; choose another output path")
+    from damcap.cli.paths import check_paths, file_out
+
+    check_paths(inputs, [file_out(out)])

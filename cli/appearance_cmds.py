@@ -10,7 +10,8 @@ import typer
 
 from damcap.common.errors import DamcapError
 
-from damcap.cli.app import command, progress_bar, refuse_input_overlap
+from damcap.cli.app import command, progress_bar
+from damcap.cli.paths import check_paths, file_out, folder_out, frame_output_names, on_interrupt, staged_folder
 from damcap.cli.options import parse_choice, parse_float
 
 if TYPE_CHECKING:
@@ -65,7 +66,8 @@ def fit(
 
     opts.validate()  # numeric options and --precision, before reading the capture
     opts.architecture  # validates width/depth/encoding/activation
-    refuse_input_overlap(output, capture)
+    ckpt = output.with_name(output.name + ".ckpt")
+    check_paths([capture], [file_out(output), file_out(ckpt)])
     cap = read_capture(capture)
     views = load_views(cap, split)  # type: ignore[arg-type]
     if target_dssim is not None:
@@ -74,12 +76,11 @@ def fit(
         return
     samples = samples_of(views)
     frames = adversarial_frames(views, samples, opts)
-    ckpt = output.with_name(output.name + ".ckpt")
     if not resume and ckpt.exists():
         ckpt.unlink()
-    if ckpt.exists():
-        typer.echo(f"resuming from {ckpt}", err=True)
-    result = fit_dam(samples, opts, frames_for_adversarial=frames, checkpoint_path=ckpt, progress=progress_bar(opts.steps, "fit"))
+    with on_interrupt(lambda: _checkpoint_kept(ckpt, opts.checkpoint_every)):
+        result = fit_dam(samples, opts, frames_for_adversarial=frames, checkpoint_path=ckpt, progress=progress_bar(opts.steps, "fit"),
+                         log=lambda message: typer.echo(message, err=True), remove_checkpoint=False)
     last = result.history[-1] if result.history else {}
     save_dam(output, result.model, colorspace=cap.colorspace, made_by="fit", provenance={
         "damcap_version": damcap_version(), "options": asdict(opts), "capture": str(capture.resolve()),
@@ -87,8 +88,16 @@ def fit(
         "train_l1": last.get("train_l1"), "holdout_l1": last.get("holdout_l1"), "seconds": result.seconds,
         "history": result.history,
     })
+    ckpt.unlink(missing_ok=True)  # only now that the model is saved
     typer.echo(f"wrote {output} ({result.model.arch.num_weights} weights, {len(samples)} pixels, "
                f"best step {result.best_step}, {result.seconds:.1f} s)")
+
+
+def _checkpoint_kept(ckpt: Path, every: int) -> str:
+    """The interrupt line of fit: what a rerun resumes from."""
+    if ckpt.is_file():
+        return f"the checkpoint {ckpt} is kept; rerun the same command to resume"
+    return f"no checkpoint was written yet (one every {every} steps, to {ckpt}); nothing was kept"
 
 
 def _fit_to_target(capture: Path, cap, views, split: str, target: float, opts, output: Path, width_or_depth_given: bool,
@@ -114,7 +123,14 @@ def _fit_to_target(capture: Path, cap, views, split: str, target: float, opts, o
     existing = target_checkpoint_files(ckpt)
     if existing:
         typer.echo(f"resuming from {', '.join(p.name for p in existing)} in {output.parent}", err=True)
-    choice = fit_to_target(views, target, opts, progress=lambda line: typer.echo(line, err=True), checkpoint_path=ckpt)
+    def kept() -> str:
+        files = target_checkpoint_files(ckpt)
+        if files:
+            return f"the checkpoints {', '.join(str(p) for p in files)} are kept; rerun the same command to resume"
+        return "no checkpoint was written yet; nothing was kept"
+
+    with on_interrupt(kept):
+        choice = fit_to_target(views, target, opts, progress=lambda line: typer.echo(line, err=True), checkpoint_path=ckpt)
     save_dam(output, choice.model, colorspace=cap.colorspace, made_by="fit", provenance={
         "damcap_version": damcap_version(), "options": asdict(opts), "capture": str(capture.resolve()), "split": split,
         "frames": [v.name for v in views], "target_dssim": target, "target_reached": choice.reached, "sizes_tried": choice.tried,
@@ -145,18 +161,22 @@ def render(
     from damcap.common.exr import write_exr
     from damcap.common.version import damcap_version
 
+    check_paths([model, capture], [folder_out(output)])
     dam, meta = load_dam(model)
-    refuse_input_overlap(output, capture, model)
     cap = read_capture(capture)
     frames = cap.split(split)  # type: ignore[arg-type]
-    output.mkdir(parents=True, exist_ok=True)
-    for f in frames:
-        img = render_frame(dam, read_frame(cap, f, with_weights=False), f.camera_centre_world)
-        write_exr(output / Path(f.file_path).name, img, RADIANCE_CHANNELS, dtype="float",
-                  attributes={"damcap:colorspace": meta.get("colorspace", "lin_rec709")})
-    write_json_atomic(output / "render.json", {"damcap_version": damcap_version(), "model": str(model.resolve()),
-                                                "capture": str(capture.resolve()), "split": split,
-                                                "frames": [f.file_path for f in frames]})
+    names = frame_output_names([f.file_path for f in frames], ".exr")  # unique: images/0004 and images2/0004 never collide
+    if "render.json" in names:
+        raise DamcapError(f"{capture}: a frame would be written as render.json; rename the frame")
+    with staged_folder(output) as stage:
+        for f, name in zip(frames, names):
+            img = render_frame(dam, read_frame(cap, f, with_weights=False), f.camera_centre_world)
+            write_exr(stage / name, img, RADIANCE_CHANNELS, dtype="float",
+                      attributes={"damcap:colorspace": meta.get("colorspace", "lin_rec709")})
+        write_json_atomic(stage / "render.json", {"damcap_version": damcap_version(), "model": str(model.resolve()),
+                                                   "capture": str(capture.resolve()), "split": split,
+                                                   "frames": [f.file_path for f in frames],
+                                                   "outputs": dict(zip((f.file_path for f in frames), names))})
     typer.echo(f"wrote {len(frames)} frames to {output}")
 
 
@@ -189,7 +209,7 @@ def evaluate(
             raise DamcapError("give --table1 or --table2, not both (they write different tables)")
         if out is None:
             raise DamcapError("--table1 / --table2 need --out FOLDER for the markdown, JSON and plots")
-        refuse_input_overlap(out, *(table1 or [table2]))
+        check_paths([*(table1 or [table2]), predictor], [folder_out(out)])
         if table1:
             run_table1(list(table1), out, predictor, fresh, table)
         else:
@@ -211,6 +231,9 @@ def evaluate(
     from damcap.common.version import damcap_version
 
     model_paths = list(model or [])
+    if plot is None and json_path is not None:
+        plot = json_path.with_suffix(".png")
+    check_paths([capture, *model_paths, segmentation], [file_out(json_path), file_out(plot)])
     models, made_by = {}, {}
     for path in model_paths:
         dam, meta = load_dam(path)
@@ -218,9 +241,6 @@ def evaluate(
         if label in models:
             raise DamcapError(f"{path}: two models would share the label {label!r}; give the files different names")
         models[label], made_by[label] = dam, meta.get("made_by")
-    for out in (json_path, plot):
-        if out is not None:
-            refuse_input_overlap(out, capture, *model_paths)
     cap = read_capture(capture)
     train = load_views(cap, "train")
     test = load_views(cap, "test")
@@ -254,8 +274,6 @@ def evaluate(
               for p in models if made_by[p] == "predict" for f in models if made_by[f] == "fit"}
     for name, r in ratios.items():
         typer.echo(f"{name}: novel-view DSSIM x{r['test']:.3f}, same-view x{r['train']:.3f} (predicted vs SGD fit)")
-    if plot is None and json_path is not None:
-        plot = json_path.with_suffix(".png")
     if plot is not None:
         plot_sorted_dssim(results, plot, title=capture.name)
         typer.echo(f"plot: {plot}")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, List
 
@@ -10,15 +9,12 @@ import typer
 
 from damcap.common.errors import DamcapError
 
-from damcap.cli.app import command, refuse_input_overlap
+from damcap.cli.app import command
+from damcap.cli.paths import check_paths, file_out, folder_out, staged_folder
 
 if TYPE_CHECKING:
     from damcap.capture.hdr import HdrOptions
     from damcap.capture.linearize import LinearizeOptions
-
-
-def _echo_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    typer.echo(f"warning: {message}", err=True)
 
 
 @command(opts="damcap.capture.hdr:HdrOptions")
@@ -32,12 +28,10 @@ def hdr(
     from damcap.capture.hdr import merge_bracket_files, write_hdr
 
     opts.validate()
-    refuse_input_overlap(output, *files)
+    check_paths(files, [file_out(output), file_out(output.with_name(output.name + ".json"))])
     if output.suffix.lower() != ".exr":
         raise DamcapError(f"{output}: the output must be an .exr file")
-    with warnings.catch_warnings():
-        warnings.showwarning = _echo_warning
-        result = merge_bracket_files(files, opts)
+    result = merge_bracket_files(files, opts)  # its warnings: one line each (cli.main)
     record = write_hdr(output, result, opts)
     lo, hi = float(result.radiance_lin.min()), float(result.radiance_lin.max())
     typer.echo(f"wrote {output} ({result.radiance_lin.shape[1]}x{result.radiance_lin.shape[0]}, {len(files)} {result.kind} "
@@ -58,13 +52,12 @@ def linearize(
     from damcap.common.version import damcap_version
 
     opts.validate()
-    refuse_input_overlap(output, photos)
+    check_paths([photos], [folder_out(output)])
     files = list_photos(photos)
-    with warnings.catch_warnings():
-        warnings.showwarning = _echo_warning
-        record = linearize_files(files, output, opts)
-    record = {"damcap_version": damcap_version(), "photos_folder": str(photos.resolve()), **record}
-    write_json_atomic(output / "linearize.json", record)
+    with staged_folder(output) as stage:  # the EXRs move into OUTPUT together, at the end
+        record = linearize_files(files, stage, opts)  # its warnings: one line each (cli.main)
+        record = {"damcap_version": damcap_version(), "photos_folder": str(photos.resolve()), **record}
+        write_json_atomic(stage / "linearize.json", record)
     scales = [r["scale"] for r in record["photos"]]
     typer.echo(f"wrote {len(files)} linear EXR(s) to {output} (reference exposure {record['reference_exposure']:.4g}, "
                f"scales {min(scales):.3g} .. {max(scales):.3g}); record: {output / 'linearize.json'}")

@@ -11,7 +11,8 @@ import typer
 
 from damcap.common.errors import DamcapError
 
-from damcap.cli.app import command, refuse_input_overlap
+from damcap.cli.app import command
+from damcap.cli.paths import Interrupted, Output, Terminated, check_paths, file_out, folder_out, staged_folder
 
 if TYPE_CHECKING:
     from damcap.export.turntable import ExportOptions, OrbitOptions
@@ -57,47 +58,62 @@ def export(
     from damcap.appearance.dam_file import load_dam
 
     opts.validate()
+    if opts.format == "onnx":
+        target: Output = file_out(output if output.suffix == ".onnx" else output / "model.onnx")  # type: ignore[assignment]
+    elif opts.format == "glsl":
+        target = file_out(output if output.suffix in (".glsl", ".frag") else output / "dam.glsl")  # type: ignore[assignment]
+    else:
+        target = folder_out(output)  # type: ignore[assignment]
+    check_paths([*models, mesh, labels], [target])
     loaded = [load_dam(m) for m in models]
     dams = [m for m, _ in loaded]
-    refuse_input_overlap(output, *models, *([mesh] if mesh else []))
     if opts.format == "onnx":
         if len(dams) != 1:
             raise DamcapError("--format onnx takes one model")
-        _export_onnx(dams[0], output if output.suffix == ".onnx" else output / "model.onnx")
+        _export_onnx(dams[0], target.path)
         return
     if opts.format == "glsl":
         from damcap.common.atomic import write_text_atomic
         from damcap.export.glsl import glsl_source
 
-        path = output if output.suffix in (".glsl", ".frag") else output / "dam.glsl"
+        path = target.path
         write_text_atomic(path, "".join(glsl_source(d, prefix=f"dam{k}" if len(dams) > 1 else "dam") for k, d in enumerate(dams)))
         typer.echo(f"wrote {path}")
         return
     if mesh is None:
         raise DamcapError("--format frames needs --mesh SHAPE.obj|ply")
-    _export_frames(dams, [meta for _, meta in loaded], models, mesh, labels, output, orbit, opts)
+    with staged_folder(output) as stage:  # frames, PNGs, video and export.json move into OUTPUT at the end
+        _export_frames(dams, [meta for _, meta in loaded], models, mesh, labels, stage, orbit, opts)
+    typer.echo(f"wrote {orbit.views} frames to {output} (frames/*.exr linear, display/*.png sRGB{', turntable.mp4' if opts.video else ''})")
 
 
 def _export_onnx(dam, path: Path) -> None:
-    import torch
-
+    from damcap.common.atomic import atomic_path
     from damcap.common.optional import require
 
     ort = require("onnxruntime", "damcap export --format onnx")
 
     from damcap.export.onnx_export import export_onnx
 
-    export_onnx(dam, path)
+    with atomic_path(path) as staged:  # a file that fails the check below is never left behind
+        export_onnx(dam, staged)
+        checked = _check_onnx(ort, dam, staged, path)
+    typer.echo(f"wrote {path} (checked against onnxruntime: max relative difference {checked:.1e})")
+
+
+def _check_onnx(ort, dam, staged: Path, path: Path) -> float:
+    import torch
+
     rng = np.random.default_rng(0)
     v = rng.normal(size=(4096, 3)).astype(np.float32)
     n = rng.normal(size=(4096, 3)).astype(np.float32)
-    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"view_dir_world": v, "normal_world": n})[0]
+    got = ort.InferenceSession(str(staged), providers=["CPUExecutionProvider"]).run(None, {"view_dir_world": v, "normal_world": n})[0]
     with torch.no_grad():
         want = dam(torch.from_numpy(v), torch.from_numpy(n)).numpy()
     err = float(np.abs(got - want).max() / max(float(np.abs(want).max()), 1e-12))
     if err > 1e-5:
         raise DamcapError(f"{path}: onnxruntime disagrees with damcap by {err:.2e} (relative); the export is wrong")
-    typer.echo(f"wrote {path} (checked against onnxruntime: max relative difference {err:.1e})")
+    return err
 
 
 def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, export_opts) -> None:
@@ -158,7 +174,6 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
         "options": asdict(opts), "export_options": asdict(export_opts), "exposure_scale": scale, "colorspace": metas[0].get("colorspace"),
         "world_from_cam": cams,
     })
-    typer.echo(f"wrote {views} frames to {output} (frames/*.exr linear, display/*.png sRGB{', turntable.mp4' if video else ''})")
 
 
 @command(cam="damcap.export.viewer:ViewerCamera")
@@ -166,8 +181,8 @@ def view(
     model: Path = typer.Argument(..., help="model file (.dam)"),
     output: Path = typer.Option(..., "-o", "--output", help="HTML file to write"),
     mesh: Optional[Path] = typer.Option(None, "--mesh", help="OBJ/PLY shape (default: a sphere)"),
-    serve: bool = typer.Option(False, "--serve/--no-serve", help="serve the page on 127.0.0.1 until Ctrl-C"),
-    port: int = typer.Option(8765, help="port for --serve"),
+    serve: bool = typer.Option(False, "--serve/--no-serve", help="serve the page (only it) on 127.0.0.1 until Ctrl-C"),
+    port: int = typer.Option(8765, help="port for --serve: 1-65535, or 0 for any free port"),
     *,
     cam: ViewerCamera,
 ) -> None:
@@ -182,18 +197,23 @@ def view(
     opts = OrbitOptions(views=1, elevation_deg=cam.elevation_deg, azimuth0_deg=cam.azimuth_deg, resolution=128, distance=cam.distance,
                         fov_deg=cam.fov_deg)
     opts.validate()
+    if not 0 <= port <= 65535:
+        raise DamcapError(f"--port must be 0-65535 (0: any free port), got {port}")
+    check_paths([model, mesh], [file_out(output)])
     dam, _ = load_dam(model)
-    refuse_input_overlap(output, model, *([mesh] if mesh else []))
     shape = _load_mesh(mesh)
     _, buf, rad = next(render_orbit([dam], shape, np.zeros(len(shape.triangles), np.int64), opts))
     html = viewer_html(dam, shape, exposure_scale_for(rad, buf.coverage > 0.5), cam, title=f"{model.name} on {mesh.name if mesh else 'a sphere'}")
     write_text_atomic(output, html)
     typer.echo(f"wrote {output}")
     if serve:
-        import functools
-        import http.server
+        from urllib.parse import quote
 
-        handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(output.resolve().parent))
-        with http.server.ThreadingHTTPServer(("127.0.0.1", port), handler) as httpd:
-            typer.echo(f"serving http://127.0.0.1:{port}/{output.name} (Ctrl-C to stop)")
-            httpd.serve_forever()
+        from damcap.export.viewer import page_server
+
+        with page_server(html.encode("utf-8"), output.name, port) as httpd:  # this page only, never the folder
+            typer.echo(f"serving http://127.0.0.1:{httpd.server_address[1]}/{quote(output.name)} (Ctrl-C to stop)")
+            try:
+                httpd.serve_forever()
+            except KeyboardInterrupt as e:
+                raise Interrupted(f"{output} is kept; the server stopped", isinstance(e, Terminated)) from None

@@ -12,7 +12,8 @@ import typer
 
 from damcap.common.errors import DamcapError
 
-from damcap.cli.app import command, progress_bar, refuse_input_overlap
+from damcap.cli.app import command, progress_bar
+from damcap.cli.paths import check_paths, file_out, on_interrupt
 
 if TYPE_CHECKING:
     from damcap.appearance.hyper.train import HyperTrainOptions
@@ -40,14 +41,18 @@ def train_hyper_cmd(
 
     opts.validate()
     opts.architecture  # validates channels against the input size
-    refuse_input_overlap(output, dataset)
-    paths = corpus_training_captures(dataset)
     state = output.with_name(output.name + ".state")
+    sidecar = output.with_name(output.stem + ".json")
+    check_paths([dataset], [file_out(output), file_out(state), file_out(sidecar)])
+    paths = corpus_training_captures(dataset)
     rank = int(os.environ.get("RANK", "0"))
     if not resume and state.exists() and rank == 0:
         state.unlink()
     log = lambda m: typer.echo(m, err=True)  # noqa: E731
-    result = train_hyper(paths, opts, checkpoint_path=state, progress=progress_bar(opts.steps, "train-hyper"), log=log)
+    kept = lambda: (f"the training state {state} is kept; rerun the same command to resume" if state.is_file()  # noqa: E731
+                    else "no training state was written yet; nothing was kept")
+    with on_interrupt(kept):
+        result = train_hyper(paths, opts, checkpoint_path=state, progress=progress_bar(opts.steps, "train-hyper"), log=log)
     if rank != 0:
         return
     from dataclasses import asdict
@@ -67,7 +72,6 @@ def train_hyper_cmd(
     if preset:
         training["corpus_command"] = f"damcap synth-set {shlex.quote(str(dataset))} --preset {preset} --data-dir DATA"
     save_predictor(output, result.net, training)
-    sidecar = output.with_name(output.stem + ".json")
     write_json_atomic(sidecar, {"predictor": output.name, "sha256": hashlib.sha256(output.read_bytes()).hexdigest(), **training})
     last = result.curve[-1] if result.curve else {}
     typer.echo(f"wrote {output} ({len(result.train_captures)} training captures, best step {result.best_step}, "
@@ -94,7 +98,7 @@ def predict(
     from damcap.common.version import damcap_version
 
     pred_path = predictor or shipped_predictor_path()
-    refuse_input_overlap(output, capture, pred_path)
+    check_paths([capture, pred_path], [file_out(output)])
     net, meta = load_predictor(pred_path)
     net.to(resolve_device(device))
     cap = read_capture(capture)

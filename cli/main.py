@@ -1,13 +1,24 @@
 """``damcap``: the command-line entry point.
 
-Every user mistake ends in one line on stderr and a non-zero exit (2), never a traceback.
+Every user mistake ends in one line on stderr and a non-zero exit, never a traceback:
+
+- 2: a user mistake (``error: ...``) or an operating-system error while reading or writing
+  (``error: PATH: Permission denied; ...``, a full disk, a read-only filesystem);
+- 130: Ctrl-C, 143: SIGTERM (``interrupted: ...`` says what was kept, e.g. a checkpoint that a
+  rerun resumes).
+
+Python and NumPy warnings are printed as one line each, ``warning: ...``, on stderr.
 Commands live in one module per stage; importing a module registers its commands.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import sys
+import threading
+import warnings
 
 import typer
 
@@ -21,6 +32,30 @@ from damcap.cli import export_cmds  # noqa: F401  (registers export, view)
 from damcap.cli import segment_cmds  # noqa: F401  (registers segment)
 from damcap.cli import hyper_cmds  # noqa: F401  (registers train-hyper, predict)
 from damcap.cli.app import build_app
+from damcap.cli.paths import Interrupted, Terminated, os_error_line
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    typer.echo(f"warning: {' '.join(str(message).split())}", err=True)
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise Terminated()
+
+
+@contextlib.contextmanager
+def _signals_and_warnings():
+    """SIGTERM raises :class:`Terminated` (Ctrl-C's path); warnings print as one line each."""
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        with warnings.catch_warnings():
+            warnings.showwarning = _one_line_warning
+            yield
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -28,7 +63,15 @@ def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else [str(a) for a in argv]
     selected = next((a for a in args if not a.startswith("-")), None)  # the top level takes only --help, --version
     try:
-        build_app(selected)(args=args, prog_name="damcap", standalone_mode=False)
+        with _signals_and_warnings():
+            rv = build_app(selected)(args=args, prog_name="damcap", standalone_mode=False)
+        if isinstance(rv, int) and not isinstance(rv, bool) and rv != 0:  # typer returns 130 for a bare Ctrl-C
+            if rv == 130:
+                typer.echo("interrupted", err=True)
+            return rv
+    except Interrupted as e:
+        typer.echo(f"interrupted{' (SIGTERM)' if e.terminated else ''}: {e.kept}", err=True)
+        return e.exit_code
     except DamcapError as e:
         typer.echo(f"error: {e}", err=True)
         return 2
@@ -46,6 +89,12 @@ def main(argv: list[str] | None = None) -> int:
         message = e.format_message() if hasattr(e, "format_message") else str(e)
         typer.echo(f"error: {' '.join(message.split())}{hint}", err=True)
         return int(getattr(e, "exit_code", 2) or 2)
+    except OSError as e:  # permission denied, disk full, read-only filesystem: one line, never a traceback
+        typer.echo(f"error: {os_error_line(e)}", err=True)
+        return 2
+    except Terminated:
+        typer.echo("interrupted (SIGTERM)", err=True)
+        return 143
     except KeyboardInterrupt:
         typer.echo("interrupted", err=True)
         return 130

@@ -354,7 +354,10 @@ class DerivedCommand:
                 kwargs[pname] = build_options(classes[pname], values)
             if self.wants_given:
                 kwargs[GIVEN] = frozenset(given)
-            return self.fn(**kwargs)
+            from damcap.cli.paths import NOTHING_KEPT, on_interrupt
+
+            with on_interrupt(lambda: NOTHING_KEPT):  # Ctrl-C / SIGTERM reach cli.main as Interrupted (typer would exit 0)
+                return self.fn(**kwargs)
 
         run.__name__ = self.fn.__name__
         run.__doc__ = self.fn.__doc__

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Optional
 import typer
 
 from damcap.cli.app import command
+from damcap.cli.paths import check_paths, folder_out, on_interrupt
 
 if TYPE_CHECKING:
     from damcap.reconstruct.pipeline import ReconstructOptions
@@ -46,10 +47,22 @@ def reconstruct(
     opts: ReconstructOptions,
 ) -> None:
     """Photos -> capture folder: cameras (COLMAP or known poses), geometry, linear radiance, buffers, split."""
-    from damcap.reconstruct.pipeline import reconstruct_capture
+    from damcap.reconstruct.pipeline import WORK_FOLDER, reconstruct_capture
 
-    capture, report = reconstruct_capture(photos, output, opts, masks_dir=masks, poses=poses, progress=stage_progress(),
-                                          log=lambda msg: typer.echo(msg, err=True))
+    # every input, the pose file (or COLMAP folder) included, is checked against the output before
+    # reconstruct_capture prepares (clears) the output folder
+    pose_input = None if poses is None else Path(poses[len("colmap:"):] if poses.startswith("colmap:") else poses)
+    check_paths([photos, masks, pose_input], [folder_out(output)])
+
+    def kept() -> str:
+        work = output / WORK_FOLDER
+        if work.is_dir():
+            return f"the finished stages in {work} are kept; rerun the same command to resume"
+        return "nothing was kept"
+
+    with on_interrupt(kept):
+        capture, report = reconstruct_capture(photos, output, opts, masks_dir=masks, poses=poses, progress=stage_progress(),
+                                              log=lambda msg: typer.echo(msg, err=True))
     reg = report.registration
     line = f"cameras: {report.registered}/{report.photos} photos ({reg.get('source')})"
     if reg.get("source") == "sfm":

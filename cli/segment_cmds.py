@@ -10,7 +10,8 @@ import typer
 
 from damcap.common.errors import DamcapError
 
-from damcap.cli.app import command, progress_bar, refuse_input_overlap
+from damcap.cli.app import command, progress_bar
+from damcap.cli.paths import check_paths, file_out, folder_out, frame_output_names, staged_folder
 from damcap.cli.options import parse_choice
 
 if TYPE_CHECKING:
@@ -43,7 +44,7 @@ def segment(
     auto = n is None
     base = replace(opts, materials=n) if n is not None else opts
     base.validate()
-    refuse_input_overlap(output, capture)
+    check_paths([capture], [folder_out(output)])
     cap = read_capture(capture)
     train = load_views(cap, "train")
     test = load_views(cap, "test") if cap.test_filenames else []
@@ -66,14 +67,17 @@ def segment(
         curve = [{"materials": model.materials, "heldout_dssim": novel_view_dssim(model, test) if test else None, "seconds": model.seconds}]
     resolved = replace(base, materials=model.materials)
     provenance = {"damcap_version": damcap_version(), "options": asdict(resolved), "capture": str(capture.resolve())}
-    save_segmentation(output, model, colorspace=cap.colorspace, provenance=provenance)
-    for v in train:
-        w = model.weights_of(v)
-        write_exr(output / "weights" / f"{v.name}.exr", w, weight_channels(model.materials), dtype="half")
-        write_png(output / "preview" / f"{v.name}.png", false_colour(w, v.data.coverage))
-    write_json_atomic(output / "segment.json", {**provenance, "materials": model.materials, "auto": auto, "choice": asdict(choice), "reason": reason,
+    # per-frame names by relative path where frames lie in several folders (images/0004, images2/0004)
+    names = frame_output_names([f.file_path for f in cap.split("train")], "")
+    with staged_folder(output) as stage:  # everything moves into OUTPUT together, at the end
+        save_segmentation(stage, model, colorspace=cap.colorspace, provenance=provenance)
+        for v, name in zip(train, names):
+            w = model.weights_of(v)
+            write_exr(stage / "weights" / f"{name}.exr", w, weight_channels(model.materials), dtype="half")
+            write_png(stage / "preview" / f"{name}.png", false_colour(w, v.data.coverage))
+        write_json_atomic(stage / "segment.json", {**provenance, "materials": model.materials, "auto": auto, "choice": asdict(choice), "reason": reason,
                                                 "curve": curve, "history": model.history, "seconds": model.seconds,
-                                                "frames": [v.name for v in train]})
+                                                "frames": [v.name for v in train], "outputs": names})
     typer.echo(f"wrote {model.materials} materials to {output} (material_*.dam, weights/*.exr, preview/*.png, segmenter.safetensors)")
 
 
@@ -93,7 +97,7 @@ def segment_labels(
     from damcap.common.atomic import write_npy_atomic, write_text_atomic
     from damcap.common.mesh import load_mesh
 
-    refuse_input_overlap(output, segmentation, mesh)
+    check_paths([segmentation, mesh], [file_out(output), file_out(weights)])
     if output.suffix not in (".npy", ".txt"):
         raise DamcapError(f"{output}: labels are written as .npy or .txt; choose one of these suffixes")
     model = load_segmentation(segmentation)
@@ -105,7 +109,6 @@ def segment_labels(
     else:
         write_text_atomic(output, "\n".join(map(str, labels.tolist())) + "\n")
     if weights is not None:
-        refuse_input_overlap(weights, segmentation, mesh)
         write_npy_atomic(weights, w)
     counts = np.bincount(labels, minlength=model.materials)
     typer.echo(f"wrote {output}: {len(labels)} vertices, per material {counts.tolist()}; render with "

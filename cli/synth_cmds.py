@@ -12,6 +12,7 @@ import typer
 from damcap.common.errors import DamcapError
 
 from damcap.cli.app import command, progress_bar
+from damcap.cli.paths import check_paths, file_out, folder_out, on_interrupt
 from damcap.cli.options import parse_choice
 
 if TYPE_CHECKING:
@@ -43,6 +44,7 @@ def closed_form(
     """Write a capture whose appearance is known in closed form (Lambert + GGX, distant light)."""
     from damcap.synth.closed_form import make_closed_form_capture
 
+    check_paths([], [folder_out(out)])
     cap = make_closed_form_capture(out, opts)
     typer.echo(f"wrote {len(cap.frames)} frames to {out}")
 
@@ -56,8 +58,12 @@ def synth(
     """Render one synthetic capture with Mitsuba 3 (the paper's data set), validated."""
     from damcap.synth.mitsuba_capture import make_synthetic_capture
 
+    mesh = Path(opts.object) if Path(opts.object).suffix.lower() in (".obj", ".ply") else None  # a mesh file, or a named shape
+    check_paths([mesh], [folder_out(out)])
     bar = progress_bar(opts.views, "synth")
-    cap = make_synthetic_capture(out, opts, progress=lambda done, total, stats: bar(done, total, stats))
+    with on_interrupt(lambda: f"the frames rendered so far in {out} are kept; rerun the same command to resume"
+                      if out.is_dir() else "nothing was kept"):
+        cap = make_synthetic_capture(out, opts, progress=lambda done, total, stats: bar(done, total, stats))
     typer.echo(f"wrote {len(cap.frames)} frames to {out} (train {len(cap.train_filenames)}, test {len(cap.test_filenames)}, "
                f"{cap.materials} material(s)); validated")
 
@@ -78,6 +84,7 @@ def synth_set(
     data_dir = shared_data_dir(data)
     if not (data_dir / "meshes").is_dir() or not (data_dir / "envmaps").is_dir():
         raise DamcapError(f"{data_dir}: no meshes/ and envmaps/ here; pass --data-dir (or set {DATA_ENV}) with the shared data folder")
+    check_paths([data_dir], [folder_out(out)])
     preset = opts.preset
     bar = None
 
@@ -89,7 +96,8 @@ def synth_set(
         bar.set_postfix_str(f"{entry.name}: {entry.status}", refresh=True)
 
     try:
-        entries = make_corpus(out, preset, data_dir, jobs=opts.jobs, dry_run=opts.dry_run, on_capture=on_capture)
+        with on_interrupt(lambda: f"the captures finished in {out} are kept; rerun the same command to resume"):
+            entries = make_corpus(out, preset, data_dir, jobs=opts.jobs, dry_run=opts.dry_run, on_capture=on_capture)
     finally:
         if bar is not None:
             bar.close()
@@ -109,6 +117,7 @@ def synth_photos(
     (the input of damcap reconstruct; samples/photos_blob)."""
     from damcap.synth.photos import make_photo_set
 
+    check_paths([], [folder_out(out)])
     if (out / "images").exists():
         raise DamcapError(f"{out}/images exists; choose a new folder")
     opts.validate()
@@ -125,4 +134,5 @@ def shape(
     """Write a procedural shape as an OBJ/PLY mesh (for damcap export --mesh)."""
     from damcap.common.shapes import write_shape
 
+    check_paths([], [file_out(output)])
     typer.echo(f"wrote {write_shape(name, output)}")

@@ -1,8 +1,9 @@
-"""Atomic file writes: write next to the target, then rename over it."""
+"""Atomic file writes: write next to the target, fsync it, rename it over the target, fsync the folder."""
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import tempfile
@@ -12,11 +13,34 @@ from typing import Any, Iterator
 import numpy as np
 
 
+def fsync_path(path: str | os.PathLike) -> None:
+    """Flush a file's or a folder's data and metadata to disk (a folder: the names in it).
+
+    Filesystems that cannot fsync a folder (EINVAL, ENOTSUP) are tolerated.
+    """
+    is_dir = os.path.isdir(path)
+    fd = os.open(path, os.O_RDONLY | (getattr(os, "O_DIRECTORY", 0) if is_dir else 0))
+    try:
+        os.fsync(fd)
+    except OSError as e:
+        if not is_dir or e.errno not in (errno.EINVAL, errno.ENOTSUP, errno.EBADF):
+            raise
+    finally:
+        os.close(fd)
+
+
+def _replace_durably(staged: Path, path: Path) -> None:
+    fsync_path(staged)
+    os.replace(staged, path)
+    fsync_path(path.parent)
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, keep_name: bool = False) -> Iterator[Path]:
     """Yield a temporary path beside ``path`` (same suffix); on success rename it onto ``path``.
 
-    A reader never sees a half-written file, and a crash leaves the previous file intact.
+    A reader never sees a half-written file, and a crash leaves the previous file intact: the
+    staged file is fsynced before the rename and the folder after it.
     ``keep_name``: the temporary file has ``path``'s own name, inside a temporary folder beside
     it, for formats that record their file's name (an OBJ names its object after it).
     """
@@ -26,7 +50,7 @@ def atomic_path(path: str | os.PathLike, keep_name: bool = False) -> Iterator[Pa
         with tempfile.TemporaryDirectory(prefix=f".{path.stem}.", dir=path.parent) as folder:
             staged = Path(folder) / path.name
             yield staged
-            os.replace(staged, path)
+            _replace_durably(staged, path)
         return
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
     os.close(fd)
@@ -36,7 +60,7 @@ def atomic_path(path: str | os.PathLike, keep_name: bool = False) -> Iterator[Pa
     tmp_path = Path(tmp)
     try:
         yield tmp_path
-        os.replace(tmp_path, path)
+        _replace_durably(tmp_path, path)
     finally:
         if tmp_path.exists():
             tmp_path.unlink()

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import copy
 import json
-import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,6 +20,7 @@ import numpy as np
 from damcap.common.atomic import write_json_atomic
 from damcap.common.errors import DamcapError
 from damcap.common.exr import read_exr_channels, write_exr
+from damcap.common.validate import MAX_MATERIALS, finite_in, load_json_file, require_resolution
 
 FORMAT_VERSION = 1
 RADIANCE_CHANNELS = ("R", "G", "B")
@@ -32,6 +32,9 @@ GEOMETRY_CHANNELS = NORMAL_CHANNELS + POSITION_CHANNELS + (COVERAGE_CHANNEL,)
 NORMAL_UNIT_TOL = 1e-2
 #: max |R^T R - I| and |det R - 1| allowed for a camera-to-world rotation.
 RIGID_TOL = 1e-3
+#: bytes per pixel a frame needs in memory (radiance, geometry, weights and derived float32
+#: buffers, with copies): what bounds the resolution transforms.json may state
+FRAME_BYTES_PER_PIXEL = 4 * 64
 
 Split = Literal["train", "test", "all"]
 
@@ -140,9 +143,10 @@ class FrameData:
 # --------------------------------------------------------------------------------------------
 
 def _number(where: str, key: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    # finite in float32: intrinsics end up in float32 ray and pixel buffers
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise DamcapError(f"{where}: '{key}' must be a finite number, got {value!r}")
-    return float(value)
+    return finite_in(value, "float32", f"'{key}'", where)
 
 
 def _intrinsics(where: str, obj: dict[str, Any], default: Intrinsics | None) -> Intrinsics:
@@ -154,9 +158,11 @@ def _intrinsics(where: str, obj: dict[str, Any], default: Intrinsics | None) -> 
     if "fl_y" not in obj and "fl_x" in obj and default is None:
         vals["fl_y"] = vals["fl_x"]
     w, h = vals["w"], vals["h"]
-    if w != int(w) or h != int(h) or w <= 0 or h <= 0:
+    if w != int(w) or h != int(h) or not (w > 0 and h > 0):
         raise DamcapError(f"{where}: image size must be positive integers, got w={w}, h={h}")
-    if vals["fl_x"] <= 0 or vals["fl_y"] <= 0:
+    # a frame's pixels: radiance (3) + geometry (7) + derived buffers, float32, a few copies
+    require_resolution(w, h, FRAME_BYTES_PER_PIXEL, "a frame", where)
+    if not (vals["fl_x"] > 0 and vals["fl_y"] > 0):
         raise DamcapError(f"{where}: focal lengths must be positive, got {vals['fl_x']}, {vals['fl_y']}")
     return Intrinsics(vals["fl_x"], vals["fl_y"], vals["cx"], vals["cy"], int(w), int(h))
 
@@ -198,10 +204,7 @@ def read_capture(root: str | os.PathLike) -> Capture:
     path = root / "transforms.json"
     if not path.is_file():
         raise DamcapError(f"{path}: not found; a capture folder needs a transforms.json")
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DamcapError(f"{path}: invalid JSON ({e})") from None
+    doc = load_json_file(path, "transforms.json")
     if not isinstance(doc, dict):
         raise DamcapError(f"{path}: expected a JSON object at the top level")
     version = doc.get("damcap_version", FORMAT_VERSION)
@@ -248,7 +251,8 @@ def read_capture(root: str | os.PathLike) -> Capture:
         ))
     names = [f.file_path for f in frames]
     if len(set(names)) != len(names):
-        raise DamcapError(f"{path}: duplicate file_path entries")
+        dup = next(n for n in names if names.count(n) > 1)
+        raise DamcapError(f"{path}: duplicate file_path entries ({dup!r} appears {names.count(dup)} times)")
     splits = {}
     for key in ("train_filenames", "test_filenames"):
         lst = doc.get(key, [])
@@ -259,8 +263,9 @@ def read_capture(root: str | os.PathLike) -> Capture:
             raise DamcapError(f"{path}: '{key}' names {unknown[0]!r}, which is not a frame's file_path")
         splits[key] = lst
     materials = doc.get("materials")
-    if materials is not None and (not isinstance(materials, int) or materials < 1):
-        raise DamcapError(f"{path}: 'materials' must be a positive integer, got {materials!r}")
+    if materials is not None:  # bounded: weight_channels(materials) and the weight maps are built from it
+        if not isinstance(materials, int) or isinstance(materials, bool) or not 1 <= materials <= MAX_MATERIALS:
+            raise DamcapError(f"{path}: 'materials' must be an integer in [1, {MAX_MATERIALS}], got {materials!r}")
     top_known = {"damcap_version", "camera_model", "fl_x", "fl_y", "cx", "cy", "w", "h", "colorspace",
                  "frames", "train_filenames", "test_filenames", "materials"}
     return Capture(

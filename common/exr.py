@@ -15,9 +15,29 @@ from damcap.common.errors import DamcapError
 
 def _one_line(message: str, path: Path) -> str:
     """OpenImageIO's error text as one short line (it repeats the path on every line)."""
-    lines = [ln.replace(f"({path})", "").replace(str(path), "").strip(" :") for ln in message.strip().splitlines()]
+    lines = [ln.replace(f'("{path}")', "").replace(f"({path})", "").replace(str(path), "").strip(" :")
+             for ln in message.strip().splitlines()]
     lines = [ln for ln in lines if ln]
     return lines[-1] if lines else "unknown error"
+
+
+#: most channels damcap reads from one image
+MAX_IMAGE_CHANNELS = 1024
+
+
+def check_header_size(path: str | os.PathLike, width: int, height: int, channels: int, bytes_per_value: int) -> None:
+    """Refuse an image whose header states a size that could not be held, before reading pixels.
+
+    Raises:
+        DamcapError: a side outside [1, MAX_IMAGE_SIDE], a channel count outside [1, 1024], or
+            pixels that would need more memory than the machine allows (the GiB are named).
+    """
+    from damcap.common.validate import MAX_IMAGE_SIDE, bounded_int, require_memory
+
+    w = bounded_int(width, 1, MAX_IMAGE_SIDE, "image width (header)", path)
+    h = bounded_int(height, 1, MAX_IMAGE_SIDE, "image height (header)", path)
+    c = bounded_int(channels, 1, MAX_IMAGE_CHANNELS, "image channel count (header)", path)
+    require_memory(float(w) * h * c * bytes_per_value * 2, f"an image of {w}x{h} pixels, {c} channels", path)
 
 
 def read_exr(path: str | os.PathLike) -> tuple[np.ndarray, tuple[str, ...]]:
@@ -41,6 +61,7 @@ def read_exr(path: str | os.PathLike) -> tuple[np.ndarray, tuple[str, ...]]:
         raise DamcapError(f"{path}: cannot read image ({_one_line(oiio.geterror(), path)})")
     try:
         spec = inp.spec()
+        check_header_size(path, spec.width, spec.height, spec.nchannels, 4)
         pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
         err = inp.geterror()
     finally:
@@ -144,9 +165,11 @@ def read_image_u8(path: str | os.PathLike) -> np.ndarray:
         raise DamcapError(f"{path}: cannot read image ({_one_line(oiio.geterror(), path)})")
     try:
         spec = inp.spec()
+        check_header_size(path, spec.width, spec.height, spec.nchannels, 1)
         px = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
+        err = inp.geterror()  # a truncated JPEG/PNG reads with gray filler and an error here
     finally:
         inp.close()
-    if px is None:
-        raise DamcapError(f"{path}: cannot read pixels")
+    if px is None or err:
+        raise DamcapError(f"{path}: cannot read pixels, the file is damaged or truncated ({_one_line(err or 'no data', path)})")
     return np.asarray(px, np.uint8).reshape(spec.height, spec.width, spec.nchannels)

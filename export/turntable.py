@@ -10,6 +10,7 @@ import torch
 
 from damcap.appearance.dam import DeepAppearanceMap
 from damcap.common.errors import DamcapError
+from damcap.common.validate import MAX_COUNT, bounded_int, check_float_fields, require_resolution
 from damcap.common.cameras import focal_px_from_fov, orbit_world_from_cam
 from damcap.common.mesh import Mesh
 from damcap.common.raycast import MeshRaycaster, SurfaceBuffers
@@ -35,7 +36,11 @@ class OrbitOptions:
     """sub-pixel grid per axis for silhouette coverage (1 = pixel-centre rays only)"""
 
     def validate(self) -> None:
-        if self.views < 1 or self.resolution < 8 or not 0 < self.fov_deg < 170 or self.distance <= 1.0:
+        check_float_fields(self)
+        bounded_int(self.views, 1, MAX_COUNT, "--views")
+        bounded_int(self.supersample, 1, 16, "--supersample")
+        require_resolution(self.resolution, self.resolution, 4 * 32 * self.supersample ** 2, f"--resolution {self.resolution}: a frame")
+        if self.views < 1 or self.resolution < 8 or not 0 < self.fov_deg < 170 or not self.distance > 1.0:
             raise DamcapError(
                 f"orbit needs views >= 1, resolution >= 8, 0 < fov < 170 and distance > 1; got "
                 f"views={self.views}, resolution={self.resolution}, fov={self.fov_deg}, distance={self.distance}"
@@ -57,8 +62,7 @@ class ExportOptions:
     """frames: video frame rate"""
 
     def validate(self) -> None:
-        if self.fps < 1:
-            raise DamcapError(f"--fps must be >= 1, got {self.fps}")
+        bounded_int(self.fps, 1, 1000, "--fps")
 
 
 def parts_from_vertex_labels(triangles: np.ndarray, vertex_labels: np.ndarray) -> np.ndarray:

@@ -57,3 +57,40 @@ def viewer_html(model: DeepAppearanceMap, mesh: Mesh, exposure_scale: float, cam
     }
     template = resources.files("damcap.export").joinpath("viewer_template.html").read_text(encoding="utf-8")
     return template.replace("/*__DAM_GLSL__*/", glsl_source(model)).replace("/*__DATA__*/", json.dumps(data))
+
+
+def page_server(page: bytes, name: str, port: int = 0, host: str = "127.0.0.1"):
+    """An HTTP server (not yet serving) that answers ``GET /NAME`` with ``page``.
+
+    Only that page is served: every other path (``/`` too) is 404, so nothing else in the page's folder is
+    exposed. Bound to ``host`` (loopback by default); ``port`` 0 picks a free port (read it from
+    ``server.server_address[1]``). Use as a context manager and call ``serve_forever()``.
+    """
+    import http.server
+    from urllib.parse import unquote, urlsplit
+
+    paths = {"/" + name}
+
+    class PageHandler(http.server.BaseHTTPRequestHandler):
+        def _answer(self, body: bool) -> None:
+            if unquote(urlsplit(self.path).path) not in paths:
+                self.send_error(404, "not found")
+                return
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html; charset=utf-8")
+            self.send_header("Content-Length", str(len(page)))
+            self.send_header("Cache-Control", "no-store")
+            self.end_headers()
+            if body:
+                self.wfile.write(page)
+
+        def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
+            self._answer(True)
+
+        def do_HEAD(self) -> None:  # noqa: N802
+            self._answer(False)
+
+        def log_message(self, format: str, *args) -> None:  # noqa: A002 (quiet: no per-request lines)
+            pass
+
+    return http.server.ThreadingHTTPServer((host, port), PageHandler)

@@ -3,7 +3,6 @@ colmap:DIR``): :func:`load_known_poses` reads any of them into a :class:`~damcap
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from pathlib import Path
@@ -13,6 +12,7 @@ import numpy as np
 
 from damcap.common.capture_folder import rigid_problem
 from damcap.common.errors import DamcapError
+from damcap.common.validate import MAX_IMAGE_SIDE, finite_in, load_json_file
 
 from damcap.reconstruct.undistort import PhotoCamera
 from damcap.reconstruct.colmap.model import read_colmap_model
@@ -36,24 +36,32 @@ def _ngp_camera(path: Path, where: str, obj: dict[str, Any], base: dict[str, Any
     model = str(v.get("camera_model", "OPENCV"))
     if "FISHEYE" in model.upper() or model.upper() == "EQUIRECTANGULAR":
         raise DamcapError(f"{path}: {where}: camera_model {model} is not supported (pinhole/OpenCV cameras only)")
-    w_file = float(v.get("w", size[0]))
-    h_file = float(v.get("h", size[1]))
+    def num(key: str, default: float) -> float:  # finite in float32 (camera math runs in float32 buffers)
+        value = v.get(key, default)
+        return finite_in(default if value is None else value, "float32", f"'{key}'", f"{path}: {where}")
+
+    w_file = num("w", size[0])
+    h_file = num("h", size[1])
+    if not (1 <= w_file <= MAX_IMAGE_SIDE and 1 <= h_file <= MAX_IMAGE_SIDE):
+        raise DamcapError(f"{path}: {where}: image size must lie in [1, {MAX_IMAGE_SIDE}] pixels, got w={w_file:g}, h={h_file:g}")
     if "fl_x" in v:
-        fx = float(v["fl_x"])
-        fy = float(v.get("fl_y", fx))
+        fx = num("fl_x", 0.0)
+        fy = num("fl_y", fx)
     elif "camera_angle_x" in v:
-        fx = 0.5 * w_file / math.tan(0.5 * float(v["camera_angle_x"]))
-        fy = 0.5 * h_file / math.tan(0.5 * float(v["camera_angle_y"])) if "camera_angle_y" in v else fx
+        ax = num("camera_angle_x", 0.0)
+        ay = num("camera_angle_y", 0.0) if "camera_angle_y" in v else None
+        if not (0 < ax < math.pi and (ay is None or 0 < ay < math.pi)):
+            raise DamcapError(f"{path}: {where}: camera_angle_x/y must lie in (0, pi) radians, got {ax}, {ay}")
+        fx = 0.5 * w_file / math.tan(0.5 * ax)
+        fy = 0.5 * h_file / math.tan(0.5 * ay) if ay is not None else fx
     else:
         raise DamcapError(f"{path}: {where}: no focal length (need fl_x or camera_angle_x)")
-    cx = float(v.get("cx", w_file / 2))
-    cy = float(v.get("cy", h_file / 2))
-    if float(v.get("k4", 0.0) or 0.0) != 0.0:
+    cx = num("cx", w_file / 2)
+    cy = num("cy", h_file / 2)
+    if num("k4", 0.0) != 0.0:
         raise DamcapError(f"{path}: {where}: k4 is a fisheye coefficient; only OpenCV pinhole distortion is supported")
-    dist = (float(v.get("k1", 0) or 0), float(v.get("k2", 0) or 0), float(v.get("p1", 0) or 0), float(v.get("p2", 0) or 0),
-            float(v.get("k3", 0) or 0), 0.0, 0.0, 0.0)
-    vals = (w_file, h_file, fx, fy, cx, cy) + dist
-    if not all(math.isfinite(x) for x in vals) or fx <= 0 or fy <= 0 or w_file <= 0 or h_file <= 0:
+    dist = (num("k1", 0.0), num("k2", 0.0), num("p1", 0.0), num("p2", 0.0), num("k3", 0.0), 0.0, 0.0, 0.0)
+    if not (fx > 0 and fy > 0):
         raise DamcapError(f"{path}: {where}: invalid intrinsics {dict(w=w_file, h=h_file, fl_x=fx, fl_y=fy, cx=cx, cy=cy)}")
     cam = PhotoCamera(round(w_file), round(h_file), fx, fy, cx, cy, dist)
     if (cam.width, cam.height) != tuple(size):
@@ -80,16 +88,14 @@ def read_transforms_json(path: str | os.PathLike, photo_sizes: dict[str, tuple[i
         DamcapError: unreadable JSON, no frames, non-rigid matrices, unsupported camera model.
     """
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise DamcapError(f"{path}: cannot read transforms.json ({e})") from None
+    doc = load_json_file(path, "transforms.json")
     frames = doc.get("frames") if isinstance(doc, dict) else None
     if not isinstance(frames, list) or not frames:
         raise DamcapError(f"{path}: expected a JSON object with a non-empty 'frames' list")
     stems = photos_by_stem(list(photo_sizes))
     base = {k: v for k, v in doc.items() if k != "frames"}
     found: dict[str, RegisteredPhoto] = {}
+    entry_of: dict[str, int] = {}
     ignored = 0
     for i, fr in enumerate(frames):
         where = f"frames[{i}]"
@@ -99,6 +105,10 @@ def read_transforms_json(path: str | os.PathLike, photo_sizes: dict[str, tuple[i
         if name is None:
             ignored += 1
             continue
+        if name in entry_of:  # never resolved silently by the last entry
+            raise DamcapError(f"{path}: photo {name} has two pose entries (frames[{entry_of[name]}] and {where}); "
+                              "keep one")
+        entry_of[name] = i
         try:
             m = np.asarray(fr["transform_matrix"], dtype=np.float64)
         except (TypeError, ValueError):
@@ -124,8 +134,8 @@ def read_llff_poses_bounds(path: str | os.PathLike, photo_sizes: dict[str, tuple
     """
     path = Path(path)
     try:
-        arr = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as e:
+        arr = np.load(path, allow_pickle=False, mmap_mode="r")  # header first: the shape is checked before reading
+    except (OSError, ValueError, EOFError) as e:
         raise DamcapError(f"{path}: cannot read LLFF poses_bounds.npy ({e})") from None
     if arr.ndim != 2 or arr.shape[1] != 17:
         raise DamcapError(f"{path}: expected an (N, 17) array (3x5 pose + 2 bounds per row), got shape {arr.shape}")
@@ -133,8 +143,14 @@ def read_llff_poses_bounds(path: str | os.PathLike, photo_sizes: dict[str, tuple
     if len(arr) != len(names):
         raise DamcapError(f"{path}: {len(arr)} rows but {len(names)} photos; LLFF rows follow the sorted photo "
                           "names one to one, so the photo folder must hold exactly the posed photos")
-    if not np.isfinite(arr).all():
-        raise DamcapError(f"{path}: contains NaN or inf")
+    if arr.dtype.kind not in "fiu":
+        raise DamcapError(f"{path}: expected numbers, got dtype {arr.dtype}")
+    try:
+        arr = np.array(arr, dtype=np.float64)
+    except (OSError, ValueError) as e:
+        raise DamcapError(f"{path}: cannot read LLFF poses_bounds.npy ({e})") from None
+    if not (np.isfinite(arr).all() and np.abs(arr).max() <= np.finfo(np.float32).max):
+        raise DamcapError(f"{path}: contains NaN or inf (or values beyond float32)")
     found: dict[str, RegisteredPhoto] = {}
     for i, name in enumerate(names):
         m35 = arr[i, :15].reshape(3, 5)

@@ -343,6 +343,28 @@ class PhotoRadiance:
     (display photos)"""
 
 
+def verify_photos(folder: str | os.PathLike, names: list[str],
+                  progress: Callable[[str, int, int], None] | None = None) -> None:
+    """Decode every display photo once, so that a damaged or truncated file is refused before any
+    work (registration would only drop it as unregistered); linear and RAW photos are decoded
+    when their registration proxies are written, which refuses them the same way.
+
+    Raises:
+        DamcapError: the first unreadable or truncated photo, named (as ``damcap hdr`` and
+            ``damcap linearize`` refuse it).
+    """
+    from damcap.capture.hdr import read_ldr_codes
+
+    folder = Path(folder)
+    display = [n for n in names if photo_kind(n) == "display"]
+    for k, name in enumerate(display):
+        if progress:
+            progress("checking photos", k, len(display))
+        read_ldr_codes(folder / name)
+    if progress and display:
+        progress("checking photos", len(display), len(display))
+
+
 def read_photo_u8(path: str | os.PathLike) -> np.ndarray:
     """A display photo as (H, W, 3) uint8 (grey expanded, alpha dropped; 16-bit scaled down)."""
     from damcap.common.exr import read_image_u8

@@ -32,15 +32,16 @@ from typing import Any, Callable, Literal
 import numpy as np
 
 from damcap.common.atomic import atomic_path, write_json_atomic
-from damcap.common.capture_folder import Capture, Frame, Intrinsics, write_transforms
+from damcap.common.capture_folder import FRAME_BYTES_PER_PIXEL, Capture, Frame, Intrinsics, write_transforms
 from damcap.common.errors import DamcapError
+from damcap.common.validate import MAX_COUNT, MAX_IMAGE_SIDE, bounded_int, check_float_fields, require_memory, require_resolution
 from damcap.common.version import damcap_version
 
 from damcap.reconstruct.geometry import GeometryInputs, GeometryOptions, GeometryResult, build_geometry
 from damcap.reconstruct.normalize import normalization_transform, recentre_transform, similarity_scale, transform_points, transform_world_from_cam
 from damcap.reconstruct.frames import FramePhoto, write_frames
 from damcap.reconstruct.normalize import transform_mesh_similarity
-from damcap.reconstruct.photos import exposure_factors, list_photos, match_masks, read_mask
+from damcap.reconstruct.photos import exposure_factors, list_photos, match_masks, read_mask, verify_photos
 from damcap.reconstruct.poses import Registration
 from damcap.reconstruct.known_poses import load_known_poses
 from damcap.common.mesh import Mesh
@@ -49,6 +50,8 @@ from damcap.reconstruct.undistort import pinhole_for, resample_to_pinhole
 
 SplitKind = Literal["consecutive", "spread"]
 WORK_FOLDER = "reconstruction"
+#: largest visual-hull grid side, voxels
+MAX_VOXELS = 2048
 
 
 @dataclass(frozen=True)
@@ -124,14 +127,21 @@ class ReconstructOptions:
     """seed of COLMAP's RANSAC and mapping"""
 
     def validate(self) -> None:
-        """Raises DamcapError for out-of-range values."""
-        for name in ("voxels", "max_image_size", "max_num_features", "capture_size", "supersample", "min_registered"):
-            if getattr(self, name) < 1:
-                raise DamcapError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
-        if self.voxels < 16:
-            raise DamcapError(f"--voxels must be >= 16, got {self.voxels}")
-        if self.train_views < 1:
-            raise DamcapError(f"--train-views must be >= 1, got {self.train_views}")
+        """Raises DamcapError for out-of-range values (NaN, inf, counts beyond what a machine holds)."""
+        check_float_fields(self)
+        for name, lo, hi in (("voxels", 16, MAX_VOXELS), ("max_image_size", 1, MAX_IMAGE_SIDE),
+                             ("max_num_features", 1, MAX_COUNT), ("capture_size", 1, MAX_IMAGE_SIDE),
+                             ("supersample", 1, 16), ("min_registered", 1, MAX_COUNT), ("train_views", 1, MAX_COUNT),
+                             ("hull_tolerance", 0, MAX_COUNT), ("poisson_depth", 1, 16), ("smooth_iterations", 0, 100000),
+                             ("upsample_below", 0, MAX_IMAGE_SIDE), ("sequential_overlap", 1, MAX_COUNT),
+                             ("retrieval_neighbours", 1, MAX_COUNT), ("split_start", 0, MAX_COUNT), ("threads", -1, 4096)):
+            bounded_int(getattr(self, name), lo, hi, f"--{name.replace('_', '-')}")
+        # a voxel grid of voxels^3 (float32 and a label per voxel) and the capture's frame buffers
+        require_memory(float(self.voxels) ** 3 * 8, f"--voxels {self.voxels} (a {self.voxels}^3 grid)")
+        require_resolution(self.capture_size, self.capture_size, FRAME_BYTES_PER_PIXEL * self.supersample ** 2,
+                           f"--capture-size {self.capture_size} with --supersample {self.supersample}: a frame")
+        if not self.sphere_max_rms > 0:
+            raise DamcapError(f"--sphere-max-rms must be positive, got {self.sphere_max_rms}")
         if self.split not in ("consecutive", "spread"):
             raise DamcapError(f"--split must be consecutive or spread, got {self.split!r}")
         if not 0 <= self.min_registered_fraction <= 1:
@@ -338,6 +348,7 @@ def _check_inputs(photos_dir: Path, masks_dir: str | os.PathLike | None, poses: 
     from damcap.reconstruct.geometry import parse_mode
 
     names = list_photos(photos_dir)
+    verify_photos(photos_dir, names)  # a truncated JPEG is refused here, not dropped as unregistered
     masks = match_masks(names, masks_dir) if masks_dir is not None else None
     if poses and not poses.startswith("colmap:") and Path(poses).suffix.lower() not in (".json", ".npy"):
         raise DamcapError(f"--poses {poses!r}: use a transforms.json, a poses_bounds.npy or colmap:DIR")

@@ -52,6 +52,7 @@ from damcap.common.capture_folder import (
 )
 from damcap.common.errors import DamcapError
 from damcap.common.exr import read_exr, write_exr
+from damcap.common.validate import bounded_int, check_float_fields
 
 from damcap.common.cameras import focal_px_from_fov, orbit_world_from_cam, pixel_rays_world
 from damcap.synth.geometry import GeometryBuffers, RayCaster, SceneGeometry, frame_geometry
@@ -75,6 +76,8 @@ SPHERE_SUBDIVISIONS = 5
 HALF_MAX = 65504.0
 #: file that marks a partially rendered capture folder (holds the resolved options)
 PARTIAL_MARKER = ".synth_partial.json"
+#: most views of one synthetic capture
+MAX_SYNTH_VIEWS = 100000
 
 ProgressFn = Callable[[int, int, dict[str, float]], None]
 
@@ -119,7 +122,11 @@ class SynthOptions:
     """radiance storage in images/ (a frame exceeding the half-float range is stored as float)"""
 
     def validate(self) -> None:
-        """Raise DamcapError naming the first bad value."""
+        """Raise DamcapError naming the first bad value (NaN and inf included)."""
+        check_float_fields(self)
+        bounded_int(self.views, 3, MAX_SYNTH_VIEWS, "--views")
+        bounded_int(self.spp, 1, 2 ** 20, "--spp")
+        bounded_int(self.max_depth, 2, 1024, "--max-depth")
         if not 1 <= self.materials <= 8:
             raise DamcapError(f"--materials must be 1 or 3 (at most 8), got {self.materials}")
         if self.views < 3:

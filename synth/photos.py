@@ -195,7 +195,11 @@ class PhotoSetOptions:
     def validate(self) -> None:
         """Raise DamcapError naming the first bad value."""
         from damcap.common.errors import DamcapError
+        from damcap.common.validate import bounded_int, check_float_fields, require_resolution
 
+        check_float_fields(self)
+        bounded_int(self.views, 1, 100000, "--views")
+        require_resolution(self.size, self.size, 4 * 32, f"--size {self.size}: a photo")
         if self.views < 1 or self.size < 8:
             raise DamcapError(f"--views must be >= 1 and --size >= 8, got {self.views} and {self.size}")
         if not self.distance > 1:

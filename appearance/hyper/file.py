@@ -19,6 +19,7 @@ from safetensors.torch import save as st_save
 
 from damcap.common.atomic import atomic_path
 from damcap.common.errors import DamcapError
+from damcap.common.validate import loads_json
 
 from damcap.appearance.dam_file import METADATA_KEY, read_damcap_safetensors
 from damcap.appearance.hyper.model import HyperArchitecture, HyperNet
@@ -53,10 +54,7 @@ def load_predictor(path: str | os.PathLike) -> tuple[HyperNet, dict[str, Any]]:
     """
     path = Path(path)
     tensors, meta_text = read_damcap_safetensors(path, "predictor", "predictor")
-    try:
-        meta = json.loads(meta_text)
-    except ValueError as e:
-        raise DamcapError(f"{path}: not a damcap predictor file (not valid safetensors: {str(e).splitlines()[0][:120]})") from None
+    meta = loads_json(meta_text, path, "predictor metadata")
     if not isinstance(meta, dict) or meta.get("kind") != KIND:
         raise DamcapError(f"{path}: damcap file of kind {meta.get('kind') if isinstance(meta, dict) else None!r}, not a predictor "
                           f"(a .dam model? use it with render/evaluate instead)")
@@ -65,8 +63,10 @@ def load_predictor(path: str | os.PathLike) -> tuple[HyperNet, dict[str, Any]]:
         raise DamcapError(f"{path}: predictor format version {version!r} is newer than this damcap reads ({PREDICTOR_FORMAT_VERSION}); upgrade damcap")
     try:
         arch = HyperArchitecture.from_json(meta["architecture"])
-    except (KeyError, TypeError, ValueError) as e:
+    except (KeyError, TypeError, ValueError, OverflowError) as e:
         raise DamcapError(f"{path}: predictor architecture metadata is invalid ({e!r})") from None
+    except DamcapError as e:  # a bound of the architecture (checked before anything is allocated)
+        raise DamcapError(f"{path}: invalid predictor architecture: {e}") from None
     net = HyperNet(arch)
     expected = {k: tuple(v.shape) for k, v in net.state_dict().items()}
     found = {k: tuple(v.shape) for k, v in tensors.items()}
@@ -74,7 +74,7 @@ def load_predictor(path: str | os.PathLike) -> tuple[HyperNet, dict[str, Any]]:
         diff = sorted(set(expected.items()) ^ set(found.items()))[:3]
         raise DamcapError(f"{path}: tensors do not match the stated architecture (first differences: {diff}); "
                           f"the file is damaged or was written by another damcap version")
-    bad = [k for k, v in tensors.items() if not torch.isfinite(v).all()]
+    bad = [k for k, v in tensors.items() if not (v.dtype.is_floating_point and torch.isfinite(v.float()).all())]
     if bad:
         raise DamcapError(f"{path}: tensor(s) {bad[:3]} contain NaN or inf")
     net.load_state_dict(tensors)

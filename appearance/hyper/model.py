@@ -27,6 +27,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from damcap.common.errors import DamcapError
+from damcap.common.validate import MAX_CHANNELS, MAX_CONV_LAYERS, MAX_IMAGE_SIDE, bounded_int, require_memory
 
 from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap, dam_forward, encode_inputs, init_weights
 from damcap.appearance.views import ViewData, radiance_scale_of
@@ -48,8 +49,16 @@ class HyperArchitecture:
     """the DAM whose weights it predicts"""
 
     def __post_init__(self) -> None:
-        if not self.channels or min(self.channels) < 1:
-            raise DamcapError(f"predictor channels must be positive, got {self.channels}")
+        # bounded before any layer is built from them (a predictor file's metadata, an option)
+        bounded_int(len(self.channels), 1, MAX_CONV_LAYERS, "number of predictor --channels layers")
+        for c in self.channels:
+            bounded_int(c, 1, MAX_CHANNELS, "predictor channels")
+        bounded_int(self.input_size, 1, MAX_IMAGE_SIDE, "predictor --input-size")
+        if not isinstance(self.dam, DamArchitecture):
+            raise DamcapError(f"predictor dam must be a DamArchitecture, got {type(self.dam).__name__}")
+        dims = (IN_CHANNELS,) + tuple(self.channels)
+        params = sum(16 * a * b + b for a, b in zip(dims[:-1], dims[1:])) + (dims[-1] + 1) * self.dam.num_weights
+        require_memory(16.0 * params, f"a predictor of {params} parameters (weights, gradients, Adam state)")
         if self.input_size < 2 ** len(self.channels):
             raise DamcapError(f"an input of {self.input_size} px is too small for {len(self.channels)} stride-2 layers "
                               f"(needs >= {2 ** len(self.channels)} px); raise --input-size or use fewer --channels")

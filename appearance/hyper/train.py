@@ -29,10 +29,14 @@ import torch.distributed as dist
 from damcap.common.capture_folder import read_capture, read_frame
 from damcap.common.device import resolve_device
 from damcap.common.corpus_index import finished_captures
-from damcap.common.errors import DamcapError, require_options
+from damcap.common.errors import DamcapError
+from damcap.common.validate import require_options
 
 from damcap.appearance.dam import DamArchitecture, Encoding
-from damcap.appearance.fit import load_checkpoint, save_checkpoint
+from damcap.common.fingerprint import FINGERPRINT_KEY, fingerprint
+from damcap.common.version import damcap_version
+
+from damcap.appearance.fit import load_checkpoint, save_checkpoint, set_aside_stale
 from damcap.appearance.views import radiance_scale_of
 from damcap.appearance.hyper.model import HyperArchitecture, HyperNet, predicted_loss, predictor_image, rotation_y, view_crop
 from damcap.appearance.pixels import FOREGROUND_COVERAGE, view_dir_world
@@ -81,6 +85,7 @@ class HyperTrainOptions:
                         at_least_0=("max_captures", "checkpoint_every", "grad_clip"), positive_finite=("learning_rate",))
         if not 0 <= self.val_fraction < 1:
             raise DamcapError(f"--val-fraction must lie in [0, 1), got {self.val_fraction}")
+        self.architecture  # channels and input size within HyperArchitecture's bounds (named in its error)
 
     @property
     def architecture(self) -> HyperArchitecture:
@@ -268,6 +273,16 @@ def _options_json(opts: HyperTrainOptions, names: list[str]) -> str:
     return json.dumps({"options": d, "captures": names}, sort_keys=True)
 
 
+def hyper_fingerprint(state_key: str, train: list[HyperCapture], val: list[HyperCapture]) -> str:
+    """What a training run's result depends on: its options and capture names (``state_key``),
+    every tensor of the loaded training and validation captures (bit for bit) and the damcap
+    version. A ``.state`` checkpoint is resumed only by a run with the same fingerprint."""
+    parts: list[Any] = ["train-hyper", damcap_version(), state_key]
+    for c in [*train, *val]:
+        parts += [c.name, float(c.radiance_scale), c.view_dir_world, c.normal_world, c.radiance_lin, *c.crops]
+    return fingerprint(*parts)
+
+
 def train_hyper(
     capture_paths: list[Path],
     opts: HyperTrainOptions,
@@ -281,7 +296,12 @@ def train_hyper(
     Args:
         capture_paths: training capture folders (:func:`corpus_training_captures`).
         opts: options.
-        checkpoint_path: checkpoint file; one made with the same options and captures is resumed.
+        checkpoint_path: checkpoint file; one with this run's :func:`hyper_fingerprint` (options,
+            the captures' loaded content, damcap version) is resumed exactly; any other (other
+            captures or content, options, version, or an old one without a fingerprint) is never
+            loaded: rank 0 moves it to ``CKPT.stale``, says so through ``log`` and the run starts
+            afresh. An interrupted run (KeyboardInterrupt propagates) leaves its last periodic
+            checkpoint.
         progress: rank 0 only: progress(step, steps, stats).
         log: rank 0 only: one-line messages.
 
@@ -323,16 +343,25 @@ def train_hyper(
     start, best_val, best_step, curve, elapsed_before = 0, math.inf, 0, [], 0.0
     best_state = {k: v.detach().cpu().clone() for k, v in net.state_dict().items()}
     ckpt = Path(checkpoint_path) if checkpoint_path else None
+    fp = ""
+    if ckpt:
+        fp = hyper_fingerprint(state_key, train, val)  # rank 0 alone holds the validation captures
+        if world > 1:
+            shared = [fp]
+            dist.broadcast_object_list(shared, src=0)
+            fp = str(shared[0])
     if ckpt and ckpt.is_file():
         state = load_checkpoint(ckpt)
-        if state.get("key") == state_key:
+        if world > 1:
+            dist.barrier()  # every rank has read the file before rank 0 may move it aside
+        if state.get(FINGERPRINT_KEY) == fp and state.get("key") == state_key:
             net.load_state_dict(state["net"])
             optim.load_state_dict(state["optim"])
             start, best_val, best_step = int(state["step"]), float(state["best_val"]), int(state["best_step"])
             best_state, curve, elapsed_before = state["best_net"], json.loads(state["curve"]), float(state["elapsed"])
             say(f"resuming from {ckpt} at step {start}")
-        else:
-            say(f"{ckpt}: made with other options or data; starting afresh")
+        elif rank == 0:
+            set_aside_stale(ckpt, "other inputs (captures, options or damcap version differ)" if state else "nothing readable", say)
     resumed_from = start
 
     per_rank = max(1, math.ceil(opts.batch_size / world))
@@ -364,7 +393,7 @@ def train_hyper(
         if rank == 0 and progress:
             progress(done, opts.steps, stats)
         if rank == 0 and ckpt and opts.checkpoint_every and done % opts.checkpoint_every == 0 and done < opts.steps:
-            save_checkpoint(ckpt, {"key": state_key, "step": done, "net": net.state_dict(), "optim": optim.state_dict(),
+            save_checkpoint(ckpt, {FINGERPRINT_KEY: fp, "damcap_version": damcap_version(), "key": state_key, "step": done, "net": net.state_dict(), "optim": optim.state_dict(),
                                "best_val": best_val, "best_step": best_step, "best_net": best_state,
                                "curve": json.dumps(curve), "elapsed": elapsed_before + time.perf_counter() - t0})
     seconds = elapsed_before + time.perf_counter() - t0

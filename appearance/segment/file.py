@@ -20,6 +20,7 @@ from safetensors.torch import save as st_save
 
 from damcap.common.atomic import atomic_path
 from damcap.common.errors import DamcapError
+from damcap.common.validate import MAX_CHANNELS, MAX_IMAGE_SIDE, MAX_MATERIALS, bounded_int, finite_in, loads_json
 
 from damcap.appearance.dam_file import load_dam, read_safetensors_metadata, save_dam
 from damcap.appearance.segment.model import SegmentationModel, SegmentationNet
@@ -61,21 +62,46 @@ def load_segmentation(folder: str | os.PathLike) -> SegmentationModel:
     data = path.read_bytes()
     try:
         tensors = st_load(data)
-        meta = json.loads(read_safetensors_metadata(data)["damcap_segmenter"])
-        n = int(meta["materials"])
+        meta = loads_json(read_safetensors_metadata(data)["damcap_segmenter"], path, "segmenter metadata")
         version = int(meta["format_version"])
-    except (SafetensorError, ValueError, KeyError, TypeError, json.JSONDecodeError) as e:
+        raw = {k: meta[k] for k in ("materials", "channels", "radiance_scale", "scene_centre", "scene_radius")}
+        raw_resolution = meta.get("resolution", 64)
+    except (SafetensorError, ValueError, KeyError, TypeError, AttributeError, RecursionError) as e:
         raise DamcapError(f"{path}: damaged segmenter file ({str(e)[:100]})") from None
     if version > SEGMENT_FORMAT_VERSION:
         raise DamcapError(f"{path}: format version {version} is newer than this damcap reads; upgrade damcap")
-    psi = SegmentationNet(n, channels=int(meta["channels"]), resolution=int(meta.get("resolution", 64)))
-    try:
-        psi.load_state_dict({k[4:]: v for k, v in tensors.items() if k.startswith("psi.")})
-    except RuntimeError as e:
-        raise DamcapError(f"{path}: segmenter weights do not match its architecture ({str(e)[:100]})") from None
+    # every number is bounded before Psi is built from it
+    n = bounded_int(raw["materials"], 1, MAX_MATERIALS, "materials", path)
+    channels = bounded_int(raw["channels"], 1, MAX_CHANNELS, "channels", path)
+    resolution = bounded_int(raw_resolution, 1, MAX_IMAGE_SIDE, "resolution", path)
+    radiance_scale = finite_in(raw["radiance_scale"], "float32", "radiance_scale", path)
+    scene_radius = finite_in(raw["scene_radius"], "float32", "scene_radius", path)
+    if not (radiance_scale > 0 and scene_radius > 0):
+        raise DamcapError(f"{path}: radiance_scale and scene_radius must be positive, got {radiance_scale}, {scene_radius}")
+    centre = raw["scene_centre"]
+    if not isinstance(centre, list) or len(centre) != 3:
+        raise DamcapError(f"{path}: scene_centre must be 3 numbers, got {centre!r}")
+    scene_centre = np.array([finite_in(c, "float32", "scene_centre", path) for c in centre], np.float32)
+    for key, width in (("points_world", 3), ("point_weights", n)):
+        t = tensors.get(key)
+        if t is None or not t.dtype.is_floating_point or (width and (t.dim() != 2 or t.shape[1] != width)):
+            raise DamcapError(f"{path}: tensor {key!r} is missing or has the wrong shape/dtype "
+                              f"({None if t is None else (tuple(t.shape), str(t.dtype))})")
+    if len(tensors["point_weights"]) != len(tensors["points_world"]):
+        raise DamcapError(f"{path}: {len(tensors['point_weights'])} point weights for {len(tensors['points_world'])} points")
+    bad = [k for k, v in tensors.items() if v.dtype.is_floating_point and not torch.isfinite(v.float()).all()]
+    if bad:
+        raise DamcapError(f"{path}: tensor(s) {bad[:3]} contain NaN or inf")
+    psi = SegmentationNet(n, channels=channels, resolution=resolution)
+    expected = {k: tuple(v.shape) for k, v in psi.state_dict().items()}
+    found = {k[4:]: tuple(v.shape) for k, v in tensors.items() if k.startswith("psi.")}
+    if expected != found:
+        diff = sorted(set(expected.items()) ^ set(found.items()))[:3]
+        raise DamcapError(f"{path}: segmenter weights do not match its architecture (first differences: {diff})")
+    psi.load_state_dict({k[4:]: v.float() for k, v in tensors.items() if k.startswith("psi.")})
     dams = [load_dam(folder / f"material_{k}.dam")[0] for k in range(n)]
     return SegmentationModel(
-        dams=dams, psi=psi.eval(), radiance_scale=float(meta["radiance_scale"]),
-        scene_centre=np.asarray(meta["scene_centre"], np.float32), scene_radius=float(meta["scene_radius"]),
+        dams=dams, psi=psi.eval(), radiance_scale=radiance_scale,
+        scene_centre=scene_centre, scene_radius=scene_radius,
         points_world=tensors["points_world"].numpy(), point_weights=tensors["point_weights"].numpy(),
     )

@@ -7,6 +7,10 @@ from typing import Literal, get_args
 
 
 from damcap.common.errors import DamcapError
+from damcap.common.validate import MAX_COUNT, MAX_IMAGE_SIDE, bounded_int, check_float_fields, require_memory
+
+#: most pixels in one optimisation step
+MAX_BATCH_PIXELS = 2 ** 24
 
 from damcap.appearance.dam import DamArchitecture, Encoding
 
@@ -75,13 +79,20 @@ class SegmentOptions:
     """'cpu', 'cuda' or 'auto'"""
 
     def validate(self) -> None:
-        if self.materials < 1 or self.materials > 16:
+        """Raise DamcapError naming the first bad value (NaN and inf included)."""
+        check_float_fields(self)
+        if not 1 <= self.materials <= 16:
             raise DamcapError(f"--materials must be between 1 and 16, got {self.materials}")
-        for name in ("steps", "batch_pixels", "frames_per_step"):
-            if getattr(self, name) < 1:
-                raise DamcapError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
-        if self.init_steps < 0 or self.sparsity_beta < 0 or self.prior_weight < 0:
-            raise DamcapError("--init-steps, --sparsity-beta and --prior-weight must be >= 0")
+        for name, lo, hi in (("steps", 1, MAX_COUNT), ("init_steps", 0, MAX_COUNT), ("batch_pixels", 1, MAX_BATCH_PIXELS),
+                             ("frames_per_step", 1, 1024), ("psi_resolution", 8, MAX_IMAGE_SIDE), ("psi_channels", 1, 1024)):
+            bounded_int(getattr(self, name), lo, hi, f"--{name.replace('_', '-')}")
+        # Psi's activations: (frames, 7 * channels, resolution^2) float32 with gradients
+        require_memory(float(self.frames_per_step) * 7 * self.psi_channels * self.psi_resolution ** 2 * 4 * 3,
+                       f"Psi at --psi-resolution {self.psi_resolution} with --psi-channels {self.psi_channels}")
+        if not (self.learning_rate > 0 and self.sparsity_beta >= 0 and self.prior_weight >= 0):
+            raise DamcapError(f"--learning-rate must be > 0, --sparsity-beta and --prior-weight >= 0; got "
+                              f"{self.learning_rate}, {self.sparsity_beta}, {self.prior_weight}")
+        self.architecture  # DAM width and depth within their bounds
         if self.init_colour not in get_args(InitColour):
             raise DamcapError(f"--init-colour must be one of {', '.join(get_args(InitColour))}, got {self.init_colour!r}")
         if not 0 < self.colour_floor <= BRIGHT_FRACTION:

@@ -27,9 +27,16 @@ def registration_of_reconstruction(rec: Any, photo_names: list[str], source: str
         name = img.name if img.name in photo_names else stems.get(Path(img.name).stem)
         if name is None:
             continue
+        if name in found:  # never resolved silently by the last entry
+            raise DamcapError(f"{where}: photo {name} has two pose entries (images {img.name!r} and another with its "
+                              "base name); keep one")
         cam = rec.camera(img.camera_id)
-        pc = camera_from_colmap(cam.model.name, cam.width, cam.height, np.asarray(cam.params))
-        m = world_from_cam_of_colmap(img.cam_from_world().matrix())
+        params = np.asarray(cam.params, dtype=np.float64)
+        m = np.asarray(img.cam_from_world().matrix(), dtype=np.float64)
+        if not (np.isfinite(params).all() and np.isfinite(m).all()):
+            raise DamcapError(f"{where}: image {img.name!r} has a NaN or infinite camera or pose")
+        pc = camera_from_colmap(cam.model.name, cam.width, cam.height, params)
+        m = world_from_cam_of_colmap(m)
         found[name] = RegisteredPhoto(name, m, pc)
         id_to_name[image_id] = name
     reg = finish_registration(source, Path(where), found, photo_names, "", {})

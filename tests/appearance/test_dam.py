@@ -66,7 +66,7 @@ def test_gradcheck_float64():
 
 
 def test_bad_architecture_is_a_clear_error():
-    with pytest.raises(DamcapError, match="width and depth"):
+    with pytest.raises(DamcapError, match=r"DAM width must be an integer in \[1, 4096\], got 0"):
         DamArchitecture(width=0)
     with pytest.raises(DamcapError, match="unknown DAM input encoding"):
         DamArchitecture(encoding="xyz")  # type: ignore[arg-type]

@@ -57,8 +57,11 @@ def interrupt_fit_at(samples, opts: FitOptions, ckpt, step: int) -> None:
         if at == step:
             raise KeyboardInterrupt
 
-    with pytest.raises(KeyboardInterrupt):
-        fit_dam(samples, opts, checkpoint_path=ckpt, progress=stop)
+    with pytest.raises(KeyboardInterrupt) as info:
+        fit_dam(samples, opts, checkpoint_path=ckpt, progress=stop, log=lambda m: None)
+    # the interrupt propagates unchanged, with a note saying what was kept
+    assert getattr(info.value, "__notes__", None) == [
+        f"stopped after step {step} of {opts.steps}; kept {ckpt} (step {step}): rerun the same command to resume"]
 
 
 def test_interrupted_fit_resumes_to_the_same_model(small_samples, tmp_path):
@@ -68,13 +71,109 @@ def test_interrupted_fit_resumes_to_the_same_model(small_samples, tmp_path):
     interrupt_fit_at(small_samples, opts, ckpt, 150)
     assert ckpt.is_file()
     resumed = fit_dam(small_samples, opts, checkpoint_path=ckpt)
-    assert resumed.resumed_from == 100
+    assert resumed.resumed_from == 150  # the interrupted step itself was checkpointed
     torch.testing.assert_close(resumed.model.get_flat_weights(), ref.model.get_flat_weights(), rtol=0, atol=0)
     assert not ckpt.exists()  # removed after a finished fit
     # a checkpoint of other options is not resumed
     interrupt_fit_at(small_samples, opts, ckpt, 150)
     other = fit_dam(small_samples, FitOptions(steps=200, checkpoint_every=50, eval_every=25, seed=3), checkpoint_path=ckpt)
     assert other.resumed_from == 0
+
+
+def test_an_interrupt_between_checkpoints_keeps_the_interrupted_step_and_resumes_exactly(small_samples, tmp_path):
+    from damcap.appearance.fit import load_checkpoint
+
+    opts = FitOptions(steps=60, checkpoint_every=20, eval_every=10, seed=3)
+    ref = fit_dam(small_samples, opts)
+    ckpt = tmp_path / "m.dam.ckpt"
+    interrupt_fit_at(small_samples, opts, ckpt, 27)  # after the checkpoint at 20, before the one at 40
+    assert int(load_checkpoint(ckpt)["step"]) == 27
+    messages: list[str] = []
+    resumed = fit_dam(small_samples, opts, checkpoint_path=ckpt, log=messages.append)
+    assert resumed.resumed_from == 27 and messages == ["resuming m.dam.ckpt at step 27 of 60"]
+    torch.testing.assert_close(resumed.model.get_flat_weights(), ref.model.get_flat_weights(), rtol=0, atol=0)
+    assert _without_seconds(resumed.history) == _without_seconds(ref.history)
+    assert resumed.best_step == ref.best_step
+
+
+def _without_seconds(history):
+    return [{k: v for k, v in h.items() if k != "seconds"} for h in history]
+
+
+def _other_capture_samples(samples):
+    """The same pixels and count as ``samples`` with other radiance (another capture, same size)."""
+    from damcap.appearance.pixels import PixelSamples
+
+    return PixelSamples(samples.view_dir_world, samples.normal_world, samples.radiance_lin * 0.5 + 0.1, samples.weight,
+                        samples.frame_index)
+
+
+def test_a_checkpoint_of_another_capture_is_never_resumed(small_samples, tmp_path):
+    opts = FitOptions(steps=60, checkpoint_every=20, eval_every=10, seed=3)
+    other = _other_capture_samples(small_samples)
+    assert len(other) == len(small_samples)  # the old rule (options + pixel count) would have resumed it
+    fresh = fit_dam(other, opts)
+    ckpt = tmp_path / "m.dam.ckpt"
+    interrupt_fit_at(small_samples, opts, ckpt, 40)  # capture A's checkpoint at the output path
+    a_state = ckpt.read_bytes()
+    messages: list[str] = []
+    b = fit_dam(other, opts, checkpoint_path=ckpt, log=messages.append)
+    assert b.resumed_from == 0
+    torch.testing.assert_close(b.model.get_flat_weights(), fresh.model.get_flat_weights(), rtol=0, atol=0)
+    assert _without_seconds(b.history) == _without_seconds(fresh.history)
+    assert messages == ["m.dam.ckpt was written for other inputs (capture, options or damcap version differ); "
+                        "starting afresh (the old checkpoint kept as m.dam.ckpt.stale)"]
+    assert (tmp_path / "m.dam.ckpt.stale").read_bytes() == a_state and not ckpt.exists()
+
+
+def test_a_changed_option_or_version_invalidates_the_checkpoint(small_samples, tmp_path, monkeypatch):
+    import damcap.appearance.fit as fit_module
+
+    opts = FitOptions(steps=60, checkpoint_every=20, eval_every=10, seed=3)
+    ckpt = tmp_path / "m.dam.ckpt"
+    for changed in (replace(opts, learning_rate=2e-2), replace(opts, holdout_views=1), replace(opts, steps=80)):
+        interrupt_fit_at(small_samples, opts, ckpt, 40)
+        messages: list[str] = []
+        r = fit_dam(small_samples, changed, checkpoint_path=ckpt, log=messages.append)
+        assert r.resumed_from == 0 and len(messages) == 1 and "starting afresh" in messages[0], (changed, messages)
+    interrupt_fit_at(small_samples, opts, ckpt, 40)
+    monkeypatch.setattr(fit_module, "damcap_version", lambda: "999.0")
+    messages = []
+    assert fit_dam(small_samples, opts, checkpoint_path=ckpt, log=messages.append).resumed_from == 0
+    assert "other inputs" in messages[0]
+
+
+def test_an_old_or_unreadable_checkpoint_is_set_aside_not_resumed(small_samples, tmp_path):
+    from damcap.appearance.fit import load_checkpoint, save_checkpoint
+
+    opts = FitOptions(steps=60, checkpoint_every=20, eval_every=10, seed=3)
+    ref = fit_dam(small_samples, opts)
+    ckpt = tmp_path / "m.dam.ckpt"
+    interrupt_fit_at(small_samples, opts, ckpt, 40)
+    state = load_checkpoint(ckpt)
+    del state["fingerprint"]  # the format before fingerprints: matched on options and pixel count only
+    save_checkpoint(ckpt, state)
+    messages: list[str] = []
+    r = fit_dam(small_samples, opts, checkpoint_path=ckpt, log=messages.append)
+    assert r.resumed_from == 0 and "starting afresh" in messages[0]
+    torch.testing.assert_close(r.model.get_flat_weights(), ref.model.get_flat_weights(), rtol=0, atol=0)
+    ckpt.write_bytes(b"not a checkpoint")
+    messages = []
+    with pytest.warns(UserWarning, match="unreadable checkpoint"):
+        r = fit_dam(small_samples, opts, checkpoint_path=ckpt, log=messages.append)
+    assert r.resumed_from == 0 and messages[0].startswith("m.dam.ckpt was written for nothing readable")
+    assert (tmp_path / "m.dam.ckpt.stale").read_bytes() == b"not a checkpoint"
+
+
+def test_an_interrupt_before_the_first_step_or_without_checkpoints_keeps_nothing(small_samples, tmp_path):
+    ckpt = tmp_path / "m.dam.ckpt"
+
+    def stop(at, steps, stats):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt) as info:
+        fit_dam(small_samples, FitOptions(steps=20, checkpoint_every=0), checkpoint_path=ckpt, progress=stop)
+    assert info.value.__notes__ == ["stopped after step 1 of 20; no checkpoint kept"] and not ckpt.exists()
 
 
 def test_zero_weight_samples_are_ignored(small_samples):
@@ -113,11 +212,13 @@ def test_bad_options_are_clear():
     with pytest.raises(DamcapError, match="learning-rate"):
         FitOptions(learning_rate=-1).validate()
     for bad in (-0.1, float("nan"), float("inf")):
-        with pytest.raises(DamcapError, match="--weight-decay must be a finite number >= 0"):
+        with pytest.raises(DamcapError, match="--weight-decay must be a finite number"):
             FitOptions(weight_decay=bad).validate()
-    for bad in (0.0, 1.0, -0.2, float("nan")):
+    for bad in (0.0, 1.0, -0.2):
         with pytest.raises(DamcapError, match=r"--quantile must lie in \(0, 1\)"):
             FitOptions(quantile=bad).validate()
+    with pytest.raises(DamcapError, match="--quantile must be a finite number, got nan"):
+        FitOptions(quantile=float("nan")).validate()
 
 
 def test_weight_decay_is_decoupled_and_follows_the_learning_rate_schedule(small_samples):
@@ -189,7 +290,7 @@ def test_bfloat16_fit_resumes_and_checkpoints_float32(small_samples, tmp_path):
     assert fit_dam(small_samples, FitOptions(steps=200, checkpoint_every=50, eval_every=25, seed=2), checkpoint_path=ckpt).resumed_from == 0
     interrupt_fit_at(small_samples, opts, ckpt, 150)
     resumed = fit_dam(small_samples, opts, checkpoint_path=ckpt)
-    assert resumed.resumed_from == 100
+    assert resumed.resumed_from == 150
     torch.testing.assert_close(resumed.model.get_flat_weights(), ref.model.get_flat_weights(), rtol=0, atol=0)
 
 

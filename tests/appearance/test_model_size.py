@@ -84,7 +84,7 @@ def test_an_interrupted_target_run_resumes_without_refitting_finished_sizes(trai
     ckpt = tmp_path / "m.dam.ckpt"
     calls = _recording_fit_dam(monkeypatch)
 
-    def stop_in_third_size(step, steps, stats):  # size 3 of the ladder, after its step-40 checkpoint
+    def stop_in_third_size(step, steps, stats):  # size 3 of the ladder, between its checkpoints at 40 and 60
         if len(calls) == 2 and step == 50:
             raise KeyboardInterrupt
 
@@ -97,10 +97,10 @@ def test_an_interrupted_target_run_resumes_without_refitting_finished_sizes(trai
     calls.clear()
     lines: list[str] = []
     resumed = fit_to_target(train_views, 1e-9, opts, progress=lines.append, checkpoint_path=ckpt)
-    # finished sizes are not refitted; the size in progress resumes from its last checkpoint
+    # finished sizes are not refitted; the size in progress resumes at the interrupted step (checkpointed then)
     assert [c[:2] for c in calls] == [(w, d) for w, d, _ in sizes_by_weight_count("nr")[2:]]
-    assert calls[0] == (w3, d3, 40) and all(c[2] == 0 for c in calls[1:])
-    assert lines[0].endswith("(recorded)") and lines[1].endswith("(recorded)") and "resumed from step 40" in lines[2]
+    assert calls[0] == (w3, d3, 50) and all(c[2] == 0 for c in calls[1:])
+    assert lines[0].endswith("(recorded)") and lines[1].endswith("(recorded)") and "resumed from step 50" in lines[2]
     # the same choice as the uninterrupted run, bit for bit
     assert (resumed.width, resumed.depth, resumed.reached) == (ref.width, ref.depth, ref.reached)
     assert [t["heldout_dssim"] for t in resumed.tried] == [t["heldout_dssim"] for t in ref.tried]

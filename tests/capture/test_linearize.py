@@ -91,3 +91,35 @@ def test_folder_errors(tmp_path, shared_data):
     record = linearize_files(list_photos(pngs), tmp_path / "o", LinearizeOptions(ignore_exposure=True))
     assert record["photos"][0]["scale"] == 1.0
     assert json.dumps(record)  # serialisable
+
+
+def test_a_bad_later_input_leaves_no_output_file(tmp_path):
+    from damcap.common.exr import write_image_u8
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    rng = np.random.default_rng(0)
+    for k in range(3):
+        write_image_u8(photos / f"p{k}.jpg", (rng.random((32, 32, 3)) * 255).astype(np.uint8))
+    data = (photos / "p2.jpg").read_bytes()
+    (photos / "p2.jpg").write_bytes(data[: len(data) // 2])  # the last photo is truncated
+    out = tmp_path / "out"
+    with pytest.raises(DamcapError, match=r"p2\.jpg: cannot read pixels, the file is damaged or truncated"):
+        linearize_files(list_photos(photos), out, LinearizeOptions(ignore_exposure=True))
+    assert not out.exists()  # nothing written, not even the folder this call made
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    with pytest.raises(DamcapError):
+        linearize_files(list_photos(photos), out, LinearizeOptions(ignore_exposure=True))
+    assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]  # no EXR, no staging folder
+    (photos / "p2.jpg").unlink()
+    record = linearize_files(list_photos(photos), out, LinearizeOptions(ignore_exposure=True))
+    assert sorted(p.name for p in out.iterdir()) == ["keep.txt", "p0.exr", "p1.exr"]
+    assert [r["output"] for r in record["photos"]] == ["p0.exr", "p1.exr"]
+
+
+@pytest.mark.parametrize("field, value", [("clip_level", float("nan")), ("reference_exposure", float("inf")),
+                                          ("reference_exposure", float("nan")), ("clip_level", float("inf"))])
+def test_options_refuse_nan_and_inf(field, value):
+    with pytest.raises(DamcapError, match="--" + field.replace("_", "-")):
+        LinearizeOptions(**{field: value}).validate()

@@ -155,3 +155,69 @@ def test_truncated_exr(capture_copy):
 
 def test_geometry_channels_constant():
     assert GEOMETRY_CHANNELS == ("N.X", "N.Y", "N.Z", "P.X", "P.Y", "P.Z", "A")
+
+
+class TestHostileTransforms:
+    """Every number in transforms.json is checked (finite in float32, bounded) before it is used."""
+
+    @staticmethod
+    def _edit(capture_copy, change):
+        tj = capture_copy / "transforms.json"
+        doc = json.loads(tj.read_text())
+        change(doc)
+        tj.write_text(json.dumps(doc))
+
+    def test_huge_material_count_is_refused_quickly(self, capture_copy):
+        import time
+
+        self._edit(capture_copy, lambda d: d.update(materials=10 ** 12))
+        t0 = time.perf_counter()
+        with pytest.raises(DamcapError, match=r"transforms\.json: 'materials' must be an integer in \[1, 64\], got 1000000000000"):
+            read_capture(capture_copy)
+        assert time.perf_counter() - t0 < 2.0
+
+    @pytest.mark.parametrize("value", [0, -2, 2.0, True])
+    def test_bad_material_counts(self, capture_copy, value):
+        self._edit(capture_copy, lambda d: d.update(materials=value))
+        with pytest.raises(DamcapError, match="'materials' must be an integer"):
+            read_capture(capture_copy)
+
+    def test_resolution_beyond_memory_names_the_gib(self, capture_copy):
+        self._edit(capture_copy, lambda d: d.update(w=60000, h=60000))
+        with pytest.raises(DamcapError, match=r"transforms\.json: a frame of 60000x60000 pixels would need [\d.e+]+ GiB"):
+            read_capture(capture_copy)
+        self._edit(capture_copy, lambda d: d.update(w=10 ** 9, h=4))
+        with pytest.raises(DamcapError, match=r"a frame width must be an integer in \[1, 65535\]"):
+            read_capture(capture_copy)
+
+    @pytest.mark.parametrize("key", ["fl_x", "fl_y", "cx", "cy"])
+    @pytest.mark.parametrize("value", [1e39, float("nan"), float("inf")])
+    def test_intrinsics_finite_in_float32(self, capture_copy, key, value):
+        self._edit(capture_copy, lambda d: d.update({key: value}))
+        with pytest.raises(DamcapError, match=rf"transforms\.json: '{key}' must be a finite"):
+            read_capture(capture_copy)
+
+    def test_negative_focal_length(self, capture_copy):
+        self._edit(capture_copy, lambda d: d.update(fl_x=-5.0))
+        with pytest.raises(DamcapError, match="focal lengths must be positive"):
+            read_capture(capture_copy)
+
+    def test_duplicate_frames_are_named(self, capture_copy):
+        self._edit(capture_copy, lambda d: d["frames"].append(dict(d["frames"][0])))
+        with pytest.raises(DamcapError, match=r"duplicate file_path entries \('images/0000\.exr' appears 2 times\)"):
+            read_capture(capture_copy)
+
+    def test_deeply_nested_json_is_one_line(self, capture_copy):
+        (capture_copy / "transforms.json").write_text("[" * 100000)
+        with pytest.raises(DamcapError, match=r"transforms\.json: transforms\.json is nested too deeply") as e:
+            read_capture(capture_copy)
+        assert "\n" not in str(e.value)
+
+    def test_exr_header_size_is_bounded_before_reading_pixels(self, tmp_path):
+        from damcap.common.exr import check_header_size
+
+        with pytest.raises(DamcapError, match=r"x\.exr: an image of 65535x65535 pixels, 1024 channels would need [\d.e+]+ GiB"):
+            check_header_size(tmp_path / "x.exr", 65535, 65535, 1024, 4)
+        with pytest.raises(DamcapError, match=r"image channel count \(header\) must be an integer in \[1, 1024\]"):
+            check_header_size(tmp_path / "x.exr", 4, 4, 5000, 4)
+        check_header_size(tmp_path / "x.exr", 64, 64, 4, 4)

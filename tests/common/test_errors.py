@@ -7,7 +7,8 @@ from types import SimpleNamespace
 
 import pytest
 
-from damcap.common.errors import DamcapError, require_options
+from damcap.common.errors import DamcapError
+from damcap.common.validate import require_options
 
 
 def test_damcap_error_is_an_exception_with_its_message():

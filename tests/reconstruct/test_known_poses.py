@@ -80,3 +80,70 @@ def test_unknown_pose_file(tmp_path):
         load_known_poses(str(tmp_path / "poses.txt"), _sizes(1))
     with pytest.raises(DamcapError, match="not found"):
         load_known_poses(str(tmp_path / "missing.json"), _sizes(1))
+
+
+class TestHostilePoseFiles:
+    @staticmethod
+    def _doc(n=4, **shared):
+        cams = _cameras(n)
+        frames = [{"file_path": f"images/IMG_{k:02d}", "transform_matrix": cams[k].tolist()} for k in range(n)]
+        return {"camera_model": "OPENCV", "fl_x": 70.0, "cx": 32.0, "cy": 24.0, "w": 64, "h": 48, **shared, "frames": frames}
+
+    def test_duplicate_entries_for_one_photo_are_refused_naming_photo_and_file(self, tmp_path):
+        doc = self._doc()
+        doc["frames"].append(dict(doc["frames"][1]))
+        path = tmp_path / "transforms.json"
+        path.write_text(json.dumps(doc))
+        with pytest.raises(DamcapError, match=r"transforms\.json: photo IMG_01\S* has two pose entries \(frames\[1\] and frames\[4\]\)") as e:
+            load_known_poses(str(path), _sizes(4))
+        assert "\n" not in str(e.value)
+
+    def test_duplicate_by_base_name_with_another_suffix(self, tmp_path):
+        doc = self._doc()
+        doc["frames"].append({**doc["frames"][2], "file_path": "other/IMG_02.png"})
+        path = tmp_path / "t.json"
+        path.write_text(json.dumps(doc))
+        with pytest.raises(DamcapError, match=r"t\.json: photo IMG_02\S* has two pose entries"):
+            load_known_poses(str(path), _sizes(4))
+
+    @pytest.mark.parametrize("key, value", [("fl_x", float("nan")), ("fl_x", float("inf")), ("fl_x", 1e39), ("cx", 1e39),
+                                            ("k1", float("nan")), ("w", 10 ** 9), ("w", 0), ("fl_x", "x"),
+                                            ("camera_angle_x", 4.0)])
+    def test_nan_inf_and_out_of_range_intrinsics(self, tmp_path, key, value):
+        doc = self._doc()
+        if key == "camera_angle_x":
+            del doc["fl_x"]
+        doc[key] = value
+        path = tmp_path / "transforms.json"
+        path.write_text(json.dumps(doc))  # json.dumps writes NaN / Infinity, which json.loads reads back
+        with pytest.raises(DamcapError, match=r"transforms\.json"):
+            load_known_poses(str(path), _sizes(4))
+
+    def test_nan_matrix_is_refused(self, tmp_path):
+        doc = self._doc()
+        doc["frames"][0]["transform_matrix"][0][3] = float("nan")
+        path = tmp_path / "transforms.json"
+        path.write_text(json.dumps(doc))
+        with pytest.raises(DamcapError, match=r"transforms\.json: frames\[0\]"):
+            load_known_poses(str(path), _sizes(4))
+
+    def test_deeply_nested_json_is_one_line(self, tmp_path):
+        path = tmp_path / "transforms.json"
+        path.write_text("[" * 100000)
+        with pytest.raises(DamcapError, match=r"transforms\.json: transforms\.json is nested too deeply") as e:
+            load_known_poses(str(path), _sizes(4))
+        assert "\n" not in str(e.value)
+
+    def test_llff_values_beyond_float32_are_refused(self, tmp_path):
+        arr = np.zeros((4, 17))
+        arr[0, 0] = 1e39
+        np.save(tmp_path / "poses_bounds.npy", arr)
+        with pytest.raises(DamcapError, match=r"poses_bounds\.npy: contains NaN or inf"):
+            load_known_poses(str(tmp_path / "poses_bounds.npy"), _sizes(4))
+
+    def test_llff_huge_array_is_refused_by_its_header(self, tmp_path):
+        path = tmp_path / "poses_bounds.npy"
+        np.lib.format.open_memmap(path, mode="w+", dtype=np.float64, shape=(10 ** 6, 17)).flush()
+        path.write_bytes(path.read_bytes()[:4096])  # the header claims 136 MB, the file holds 4 KB
+        with pytest.raises(DamcapError, match=r"poses_bounds\.npy"):
+            load_known_poses(str(path), _sizes(4))

@@ -455,3 +455,37 @@ def test_sfm_registers_linear_exrs_through_8bit_proxies(tmp_path):
     (proxies / "manifest.json").unlink()  # every proxy is written again
     _, again = reconstruct_capture(tmp_path / "linear", out, opts, masks_dir=tmp_path / "masks")
     assert again.registration["resumed"] == ["features", "matches", "mapping"]
+
+
+def _truncated_jpeg(folder: Path, name: str = "cut.jpg") -> Path:
+    rng = np.random.default_rng(0)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / name
+    write_image_u8(path, (rng.random((64, 64, 3)) * 255).astype(np.uint8))
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    return path
+
+
+class TestTruncatedJpeg:
+    """A JPEG cut in half is refused by every reader reconstruct uses, as hdr and linearize refuse it."""
+
+    def test_every_reader_refuses_it_naming_the_file(self, tmp_path):
+        from damcap.reconstruct.photos import read_mask, read_photo_radiance, read_photo_u8
+
+        path = _truncated_jpeg(tmp_path)
+        for read in (read_photo_u8, read_mask, lambda p: read_photo_radiance(p, 1.0, 1.0), read_ldr_codes):
+            with pytest.raises(DamcapError, match=r"cut\.jpg: cannot read pixels, the file is damaged or truncated") as e:
+                read(path)
+            assert "\n" not in str(e.value)
+
+    def test_reconstruct_refuses_it_before_any_work(self, tmp_path):
+        photos = tmp_path / "photos"
+        rng = np.random.default_rng(1)
+        photos.mkdir()
+        for k in range(3):
+            write_image_u8(photos / f"ok{k}.jpg", (rng.random((64, 64, 3)) * 255).astype(np.uint8))
+        _truncated_jpeg(photos)
+        with pytest.raises(DamcapError, match=r"cut\.jpg: cannot read pixels, the file is damaged or truncated"):
+            reconstruct_capture(photos, tmp_path / "out", ReconstructOptions())
+        assert not (tmp_path / "out" / "transforms.json").exists()

@@ -60,6 +60,50 @@ def test_training_lowers_the_cost_and_resumes_exactly(tiny_corpus, tmp_path):
     assert weights_sha256(resumed.net) == weights_sha256(whole.net)
 
 
+def test_a_state_of_other_capture_content_or_options_is_never_resumed(tiny_corpus, tmp_path):
+    import shutil
+
+    from damcap.appearance.fit import load_checkpoint, save_checkpoint
+    from damcap.synth.closed_form import ClosedFormOptions, make_closed_form_capture
+
+    paths = corpus_training_captures(tiny_corpus)
+    other_root = tmp_path / "other"
+    shutil.copytree(tiny_corpus, other_root)  # same names, one capture re-rendered with other content
+    shutil.rmtree(other_root / "captures" / "c1")
+    make_closed_form_capture(other_root / "captures" / "c1", ClosedFormOptions(shape="torus", views=6, resolution=24, train_views=3, seed=7))
+    other = corpus_training_captures(other_root)
+    opts = HyperTrainOptions(**{**TINY, "steps": 6, "val_fraction": 0.0})
+    fresh = train_hyper(other, opts)
+
+    def stop_at_5(step, steps, stats):
+        if step == 5:
+            raise KeyboardInterrupt
+
+    ckpt = tmp_path / "p.state"
+    with pytest.raises(KeyboardInterrupt):  # never swallowed by the loop
+        train_hyper(paths, opts, checkpoint_path=ckpt, progress=stop_at_5)
+    assert int(load_checkpoint(ckpt)["step"]) == 4  # the last periodic checkpoint stays
+    messages: list[str] = []
+    res = train_hyper(other, opts, checkpoint_path=ckpt, log=messages.append)
+    assert res.resumed_from == 0 and weights_sha256(res.net) == weights_sha256(fresh.net)
+    assert ("p.state was written for other inputs (captures, options or damcap version differ); starting afresh "
+            "(the old checkpoint kept as p.state.stale)") in messages
+    assert (tmp_path / "p.state.stale").is_file() and not ckpt.exists()
+    # other options (the learning rate) and an old state without a fingerprint start afresh too
+    with pytest.raises(KeyboardInterrupt):
+        train_hyper(paths, opts, checkpoint_path=ckpt, progress=stop_at_5)
+    messages = []
+    assert train_hyper(paths, HyperTrainOptions(**{**TINY, "steps": 6, "val_fraction": 0.0, "learning_rate": 1e-3}),
+                       checkpoint_path=ckpt, log=messages.append).resumed_from == 0
+    assert any("starting afresh" in m for m in messages)
+    with pytest.raises(KeyboardInterrupt):
+        train_hyper(paths, opts, checkpoint_path=ckpt, progress=stop_at_5)
+    state = load_checkpoint(ckpt)
+    del state["fingerprint"]
+    save_checkpoint(ckpt, state)
+    assert train_hyper(paths, opts, checkpoint_path=ckpt, log=lambda m: None).resumed_from == 0
+
+
 def test_longer_training_fits_the_training_captures(tiny_corpus):
     paths = corpus_training_captures(tiny_corpus)
     opts = HyperTrainOptions(**{**TINY, "steps": 150, "eval_every": 50, "learning_rate": 3e-3, "val_fraction": 0.0,

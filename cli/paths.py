@@ -1,0 +1,239 @@
+"""What every writing command shares about paths: one rule, checked before any output is touched.
+
+A command declares its inputs (positional paths, options, and the files it will read that are
+named inside inputs: a pose file, a mesh, labels, a predictor) and its outputs (each a file or a
+folder) to :func:`check_paths`, before it writes anything. The check refuses, with one line:
+
+- an output that is an input, lies inside an input folder, or is a folder that holds an input
+  (an input inside an output that will be written into);
+- two outputs that are the same path;
+- an existing output of the wrong kind (a folder where a file is written, a file where a folder
+  is);
+- an output whose nearest existing ancestor is not a folder or is not writable.
+
+Folder outputs that a command writes from scratch are staged (:func:`staged_folder`): files are
+written into a hidden folder beside the output and moved into place (fsynced) only when the
+command succeeds; an error or Ctrl-C removes the staged files. Single files are staged by
+:mod:`damcap.common.atomic`.
+
+Exit codes (``damcap.cli.main``): 0 success; 2 a user mistake or an operating-system error
+(permission denied, disk full, read-only filesystem: ``error: PATH: <reason>; <what to do>``);
+130 Ctrl-C; 143 SIGTERM.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+from typing import Callable, Iterable, Iterator, Literal, Optional, Sequence
+
+from damcap.common.atomic import fsync_path
+from damcap.common.errors import DamcapError
+
+Kind = Literal["file", "folder"]
+
+
+@dataclass(frozen=True)
+class Output:
+    """One path a command writes."""
+
+    path: Path
+    kind: Kind
+    """``"file"``: one file is written at ``path``; ``"folder"``: files are written inside it"""
+
+
+def file_out(path: Optional[os.PathLike | str]) -> Optional[Output]:
+    return None if path is None else Output(Path(path), "file")
+
+
+def folder_out(path: Optional[os.PathLike | str]) -> Optional[Output]:
+    return None if path is None else Output(Path(path), "folder")
+
+
+def _inside(child: Path, parent: Path) -> bool:
+    return parent in child.parents
+
+
+def _nearest_existing(path: Path) -> Path:
+    p = path
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
+def check_paths(inputs: Iterable[Optional[os.PathLike | str]], outputs: Iterable[Optional[Output]]) -> None:
+    """Refuse, before any output is touched, outputs that collide with inputs or cannot be written.
+
+    Args:
+        inputs: every path the command reads (None entries are skipped).
+        outputs: every path it writes (None entries are skipped).
+
+    Raises:
+        DamcapError: one line naming the output (see the module docstring).
+    """
+    ins = [Path(i) for i in inputs if i is not None]
+    outs = [o for o in outputs if o is not None]
+    resolved_in = [(i, i.resolve()) for i in ins]
+    seen: dict[Path, Path] = {}
+    for o in outs:
+        r = o.path.resolve()
+        if r in seen:
+            raise DamcapError(f"{o.path}: given for two outputs (also {seen[r]}); choose different output paths")
+        seen[r] = o.path
+        for i, ri in resolved_in:
+            if r == ri or _inside(r, ri):
+                raise DamcapError(f"{o.path}: output would overwrite or write into the input {i}; choose another output path")
+            if o.kind == "folder" and _inside(ri, r):
+                raise DamcapError(f"{o.path}: output would overwrite or write into the input {i} (it lies inside the output folder); "
+                                  f"choose another output folder or move the input")
+        if o.kind == "file" and o.path.is_dir():
+            raise DamcapError(f"{o.path}: is a folder, but a file is written here; give a file path")
+        if o.kind == "folder" and o.path.exists() and not o.path.is_dir():
+            raise DamcapError(f"{o.path}: exists and is not a folder; give a folder path")
+        base = _nearest_existing(o.path if o.kind == "folder" else o.path.parent)
+        if not base.is_dir():
+            raise DamcapError(f"{base}: is not a folder, so {o.path} cannot be written; choose another output path")
+        if not os.access(base, os.W_OK | os.X_OK):
+            raise DamcapError(f"{base}: not writable, so {o.path} cannot be written; fix its permissions or choose another output path")
+
+
+def frame_output_names(file_paths: Sequence[str], suffix: Optional[str] = None) -> list[str]:
+    """Output names for capture frames, unique by construction.
+
+    When every frame lies in the same folder (``images/0000.exr``, ...) the base name is kept
+    (``0000.exr``); otherwise each name is the frame's relative path (``images2/0004.exr``), so
+    two frames of the same base name in different folders never collide.
+
+    Args:
+        file_paths: the frames' ``file_path`` (relative to the capture root).
+        suffix: replace each name's suffix by this (``".exr"``), or keep it (None).
+
+    Raises:
+        DamcapError: a path that leaves the capture folder, or two frames with one path.
+    """
+    parts = []
+    for fp in file_paths:
+        p = PurePosixPath(str(fp).replace("\\", "/"))
+        if p.is_absolute() or ".." in p.parts or not p.parts:
+            raise DamcapError(f"frame {fp!r}: its path leaves the capture folder; frames must lie inside it")
+        parts.append(p)
+    one_folder = len({p.parent for p in parts}) <= 1
+    names: dict[str, str] = {}
+    out = []
+    for fp, p in zip(file_paths, parts):
+        q = PurePosixPath(p.name) if one_folder else p
+        if suffix is not None:
+            q = q.with_suffix(suffix)
+        name = str(q)
+        if name in names:
+            raise DamcapError(f"frames {names[name]!r} and {fp!r} would both be written as {name}; give the frames distinct paths")
+        names[name] = fp
+        out.append(name)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Staging: folders move into place at the end
+# --------------------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def staged_folder(out: Path) -> Iterator[Path]:
+    """Yield a hidden folder beside ``out``; on success move its files into ``out`` (fsynced).
+
+    An existing ``out`` keeps its other files (a file of the same name is replaced). On an error
+    or an interrupt the staged files are removed and ``out`` is as it was.
+    """
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
+    try:
+        yield stage
+        files = sorted(p for p in stage.rglob("*") if p.is_file())
+        for p in files:
+            fsync_path(p)
+        if not out.exists():
+            os.rename(stage, out)
+            for d in {out / p.parent.relative_to(stage) for p in files} | {out}:
+                fsync_path(d)
+            fsync_path(out.parent)
+            return
+        folders = set()
+        for p in files:
+            dst = out / p.relative_to(stage)
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            if dst.is_dir():
+                raise DamcapError(f"{dst}: is a folder, but a file is written here; remove it or choose another output folder")
+            os.replace(p, dst)
+            folders.add(dst.parent)
+        for d in folders:
+            fsync_path(d)
+    finally:
+        if stage.exists():
+            shutil.rmtree(stage, ignore_errors=True)
+
+
+# --------------------------------------------------------------------------------------------
+# Interrupts and operating-system errors
+# --------------------------------------------------------------------------------------------
+
+
+class Terminated(KeyboardInterrupt):
+    """Raised by damcap's SIGTERM handler, so that SIGTERM takes Ctrl-C's path."""
+
+
+class Interrupted(Exception):
+    """A command stopped by Ctrl-C or SIGTERM; ``kept`` says what it leaves behind."""
+
+    def __init__(self, kept: str, terminated: bool = False):
+        super().__init__(kept)
+        self.kept = kept
+        self.terminated = terminated
+
+    @property
+    def exit_code(self) -> int:
+        return 143 if self.terminated else 130
+
+
+NOTHING_KEPT = "no output was completed (staged files were removed); rerun the command"
+
+
+@contextlib.contextmanager
+def on_interrupt(kept: Callable[[], str]) -> Iterator[None]:
+    """Turn Ctrl-C / SIGTERM inside the block into :class:`Interrupted` with ``kept()``'s line."""
+    try:
+        yield
+    except KeyboardInterrupt as e:
+        raise Interrupted(kept(), isinstance(e, Terminated)) from None
+
+
+_ADVICE = {
+    errno.EACCES: "fix the permissions or choose another path",
+    errno.EPERM: "fix the permissions or choose another path",
+    errno.ENOSPC: "free disk space or write to another disk",
+    errno.EDQUOT: "free space within your quota or write elsewhere",
+    errno.EROFS: "the filesystem is read-only; choose a path on a writable one",
+    errno.ENOENT: "check that the path exists",
+    errno.ENOTDIR: "a part of the path is a file, not a folder; choose another path",
+    errno.EISDIR: "it is a folder; give a file path",
+    errno.EEXIST: "remove it or choose another path",
+    errno.ENAMETOOLONG: "choose a shorter path",
+    errno.EMFILE: "too many open files; raise the limit (ulimit -n)",
+    errno.EIO: "the disk reported an I/O error; check it",
+}
+
+
+def os_error_line(e: OSError) -> str:
+    """``PATH: <reason>; <what to do>`` for an operating-system error (no traceback)."""
+    where = e.filename if e.filename is not None else None
+    reason = e.strerror or str(e) or type(e).__name__
+    advice = _ADVICE.get(e.errno or -1, "check the path and try again")
+    prefix = f"{where}: " if where is not None else ""
+    if e.filename2 is not None:
+        prefix = f"{e.filename} -> {e.filename2}: "
+    return f"{prefix}{' '.join(str(reason).split())}; {advice}"

@@ -1,0 +1,229 @@
+"""Checks for numbers that come from a file or an option, before anything is allocated from them.
+
+Every check is NaN-proof (it asks whether the value is *inside* the allowed range, so NaN, which
+compares false, is refused) and names the bound in its message. The bounds on architectures and
+counts are generous limits of what a machine can hold, not of what is sensible; resolutions are
+bounded by this machine's memory (:func:`require_memory`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from damcap.common.errors import DamcapError
+
+#: largest width of a DAM hidden layer
+MAX_DAM_WIDTH = 4096
+#: most hidden layers of a DAM
+MAX_DAM_DEPTH = 64
+#: largest channel count of a convolution (predictor, segmenter)
+MAX_CHANNELS = 4096
+#: most convolution layers of a predictor
+MAX_CONV_LAYERS = 16
+#: most materials of a segmentation or a capture
+MAX_MATERIALS = 64
+#: longest side of an image, pixels (OpenEXR and JPEG both stop at 65535)
+MAX_IMAGE_SIDE = 65535
+#: most optimiser steps, views, frames, samples and similar counts
+MAX_COUNT = 10 ** 9
+#: largest JSON file damcap parses (transforms.json, pose files, records), bytes
+MAX_JSON_BYTES = 256 * 2 ** 20
+#: memory assumed when the machine's cannot be read, bytes
+FALLBACK_MEMORY_BYTES = 16 * 2 ** 30
+
+_FLOAT_DTYPES = {"float16": np.float16, "float32": np.float32, "float64": np.float64}
+
+
+def _prefix(where: str | os.PathLike | None) -> str:
+    return f"{where}: " if where else ""
+
+
+def flag(name: str) -> str:
+    """The CLI flag of an options field: ``learning_rate`` -> ``--learning-rate``."""
+    return "--" + name.replace("_", "-")
+
+
+def finite_in(value: Any, dtype: str, what: str, where: str | os.PathLike | None = None) -> float:
+    """``value`` as a float that stays finite when cast to ``dtype`` (where it will be used).
+
+    >>> finite_in(1e39, "float64", "scale")
+    1e+39
+    >>> try:
+    ...     finite_in(1e39, "float32", "scale", "a.dam")
+    ... except DamcapError as e:
+    ...     print(e)
+    a.dam: scale must be a finite float32 number (|x| <= 3.403e+38), got 1e+39
+
+    Raises:
+        DamcapError: not a number (bools count as not numbers), NaN, inf, or beyond ``dtype``'s range.
+    """
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise DamcapError(f"{_prefix(where)}{what} must be a number, got {value!r}")
+    try:
+        v = float(value)
+    except OverflowError:
+        v = math.inf
+    limit = float(np.finfo(_FLOAT_DTYPES[dtype]).max)
+    if not (math.isfinite(v) and abs(v) <= limit):
+        raise DamcapError(f"{_prefix(where)}{what} must be a finite {dtype} number (|x| <= {limit:.4g}), got {value!r}")
+    return v
+
+
+def bounded_float(value: Any, lo: float, hi: float, what: str, where: str | os.PathLike | None = None, *,
+                  dtype: str = "float32", lo_open: bool = False, hi_open: bool = False) -> float:
+    """``value`` finite in ``dtype`` and inside [lo, hi] (``lo_open`` / ``hi_open``: that end excluded).
+
+    Raises:
+        DamcapError: naming the interval and the value.
+    """
+    v = finite_in(value, dtype, what, where)
+    above = v > lo if lo_open else v >= lo
+    below = v < hi if hi_open else v <= hi
+    if not (above and below):
+        interval = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+        raise DamcapError(f"{_prefix(where)}{what} must lie in {interval}, got {value!r}")
+    return v
+
+
+def bounded_int(value: Any, lo: int, hi: int, what: str, where: str | os.PathLike | None = None) -> int:
+    """``value`` as an int in [lo, hi]; a float is accepted only when it is a whole number.
+
+    >>> try:
+    ...     bounded_int(10 ** 12, 1, 4096, "DAM width", "a.dam")
+    ... except DamcapError as e:
+    ...     print(e)
+    a.dam: DAM width must be an integer in [1, 4096], got 1000000000000
+
+    Raises:
+        DamcapError: not an integer, or outside [lo, hi] (the message names both bounds).
+    """
+    if isinstance(value, (bool, np.bool_)):
+        raise DamcapError(f"{_prefix(where)}{what} must be an integer in [{lo}, {hi}], got {value!r}")
+    if isinstance(value, (float, np.floating)):
+        if not (math.isfinite(value) and float(value).is_integer()):
+            raise DamcapError(f"{_prefix(where)}{what} must be an integer in [{lo}, {hi}], got {value!r}")
+        value = int(value)
+    if not isinstance(value, (int, np.integer)):
+        raise DamcapError(f"{_prefix(where)}{what} must be an integer in [{lo}, {hi}], got {value!r}")
+    if not lo <= int(value) <= hi:
+        raise DamcapError(f"{_prefix(where)}{what} must be an integer in [{lo}, {hi}], got {value!r}")
+    return int(value)
+
+
+def machine_memory_bytes() -> int:
+    """Physical memory of this machine (cgroup limit where lower), bytes."""
+    total = FALLBACK_MEMORY_BYTES
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        pass
+    for cg in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            text = Path(cg).read_text().strip()
+        except OSError:
+            continue
+        if text.isdigit() and 0 < int(text) < total:
+            total = int(text)
+    return int(total)
+
+
+def require_memory(nbytes: float, what: str, where: str | os.PathLike | None = None, fraction: float = 0.5) -> None:
+    """Refuse a buffer that would need more than ``fraction`` of this machine's memory.
+
+    Raises:
+        DamcapError: naming the GiB it would need and the GiB allowed.
+    """
+    limit = machine_memory_bytes() * fraction
+    if not (nbytes <= limit):
+        raise DamcapError(f"{_prefix(where)}{what} would need {nbytes / 2 ** 30:.3g} GiB of memory; this machine allows "
+                          f"{limit / 2 ** 30:.3g} GiB ({fraction:g} of its {machine_memory_bytes() / 2 ** 30:.3g} GiB)")
+
+
+def require_resolution(width: Any, height: Any, bytes_per_pixel: int, what: str,
+                       where: str | os.PathLike | None = None, copies: int = 1) -> tuple[int, int]:
+    """A (width, height) bounded by :data:`MAX_IMAGE_SIDE` and by memory (``copies`` buffers of
+    ``bytes_per_pixel`` bytes per pixel)."""
+    w = bounded_int(width, 1, MAX_IMAGE_SIDE, f"{what} width", where)
+    h = bounded_int(height, 1, MAX_IMAGE_SIDE, f"{what} height", where)
+    require_memory(float(w) * h * bytes_per_pixel * copies, f"{what} of {w}x{h} pixels", where)
+    return w, h
+
+
+def check_float_fields(options: object) -> None:
+    """Every float field of an options dataclass (and every float in a list/tuple field) is finite
+    in float32, the dtype the library computes in.
+
+    Raises:
+        DamcapError: naming the field's CLI flag and the value.
+    """
+    for f in dataclasses.fields(options):  # type: ignore[arg-type]
+        value = getattr(options, f.name)
+        items = value if isinstance(value, (list, tuple)) else [value]
+        for v in items:
+            if isinstance(v, (float, np.floating)):
+                v32 = abs(float(v)) <= float(np.finfo(np.float32).max)
+                if not (math.isfinite(v) and v32):
+                    raise DamcapError(f"{f.metadata.get('cli_flag', flag(f.name))} must be a finite number, got {value!r}")
+
+
+def load_json_file(path: str | os.PathLike, what: str = "JSON file", max_bytes: int = MAX_JSON_BYTES) -> Any:
+    """Parse a JSON file with a size limit; too deep nesting, bad UTF-8 or bad JSON are one line.
+
+    Raises:
+        DamcapError: naming the file (missing, larger than ``max_bytes``, invalid, nested too deeply).
+    """
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        if size > max_bytes:
+            raise DamcapError(f"{path}: {what} is {size / 2 ** 20:.1f} MiB, larger than the {max_bytes / 2 ** 20:.0f} MiB damcap reads")
+        text = path.read_bytes().decode("utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise DamcapError(f"{path}: cannot read {what} ({e})") from None
+    return loads_json(text, path, what)
+
+
+def loads_json(text: str | bytes, where: str | os.PathLike, what: str = "JSON") -> Any:
+    """``json.loads`` whose failures (bad JSON, nesting deeper than Python's recursion limit,
+    numbers too long to convert) are one line naming ``where``."""
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise DamcapError(f"{where}: {what} is nested too deeply (beyond Python's recursion limit "
+                          f"{__import__('sys').getrecursionlimit()}); not a damcap file") from None
+    except (ValueError, UnicodeDecodeError) as e:  # JSONDecodeError, int conversion limits
+        raise DamcapError(f"{where}: invalid JSON ({str(e).splitlines()[0][:160]})") from None
+
+
+def require_options(options: object, at_least_1: tuple[str, ...] = (), at_least_0: tuple[str, ...] = (),
+                    positive_finite: tuple[str, ...] = ()) -> None:
+    """Check an options dataclass's numeric fields; the error names the CLI flag and the value.
+
+    >>> from types import SimpleNamespace
+    >>> try:
+    ...     require_options(SimpleNamespace(steps=0), at_least_1=("steps",))
+    ... except DamcapError as e:
+    ...     print(e)
+    --steps must be >= 1, got 0
+    """
+    if dataclasses.is_dataclass(options):
+        check_float_fields(options)  # NaN and inf in any float field, named
+    flag = lambda name: "--" + name.replace("_", "-")  # noqa: E731
+    for minimum, names in ((1, at_least_1), (0, at_least_0)):
+        for name in names:
+            value = getattr(options, name)
+            if not value >= minimum:  # NaN-proof: NaN compares false
+                raise DamcapError(f"{flag(name)} must be >= {minimum}, got {value}")
+            if isinstance(value, int) and value > MAX_COUNT:
+                raise DamcapError(f"{flag(name)} must be <= {MAX_COUNT} (the largest count damcap accepts), got {value}")
+    for name in positive_finite:
+        value = getattr(options, name)
+        if not (value > 0 and math.isfinite(value)):
+            raise DamcapError(f"{flag(name)} must be a positive number, got {value}")

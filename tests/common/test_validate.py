@@ -1,0 +1,194 @@
+"""common/validate.py: NaN-proof, bounded checks of numbers from files and options; every options
+dataclass refuses NaN and inf in each of its float fields, naming the field."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import numpy as np
+import pytest
+
+from damcap.appearance.fit import FitOptions
+from damcap.appearance.hyper.train import HyperTrainOptions
+from damcap.appearance.segment.options import SegmentOptions
+from damcap.capture.hdr import HdrOptions
+from damcap.capture.linearize import LinearizeOptions
+from damcap.common.errors import DamcapError
+from damcap.common.validate import require_options
+from damcap.common.validate import (
+    MAX_IMAGE_SIDE, bounded_float, bounded_int, check_float_fields, finite_in, load_json_file, loads_json,
+    machine_memory_bytes, require_memory, require_resolution,
+)
+from damcap.export.turntable import ExportOptions, OrbitOptions
+from damcap.reconstruct.pipeline import ReconstructOptions
+from damcap.synth.mitsuba_capture import SynthOptions
+from damcap.synth.photos import PhotoSetOptions
+
+OPTIONS_CLASSES = (HdrOptions, LinearizeOptions, ReconstructOptions, FitOptions, HyperTrainOptions, SegmentOptions,
+                   OrbitOptions, ExportOptions, SynthOptions, PhotoSetOptions)
+
+
+def _float_fields(cls):
+    return [f for f in dataclasses.fields(cls) if "float" in str(f.type) and "list" not in str(f.type)]
+
+
+FLOAT_CASES = [(cls, f, bad) for cls in OPTIONS_CLASSES for f in _float_fields(cls)
+               for bad in (math.nan, math.inf, -math.inf, 1e39)]
+
+
+# ---------------------------------------------------------------------------------------------
+# helpers
+# ---------------------------------------------------------------------------------------------
+
+class TestFiniteIn:
+    def test_float64_finite_but_float32_infinite(self):
+        assert finite_in(1e39, "float64", "scale") == 1e39
+        with pytest.raises(DamcapError, match=r"a\.dam: scale must be a finite float32 number \(\|x\| <= 3\.403e\+38\), got 1e\+39"):
+            finite_in(1e39, "float32", "scale", "a.dam")
+
+    @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf, np.float64("nan"), "1.0", None, True, [1.0]])
+    def test_refuses_non_finite_and_non_numbers(self, bad):
+        with pytest.raises(DamcapError, match="scale must be"):
+            finite_in(bad, "float32", "scale", "f.json")
+
+    def test_accepts_numpy_and_ints(self):
+        assert finite_in(np.float32(2.5), "float32", "x") == 2.5
+        assert finite_in(3, "float16", "x") == 3.0
+        with pytest.raises(DamcapError, match="float16"):
+            finite_in(70000, "float16", "x")
+
+    def test_huge_int_is_not_an_overflow_traceback(self):
+        with pytest.raises(DamcapError, match="finite float64"):
+            finite_in(10 ** 400, "float64", "x")
+
+
+class TestBoundedInt:
+    def test_bound_is_named(self):
+        with pytest.raises(DamcapError, match=r"f\.dam: DAM width must be an integer in \[1, 4096\], got 1000000000000"):
+            bounded_int(10 ** 12, 1, 4096, "DAM width", "f.dam")
+
+    @pytest.mark.parametrize("bad", [0, -1, 5000, 2.5, math.nan, math.inf, "3", None, True])
+    def test_refuses(self, bad):
+        with pytest.raises(DamcapError, match=r"in \[1, 4096\]"):
+            bounded_int(bad, 1, 4096, "width")
+
+    def test_accepts_whole_floats_and_numpy_ints(self):
+        assert bounded_int(3.0, 1, 4, "n") == 3
+        assert bounded_int(np.int64(4), 1, 4, "n") == 4
+
+
+class TestBoundedFloat:
+    def test_open_and_closed_ends(self):
+        assert bounded_float(1.0, 0, 1, "q") == 1.0
+        with pytest.raises(DamcapError, match=r"q must lie in \(0, 1\)"):
+            bounded_float(1.0, 0, 1, "q", lo_open=True, hi_open=True)
+        with pytest.raises(DamcapError, match="q must be a finite"):
+            bounded_float(math.nan, 0, 1, "q")
+
+
+class TestMemory:
+    def test_resolution_beyond_memory_names_the_gib(self):
+        with pytest.raises(DamcapError, match=r"would need [\d.e+]+ GiB of memory; this machine allows"):
+            require_resolution(60000, 60000, 4 * 1024, "a frame", "transforms.json")
+        with pytest.raises(DamcapError, match=rf"\[1, {MAX_IMAGE_SIDE}\]"):
+            require_resolution(10 ** 6, 1, 4, "a frame")
+        assert require_resolution(64, 32, 4, "a frame") == (64, 32)
+
+    def test_machine_memory_is_plausible(self):
+        assert 2 ** 28 <= machine_memory_bytes() <= 2 ** 50
+        require_memory(1024, "a small buffer")
+        with pytest.raises(DamcapError, match="GiB"):
+            require_memory(math.nan, "a NaN-sized buffer")
+
+
+class TestJson:
+    def test_deeply_nested_json_is_one_line_naming_the_file(self, tmp_path):
+        path = tmp_path / "deep.json"
+        path.write_text("[" * 100000)
+        t0 = time.perf_counter()
+        with pytest.raises(DamcapError, match=r"deep\.json: .* nested too deeply") as e:
+            load_json_file(path, "pose file")
+        assert time.perf_counter() - t0 < 2.0
+        assert "\n" not in str(e.value)
+
+    def test_size_limit_and_bad_json(self, tmp_path):
+        path = tmp_path / "big.json"
+        path.write_text("[" + "0," * 1000 + "0]")
+        with pytest.raises(DamcapError, match=r"big\.json: .* larger than"):
+            load_json_file(path, "record", max_bytes=100)
+        assert len(load_json_file(path)) == 1001
+        with pytest.raises(DamcapError, match="x.json: invalid JSON"):
+            loads_json("{nope", "x.json")
+        (tmp_path / "bin.json").write_bytes(b"\xff\xfe")
+        with pytest.raises(DamcapError, match="bin.json: cannot read"):
+            load_json_file(tmp_path / "bin.json")
+
+
+# ---------------------------------------------------------------------------------------------
+# options dataclasses
+# ---------------------------------------------------------------------------------------------
+
+class TestOptionsFloats:
+    def test_every_class_has_float_fields_covered(self):
+        assert all(_float_fields(cls) for cls in OPTIONS_CLASSES if cls is not ExportOptions)
+
+    @pytest.mark.parametrize("cls", OPTIONS_CLASSES, ids=lambda c: c.__name__)
+    def test_defaults_validate(self, cls):
+        cls().validate()
+
+    @pytest.mark.parametrize("cls, f, bad", FLOAT_CASES, ids=lambda v: getattr(v, "__name__", getattr(v, "name", repr(v))))
+    def test_nan_and_inf_are_refused_naming_the_field(self, cls, f, bad):
+        opts = dataclasses.replace(cls(), **{f.name: bad})
+        with pytest.raises(DamcapError) as e:
+            opts.validate()
+        names = {"--" + f.name.replace("_", "-"), f.metadata.get("cli_flag", "")} - {""}
+        assert any(n in str(e.value) for n in names), str(e.value)
+
+    def test_check_float_fields_sees_list_items(self):
+        with pytest.raises(DamcapError, match="--exposures"):
+            check_float_fields(HdrOptions(exposures_s=[0.1, math.nan]))
+
+
+COUNT_CASES = [
+    (FitOptions, "steps"), (FitOptions, "batch_size"), (FitOptions, "width"), (FitOptions, "depth"),
+    (HyperTrainOptions, "steps"), (HyperTrainOptions, "batch_size"), (HyperTrainOptions, "input_size"),
+    (SegmentOptions, "materials"), (SegmentOptions, "steps"), (SegmentOptions, "batch_pixels"),
+    (SegmentOptions, "psi_resolution"), (SegmentOptions, "psi_channels"), (SegmentOptions, "width"),
+    (ReconstructOptions, "voxels"), (ReconstructOptions, "capture_size"), (ReconstructOptions, "supersample"),
+    (ReconstructOptions, "train_views"), (ReconstructOptions, "poisson_depth"),
+    (OrbitOptions, "views"), (OrbitOptions, "resolution"), (OrbitOptions, "supersample"), (ExportOptions, "fps"),
+    (SynthOptions, "views"), (SynthOptions, "spp"), (PhotoSetOptions, "views"), (PhotoSetOptions, "size"),
+    (HdrOptions, "response_samples"),
+]
+
+
+class TestOptionsCounts:
+    @pytest.mark.parametrize("cls, name", COUNT_CASES, ids=lambda v: getattr(v, "__name__", v))
+    @pytest.mark.parametrize("bad", [0, -1])
+    def test_zero_and_negative_counts_are_refused(self, cls, name, bad):
+        with pytest.raises(DamcapError):
+            dataclasses.replace(cls(), **{name: bad}).validate()
+
+    @pytest.mark.parametrize("cls, name", COUNT_CASES, ids=lambda v: getattr(v, "__name__", v))
+    def test_huge_counts_are_refused_quickly_naming_a_bound(self, cls, name):
+        t0 = time.perf_counter()
+        with pytest.raises(DamcapError, match=r"<= \d+|\[\-?\d+, \d+\]|between|GiB|must lie in") as e:
+            dataclasses.replace(cls(), **{name: 10 ** 12}).validate()
+        assert time.perf_counter() - t0 < 2.0
+        assert "\n" not in str(e.value)
+
+    def test_hyper_channels_are_bounded(self):
+        with pytest.raises(DamcapError, match=r"predictor channels must be an integer in \[1, 4096\]"):
+            HyperTrainOptions(channels=(16, 10 ** 9)).validate()
+        with pytest.raises(DamcapError, match=r"\[1, 16\]"):
+            HyperTrainOptions(channels=(4,) * 40, input_size=4096).validate()
+
+    def test_require_options_is_nan_proof(self):
+        from types import SimpleNamespace
+
+        with pytest.raises(DamcapError, match="--steps must be >= 1, got nan"):
+            require_options(SimpleNamespace(steps=math.nan), at_least_1=("steps",))
+        with pytest.raises(DamcapError, match="--steps must be <= 1000000000"):
+            require_options(SimpleNamespace(steps=10 ** 12), at_least_1=("steps",))

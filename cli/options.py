@@ -114,14 +114,22 @@ def _default_of(f: dataclasses.Field, instance: Any) -> Any:
 # --------------------------------------------------------------------------------------------
 
 
-def parse_int(flag: str) -> Callable[[Any], Any]:
+#: the seeds every random generator damcap uses accepts (numpy, torch, COLMAP, Mitsuba)
+SEED_RANGE = (0, 2**31 - 1)
+
+
+def parse_int(flag: str, bounds: tuple[int, int] | None = None) -> Callable[[Any], Any]:
+    """A parser of an integer option, refusing values outside ``bounds`` (inclusive) when given."""
     def parse(text: Any) -> Any:
         if not isinstance(text, str):
             return text
         try:
-            return int(text)
+            value = int(text)
         except ValueError:
             raise DamcapError(f"{flag} must be an integer, got {text!r}") from None
+        if bounds is not None and not bounds[0] <= value <= bounds[1]:
+            raise DamcapError(f"{flag} must be an integer in [{bounds[0]}, {bounds[1]}], got {value}")
+        return value
     return parse
 
 
@@ -223,7 +231,7 @@ def option_specs(cls: type, *, exclude: frozenset[str] = frozenset(), prefix: tu
                 flag = f"{first}/--no-{first[2:]}"
         elif tp is int:
             annotation = int
-            kw.update(parser=parse_int(first), metavar="INTEGER")
+            kw.update(parser=parse_int(first, SEED_RANGE if f.name == "seed" else None), metavar="INTEGER")
         elif tp is float:
             annotation = float
             kw.update(parser=parse_float(first), metavar="FLOAT")

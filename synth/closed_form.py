@@ -23,6 +23,7 @@ import torch
 
 from damcap.common.capture_folder import Capture, Frame, FrameData, Intrinsics, write_capture
 from damcap.common.errors import DamcapError
+from damcap.common.validate import bounded_float, bounded_int, require_resolution
 from damcap.common.version import damcap_version
 from damcap.common.numerics import dot, safe_div, safe_normalize
 
@@ -319,6 +320,13 @@ def render_closed_form(opts: ClosedFormOptions) -> tuple[list[np.ndarray], Intri
     if opts.resolution < 8 or opts.env_grid < 2 or opts.supersample < 1:
         raise DamcapError(f"--res must be >= 8, --env-grid >= 2 and --supersample >= 1; got {opts.resolution}, "
                           f"{opts.env_grid}, {opts.supersample}")
+    bounded_float(opts.elevation_deg, -90.0, 90.0, "--elevation", lo_open=True, hi_open=True)  # at the poles up = view
+    bounded_int(opts.views, 3, 100_000, "--views")
+    bounded_int(opts.env_grid, 2, 4096, "--env-grid")
+    bounded_int(opts.seed, 0, 2**31 - 1, "--seed")
+    sub = bounded_int(opts.resolution, 8, 65535, "--res") * bounded_int(opts.supersample, 1, 64, "--supersample")
+    # per frame: float64 rays and hits (~10 arrays of 3 values) at the sub-pixel grid
+    require_resolution(sub, sub, 240, "--res x --supersample", copies=1)
     rng = np.random.default_rng(opts.seed)
     radius = 1.3 if opts.shape == "torus" else 1.0
     distance = 4.0

@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from damcap.common import data_dir
+
 
 BENCH = Path(__file__).resolve().parent
 """the bench/ folder: the committed reports (``*.md``), ``results/`` and the git-ignored ``.cache/``"""
@@ -27,10 +29,9 @@ PYTHON = ".venv/bin/python"
 
 
 def shared_data_dir() -> Path:
-    """``$DAMCAP_SHARED_DATA``, else ``../shared/data`` beside the repository (meshes/, envmaps/,
-    brackets/, raw/, real/)."""
-    env = os.environ.get("DAMCAP_SHARED_DATA")
-    return Path(env) if env else REPO.parent / "shared" / "data"
+    """The shared data folder (meshes/, envmaps/, brackets/, raw/, real/): ``$DAMCAP_SHARED_DATA``,
+    else ``../shared/data`` beside the repository (:func:`damcap.common.data_dir.shared_data_dir`)."""
+    return data_dir.shared_data_dir(fallback=REPO.parent / "shared" / "data")
 
 
 def command_line(study: str, argv: list[str] | tuple[str, ...]) -> str:

@@ -3,12 +3,12 @@ Mitsuba capture), synth-set (the corpus), synth-photos (a textured photo set), s
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Optional
 
 import typer
 
+from damcap.common.data_dir import DATA_ENV, shared_data_dir
 from damcap.common.errors import DamcapError
 
 from damcap.cli.app import command, progress_bar
@@ -20,19 +20,6 @@ if TYPE_CHECKING:
     from damcap.synth.corpus import CorpusOptions
     from damcap.synth.mitsuba_capture import SynthOptions
     from damcap.synth.photos import PhotoSetOptions
-
-DATA_ENV = "DAMCAP_SHARED_DATA"
-"""environment variable naming the shared data folder (meshes/, envmaps/)"""
-
-
-def shared_data_dir(given: Optional[Path]) -> Path:
-    """The shared data folder: ``--data-dir``, else ``$DAMCAP_SHARED_DATA``, else ``../shared/data``
-    from the current directory (a checkout's sibling ``shared/``; an installed damcap has no
-    repository to look next to)."""
-    if given is not None:
-        return given
-    env = os.environ.get(DATA_ENV)
-    return Path(env) if env else Path("..") / "shared" / "data"
 
 
 @command("closed-form", opts="damcap.synth.closed_form:ClosedFormOptions")

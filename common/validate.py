@@ -215,7 +215,6 @@ def require_options(options: object, at_least_1: tuple[str, ...] = (), at_least_
     """
     if dataclasses.is_dataclass(options):
         check_float_fields(options)  # NaN and inf in any float field, named
-    flag = lambda name: "--" + name.replace("_", "-")  # noqa: E731
     for minimum, names in ((1, at_least_1), (0, at_least_0)):
         for name in names:
             value = getattr(options, name)

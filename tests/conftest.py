@@ -10,8 +10,10 @@ from pathlib import Path
 import pytest
 import torch
 
+from damcap.common.data_dir import shared_data_dir
+
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = Path(os.environ.get("DAMCAP_SHARED_DATA", REPO.parent / "shared" / "data"))
+SHARED_DATA = shared_data_dir(fallback=REPO.parent / "shared" / "data")
 SAMPLE_CAPTURE = REPO / "samples" / "torus_env"
 
 #: tolerances per dtype, in one place

@@ -210,6 +210,74 @@ def init_weights(arch: DamArchitecture, generator: torch.Generator | None = None
     return torch.cat(parts)
 
 
+#: float32 range: every hidden value and output of a DAM must stay inside it (renders, GLSL)
+FLOAT32_MAX = float(torch.finfo(torch.float32).max)
+#: matrix entries x inputs of the overflow probe (about 2 x this many multiply-adds)
+PROBE_WORK = 1 << 26
+
+
+def output_bound(weights_flat: torch.Tensor, arch: DamArchitecture) -> float:
+    """An upper bound of |every hidden value| and of the normalised output over ALL unit inputs.
+
+    Interval arithmetic in float64: inputs are components of unit vectors (|x| <= 1), each layer
+    maps a bound b to |W| b + |bias|, the activations add at most ln 2 (tanh caps at 1).
+
+    Args:
+        weights_flat: (P,) flat weights.
+        arch: the architecture.
+
+    Returns:
+        the bound (inf or NaN when it overflows float64).
+    """
+    layers = split_weights(weights_flat.detach()[None], arch)
+    x = torch.ones(arch.layer_shapes[0][1], dtype=torch.float64)
+    worst = 0.0
+    for k, (w, b) in enumerate(layers):  # one layer at a time in float64 (memory: one matrix)
+        x = w[0].double().abs() @ x + (0.0 if b is None else b[0].double().abs())
+        top = float(x.max())
+        if not math.isfinite(top):
+            return top
+        worst = max(worst, top)
+        x = x.clamp_max(1.0) if arch.activation == "tanh" and k < len(layers) - 1 else x + LN2
+    return max(worst, float(x.max()))
+
+
+def _probe_inputs(n: int, encoding: Encoding) -> torch.Tensor:
+    """(n, C) encoded inputs of n fixed (view, normal) pairs spread over the sphere (Fibonacci)."""
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1 - 2 * i / n
+    phi = math.pi * (3 - math.sqrt(5)) * i
+    pts = torch.stack([torch.sqrt(1 - z * z) * torch.cos(phi), torch.sqrt(1 - z * z) * torch.sin(phi), z], -1)
+    return encode_inputs(pts.roll(n // 3, 0), pts, encoding)
+
+
+def overflow_problem(model: "DeepAppearanceMap") -> str | None:
+    """Why the model's hidden values or radiance can leave float32 (inf, NaN), or None when they cannot.
+
+    Finite weights are not enough: 3e38 is a finite float32 weight, and one layer of them
+    overflows. The bound of :func:`output_bound` proves a model safe; a deep model can exceed
+    that loose bound and still be fine, so it is then evaluated, layer by layer in float32, on
+    fixed directions spread over the sphere.
+    """
+    w, arch, scale = model.weights_flat.detach().float(), model.arch, model.radiance_scale
+    largest = float(w.abs().max()) if w.numel() else 0.0
+    bound = output_bound(w, arch)
+    if bound * scale <= FLOAT32_MAX:
+        return None
+    n = max(16, min(4096, PROBE_WORK // max(1, arch.num_weights)))
+    x = _probe_inputs(n, arch.encoding)
+    layers = split_weights(w[None], arch)
+    for k, (mat, b) in enumerate(layers):
+        x = F.linear(x, mat[0], None if b is None else b[0])
+        if k < len(layers) - 1:
+            x = hidden_activation(x, arch.activation)
+        ok = bool(torch.isfinite(x).all()) and (k < len(layers) - 1 or bool((F.softplus(x) * scale < FLOAT32_MAX).all()))
+        if not ok:
+            return (f"the weights (largest |w| = {largest:.4g}) overflow float32: layer {k + 1} of "
+                    f"{len(layers)} gives inf or NaN for some view and normal directions")
+    return None
+
+
 class DeepAppearanceMap(nn.Module):
     """A DAM: one flat weight vector plus its architecture and the radiance scale of its capture.
 

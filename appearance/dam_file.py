@@ -19,10 +19,11 @@ from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 
 from damcap.common.atomic import atomic_path
+from damcap.common.capture_folder import COLORSPACES
 from damcap.common.errors import DamcapError
 from damcap.common.validate import finite_in, loads_json
 
-from damcap.appearance.dam import FLOAT32_TINY, DamArchitecture, DeepAppearanceMap
+from damcap.appearance.dam import FLOAT32_TINY, DamArchitecture, DeepAppearanceMap, overflow_problem
 
 DAM_FORMAT_VERSION = 1
 METADATA_KEY = "damcap"
@@ -60,7 +61,8 @@ def load_dam(path: str | os.PathLike) -> tuple[DeepAppearanceMap, dict[str, Any]
     Raises:
         DamcapError: missing file, not a safetensors file (random bytes, a pickle, truncated),
             missing or invalid metadata, a newer format version, weights that do not match the
-            architecture, non-finite weights.
+            architecture, non-finite weights, weights whose output overflows float32, a colour
+            space damcap does not know.
     """
     path = Path(path)
     tensors, meta_text = read_damcap_safetensors(path, "model", ".dam model")
@@ -83,6 +85,9 @@ def load_dam(path: str | os.PathLike) -> tuple[DeepAppearanceMap, dict[str, Any]
     scale = finite_in(scale_raw, "float32", "radiance_scale", path)
     if not scale >= FLOAT32_TINY:
         raise DamcapError(f"{path}: radiance_scale must be positive (>= {FLOAT32_TINY:.4g} in float32), got {scale_raw!r}")
+    colorspace = meta.get("colorspace", "lin_rec709")
+    if colorspace not in COLORSPACES:
+        raise DamcapError(f"{path}: colorspace {colorspace!r} is not one damcap knows; use one of {', '.join(COLORSPACES)}")
     if not isinstance(arch_json, dict):
         raise DamcapError(f"{path}: damcap metadata 'architecture' must be an object, got {type(arch_json).__name__}")
     try:
@@ -100,7 +105,11 @@ def load_dam(path: str | os.PathLike) -> tuple[DeepAppearanceMap, dict[str, Any]
         raise DamcapError(f"{path}: weights are {w.dtype}, expected float32")
     if not torch.isfinite(w.float()).all():
         raise DamcapError(f"{path}: weights contain NaN or inf")
-    return DeepAppearanceMap(arch, scale, w), meta
+    model = DeepAppearanceMap(arch, scale, w)
+    problem = overflow_problem(model)
+    if problem:
+        raise DamcapError(f"{path}: {problem}")
+    return model, meta
 
 
 def read_damcap_safetensors(path: Path, noun: str, kind: str) -> tuple[dict[str, torch.Tensor], str]:

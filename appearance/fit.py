@@ -34,7 +34,7 @@ import torch
 from damcap.common.atomic import atomic_path
 from damcap.common.device import resolve_device
 from damcap.common.errors import DamcapError
-from damcap.common.validate import require_options
+from damcap.common.validate import COUNT, COUNT_OR_ZERO, MAX_BATCH_PIXELS, MAX_DAM_DEPTH, MAX_DAM_WIDTH, SEED, check_ranges, in_range
 from damcap.common.fingerprint import FINGERPRINT_KEY, fingerprint
 from damcap.common.version import damcap_version
 
@@ -51,15 +51,15 @@ PRECISIONS: tuple[str, ...] = ("float32", "bfloat16")
 class FitOptions:
     """Options of ``damcap fit`` (every knob that trades speed for accuracy is here)."""
 
-    steps: int = 2000
+    steps: int = field(default=2000, metadata=COUNT)
     """optimiser steps (Adam); time grows linearly"""
-    batch_size: int = 4096
+    batch_size: int = field(default=4096, metadata=in_range(1, MAX_BATCH_PIXELS))
     """pixels per step"""
-    learning_rate: float = 1e-2
+    learning_rate: float = field(default=1e-2, metadata=in_range(0, 10, lo_open=True))
     """initial Adam learning rate; cosine-decayed to 5% of it"""
-    width: int = 32
+    width: int = field(default=32, metadata=in_range(1, MAX_DAM_WIDTH))
     """DAM hidden units per layer"""
-    depth: int = 4
+    depth: int = field(default=4, metadata=in_range(1, MAX_DAM_DEPTH))
     """DAM hidden layers"""
     activation: Activation = "shifted_softplus"
     """DAM hidden non-linearity. 'shifted_softplus' (softplus - ln 2) extrapolates to novel views
@@ -79,28 +79,28 @@ class FitOptions:
     measured with the joint network"""
     adversarial: bool = False
     """add the paper's adversarial cost (patch discriminator)"""
-    adversarial_alpha: float = 0.001
+    adversarial_alpha: float = field(default=0.001, metadata=in_range(0, 1e6))
     """weight of the adversarial cost (the paper: 0.001)"""
-    holdout_views: int = 2
+    holdout_views: int = field(default=2, metadata=COUNT_OR_ZERO)
     """training views held out for the stopping rule (0 = none, keep the last weights)"""
-    eval_every: int = 100
+    eval_every: int = field(default=100, metadata=COUNT)
     """steps between held-out evaluations"""
-    seed: int = 0
+    seed: int = field(default=0, metadata=SEED)
     """seeds initialisation and pixel sampling: same seed, same model"""
     device: str = "cpu"
     """'cpu', 'cuda' or 'auto'"""
-    checkpoint_every: int = 250
+    checkpoint_every: int = field(default=250, metadata=COUNT_OR_ZERO)
     """steps between checkpoints (0 = never)"""
     precision: Precision = "float32"
     """compute dtype of the training step's DAM forward pass and data cost: 'float32' or
     'bfloat16' (autocast; weights, optimiser, evaluation and the saved model stay float32)"""
-    weight_decay: float = 0.0
+    weight_decay: float = field(default=0.0, metadata=in_range(0, 1e6))
     """decoupled weight decay (AdamW; each step multiplies the weights by 1 - lr x weight_decay).
     It trades fit for smoothness: 0.1 lowered the mean novel-view DSSIM / RM++ over seven
     path-traced training-part captures (shadows, interreflection) from 0.47 to 0.43 (0.39 with
     8000 steps) but raised it on the closed-form ones (bench/synth.md, bench/dam_core.md), so the
     default is none"""
-    quantile: float = 0.5
+    quantile: float = field(default=0.5, metadata=in_range(0, 1, lo_open=True, hi_open=True))
     """quantile q of the data cost (:func:`weighted_quantile_cost`): 0.5 is the paper's L1. Cast
     shadows and occlusion only darken a pixel, so at each (view, normal) an upper quantile is
     nearer the unshadowed appearance that a DAM can represent (see bench/synth.md, stage
@@ -108,16 +108,10 @@ class FitOptions:
     held-out views with the same cost"""
 
     def validate(self) -> None:
-        require_options(self, at_least_1=("steps", "batch_size", "width", "depth", "eval_every"),
-                        at_least_0=("holdout_views", "checkpoint_every"), positive_finite=("learning_rate",))
-        if not (math.isfinite(self.weight_decay) and self.weight_decay >= 0):
-            raise DamcapError(f"--weight-decay must be a finite number >= 0, got {self.weight_decay}")
-        if not (0 < self.quantile < 1):
-            raise DamcapError(f"--quantile must lie in (0, 1) (0.5 = L1), got {self.quantile}")
+        """Raise DamcapError naming the first value outside its declared range."""
+        check_ranges(self)
         if self.precision not in PRECISIONS:
             raise DamcapError(f"--precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")
-        if not self.adversarial_alpha >= 0:  # NaN-proof; inf refused by require_options
-            raise DamcapError(f"--adversarial-alpha must be >= 0, got {self.adversarial_alpha}")
         self.architecture  # width and depth within DamArchitecture's bounds (named in its error)
 
     @property
@@ -319,6 +313,9 @@ def fit_dam(
 
     n_frames = int(samples.frame_index.max()) + 1
     held = holdout_frames(n_frames, opts.holdout_views)
+    if log is not None and len(held) < opts.holdout_views:
+        log(f"note: {len(held)} of {n_frames} training views held out for the stopping rule (--holdout-views "
+            f"{opts.holdout_views} leaves the first and last view to fit)")
     is_held = torch.zeros(len(samples), dtype=torch.bool)
     for k in held:
         is_held |= samples.frame_index == k

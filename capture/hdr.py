@@ -20,7 +20,7 @@ from typing import Literal, Sequence
 import numpy as np
 
 from damcap.common.errors import DamcapError
-from damcap.common.validate import bounded_int, check_float_fields
+from damcap.common.validate import FRACTION, POSITIVE, check_ranges, in_range
 
 from damcap.capture.align import chain_shifts, preview_u8, shift_image
 from damcap.capture.exif import Exposure, is_raw_path, parse_exposure_list, read_exposure, resolve_exposure_factors
@@ -52,7 +52,7 @@ MAX_ITERATIONS = 100
 class HdrOptions:
     """Options of ``damcap hdr`` (the CLI mirrors them one to one)."""
 
-    exposures_s: list[float] | None = field(default=None, metadata={"cli_flag": "--exposures", "cli_parse": parse_exposure_list})
+    exposures_s: list[float] | None = field(default=None, metadata=in_range(0, None, lo_open=True, cli_flag="--exposures", cli_parse=parse_exposure_list))
     """Exposure time of each file in seconds (same ISO and aperture), overriding EXIF; None: EXIF."""
     align: bool = False
     """Align frames by translation (median threshold bitmaps) before merging."""
@@ -60,45 +60,33 @@ class HdrOptions:
     """Working colour space of the output."""
     response: Literal["debevec", "srgb"] = "debevec"
     """LDR only: recover the camera response (Debevec & Malik 1997) or assume the sRGB curve."""
-    reference_exposure: float | None = None
+    reference_exposure: float | None = field(default=None, metadata=POSITIVE)
     """Exposure factor H (s at ISO 100, f/1; or seconds with ``exposures_s``) the output is relative to; None: the bracket's median."""
-    saturation_fraction: float = SATURATION_FRACTION
+    saturation_fraction: float = field(default=SATURATION_FRACTION, metadata=FRACTION)
     """RAW only: fraction of the black-to-white range above which a raw value counts as clipped, in (0, 1]."""
-    response_samples: int = 2000
+    response_samples: int = field(default=2000, metadata=in_range(16, MAX_RESPONSE_SAMPLES))
     """LDR only: sample pixels for the response recovery."""
-    smoothness: float = 12.0
+    smoothness: float = field(default=12.0, metadata=in_range(0, 1e6))
     """LDR only: Debevec smoothness weight (scaled by sqrt(observations / levels))."""
-    flat_fraction: float = 0.1
+    flat_fraction: float = field(default=0.1, metadata=FRACTION)
     """LDR only: sample pixels are taken among this fraction of flattest pixels, in (0, 1]."""
-    sample_phase: float = 0.0
+    sample_phase: float = field(default=0.0, metadata=in_range(0, 1, hi_open=True))
     """LDR only: shift of the sample pixels' brightness ranks, a fraction of their spacing in [0, 1);
     another phase is another equally valid sample (to see how much a result depends on it)."""
-    iterations: int = 2
+    iterations: int = field(default=2, metadata=in_range(0, MAX_ITERATIONS))
     """LDR only: reweighting rounds of the response and code reliabilities."""
     dtype: Literal["float", "half"] = "float"
     """EXR storage: float (32-bit) or half (16-bit, values up to 65504)."""
 
     def validate(self) -> None:
-        """Raise DamcapError on values outside their documented ranges (NaN and inf included)."""
-        check_float_fields(self)
+        """Raise DamcapError on values outside their declared ranges (NaN and inf included)."""
+        check_ranges(self)
         if self.colorspace not in COLORSPACES:
             raise DamcapError(f"--colorspace must be one of {', '.join(COLORSPACES)}, got {self.colorspace!r}")
-        bounded_int(self.response_samples, 16, MAX_RESPONSE_SAMPLES, "--response-samples")
-        bounded_int(self.iterations, 0, MAX_ITERATIONS, "--iterations")
         if self.response not in ("debevec", "srgb"):
             raise DamcapError(f"--response must be debevec or srgb, got {self.response!r}")
         if self.dtype not in ("float", "half"):
             raise DamcapError(f"--dtype must be float or half, got {self.dtype!r}")
-        if not 0 < self.saturation_fraction <= 1:
-            raise DamcapError(f"saturation fraction must lie in (0, 1], got {self.saturation_fraction}")
-        if self.exposures_s is not None and not all(np.isfinite(t) and t > 0 for t in self.exposures_s):
-            raise DamcapError(f"--exposures must be positive seconds, got {self.exposures_s}")
-        if self.reference_exposure is not None and not self.reference_exposure > 0:
-            raise DamcapError(f"--reference-exposure must be positive, got {self.reference_exposure}")
-        if not 0 < self.flat_fraction <= 1 or self.response_samples < 16 or self.iterations < 0:
-            raise DamcapError("flat_fraction must lie in (0, 1], response_samples >= 16, iterations >= 0")
-        if not 0 <= self.sample_phase < 1:
-            raise DamcapError(f"--sample-phase must lie in [0, 1), got {self.sample_phase}")
 
 
 @dataclass
@@ -201,11 +189,37 @@ def _check_files(paths: Sequence[Path]) -> Literal["raw", "ldr"]:
                           "use damcap linearize")
     kinds = {is_raw_path(p) for p in paths}
     if len(kinds) > 1:
-        raise DamcapError("the bracket mixes RAW and non-RAW files; merge one kind at a time")
+        raw = next(p for p in paths if is_raw_path(p))
+        other = next(p for p in paths if not is_raw_path(p))
+        raise DamcapError(f"{raw} is a RAW file but {other} is not: the bracket mixes RAW and non-RAW files; "
+                          "merge one kind at a time")
+    seen: dict[Path, Path] = {}
     for p in paths:
         if not p.is_file():
             raise DamcapError(f"{p}: file not found")
+        key = p.resolve()
+        if key in seen:
+            raise DamcapError(f"{p}: given twice in the bracket (as {seen[key]} too); a bracket needs distinct exposures, "
+                              "one file each")
+        seen[key] = p
     return "raw" if kinds.pop() else "ldr"
+
+
+def _check_distinct_exposures(paths: Sequence[Path], factors: np.ndarray, given_times_s: Sequence[float] | None) -> None:
+    """Refuse two frames of (numerically) the same exposure: they add no range, and the LDR
+    response recovery needs distinct exposures to be determined.
+
+    Args:
+        factors: (P,) exposure factors H of ``paths``.
+        given_times_s: the ``--exposures`` list (named in the message) or None (EXIF).
+    """
+    order = np.argsort(factors, kind="stable")
+    for i, j in zip(order[:-1], order[1:]):
+        if np.isclose(factors[i], factors[j], rtol=1e-6, atol=0.0):
+            what = (f"--exposures gives both {given_times_s[i]:g} s" if given_times_s is not None
+                    else f"their metadata gives both the exposure factor {factors[i]:.6g}")
+            raise DamcapError(f"{paths[i]} and {paths[j]}: {what}; a bracket needs distinct exposures "
+                              "(e.g. 1-2 stops apart)")
 
 
 def _reference(factors: np.ndarray, opts: HdrOptions) -> float:
@@ -344,6 +358,7 @@ def merge_bracket_files(files: Sequence[str | os.PathLike], opts: HdrOptions | N
     kind = _check_files(paths)
     exposures = [read_exposure(p) for p in paths]
     factors = resolve_exposure_factors(paths, exposures, opts.exposures_s)
+    _check_distinct_exposures(paths, factors, opts.exposures_s)
     ref_h = _reference(factors, opts)
     result_warnings: list[str] = []
     curve = None

@@ -11,14 +11,15 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal, Sequence
 
 import numpy as np
 
 from damcap.common.errors import DamcapError
-from damcap.common.validate import check_float_fields
+from damcap.common.native_stderr import native_stderr_caught
+from damcap.common.validate import FRACTION, POSITIVE, check_ranges
 
 from damcap.capture.exif import Exposure, exposure_factor, is_raw_path, read_exposure, resolve_exposure_factors
 from damcap.common.colour import srgb_to_linear
@@ -113,26 +114,22 @@ class LinearizeOptions:
 
     colorspace: Literal["lin_rec709", "acescg"] = "lin_rec709"
     """Working colour space of the output."""
-    reference_exposure: float | None = None
+    reference_exposure: float | None = field(default=None, metadata=POSITIVE)
     """Exposure factor H (s at ISO 100, f/1) the outputs are relative to; None: the median of the photos."""
     ignore_exposure: bool = False
     """Only undo the tone curve (for photos without exposure metadata taken at one fixed exposure)."""
     dtype: Literal["float", "half"] = "half"
     """EXR storage of the outputs."""
-    clip_level: float = CLIP_LEVEL
+    clip_level: float = field(default=CLIP_LEVEL, metadata=FRACTION)
     """Encoded value at or above which a pixel is flagged clipped, in (0, 1]."""
 
     def validate(self) -> None:
         """Raise DamcapError on values outside their documented ranges (NaN and inf included)."""
-        check_float_fields(self)
+        check_ranges(self)
         if self.colorspace not in COLORSPACES:
             raise DamcapError(f"--colorspace must be one of {', '.join(COLORSPACES)}, got {self.colorspace!r}")
         if self.dtype not in ("float", "half"):
             raise DamcapError(f"--dtype must be float or half, got {self.dtype!r}")
-        if self.reference_exposure is not None and not self.reference_exposure > 0:
-            raise DamcapError(f"--reference-exposure must be positive, got {self.reference_exposure}")
-        if not 0 < self.clip_level <= 1:
-            raise DamcapError(f"--clip-level must lie in (0, 1], got {self.clip_level}")
 
 
 def list_photos(folder: str | os.PathLike) -> list[Path]:
@@ -144,7 +141,11 @@ def list_photos(folder: str | os.PathLike) -> list[Path]:
     folder = Path(folder)
     if not folder.is_dir():
         raise DamcapError(f"{folder}: not a folder of photos")
-    photos = sorted(p for p in folder.iterdir() if p.is_file() and (p.suffix.lower() in PHOTO_EXTENSIONS or is_raw_path(p)))
+    entries = [p for p in folder.iterdir() if p.suffix.lower() in PHOTO_EXTENSIONS or is_raw_path(p)]
+    not_files = sorted(p for p in entries if not p.is_file())
+    if not_files:
+        raise DamcapError(f"{not_files[0]}: named like a photo but is not a file (a folder?); move it out of the photo folder")
+    photos = sorted(entries)
     if not photos:
         raise DamcapError(f"{folder}: no photos found (looked for {', '.join(sorted(PHOTO_EXTENSIONS))} and RAW files)")
     return photos
@@ -162,7 +163,7 @@ def linearize_files(photos: Sequence[Path], out_dir: Path, opts: LinearizeOption
     dup = {s for s in stems if stems.count(s) > 1}
     if dup:
         raise DamcapError(f"{photos[0].parent}: several photos share the base name {sorted(dup)[0]!r}; outputs would collide")
-    exposures = [read_exposure(p) for p in photos]
+    exposures = [_read_exposure_quietly(p) for p in photos]
     if opts.ignore_exposure:
         factors = np.ones(len(photos))
     else:
@@ -205,7 +206,8 @@ def _linearize_into(photos: Sequence[Path], exposures: list[Exposure], factors: 
             radiance = rgb * np.float32(ref / h)
             colorspace = opts.colorspace if converted else CAMERA_RGB
         else:
-            codes, _ = read_ldr_codes(path)
+            with native_stderr_caught():  # libpng prints its own lines on a damaged PNG; the error names the file
+                codes, _ = read_ldr_codes(path)
             radiance = linearize_photo(codes, float(h), ref)
             clipped = clipped_mask(codes, opts.clip_level)
             converted = True
@@ -221,6 +223,12 @@ def _linearize_into(photos: Sequence[Path], exposures: list[Exposure], factors: 
         records.append({"file": path.name, "output": out.name, "exposure": exp.to_json(), "factor": float(h),
                         "scale": ref / float(h), "colorspace": colorspace, "clipped_fraction": float(clipped.mean())})
     return records
+
+
+def _read_exposure_quietly(path: Path) -> Exposure:
+    """:func:`damcap.capture.exif.read_exposure`, with what libpng prints itself on a damaged PNG caught."""
+    with native_stderr_caught():
+        return read_exposure(path)
 
 
 def _linear_raw(path: Path) -> tuple[np.ndarray, np.ndarray, bool]:

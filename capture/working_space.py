@@ -6,11 +6,10 @@ from typing import Literal
 
 import numpy as np
 
+from damcap.common.capture_folder import COLORSPACES  # noqa: F401  (the names --colorspace accepts: the capture format's)
 from damcap.common.errors import DamcapError
 
 ColorSpace = Literal["lin_rec709", "acescg"]
-#: names accepted by ``--colorspace``
-COLORSPACES: tuple[str, ...] = ("lin_rec709", "acescg")
 #: the label of unconverted camera RGB (a RAW file without a colour matrix)
 CAMERA_RGB = "camera_rgb"
 

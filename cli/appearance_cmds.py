@@ -11,8 +11,9 @@ import typer
 from damcap.common.errors import DamcapError
 
 from damcap.cli.app import command, progress_bar
-from damcap.cli.paths import check_paths, file_out, folder_out, frame_output_names, on_interrupt, staged_folder
-from damcap.cli.options import parse_choice, parse_float
+from damcap.cli.paths import beside, check_paths, file_out, folder_out, frame_output_names, holds, on_interrupt, staged_folder
+from damcap.cli.options import parse_choice, parse_float, parse_int
+from damcap.common.validate import MAX_MATERIALS
 
 if TYPE_CHECKING:
     from damcap.appearance.fit import FitOptions
@@ -66,10 +67,14 @@ def fit(
 
     opts.validate()  # numeric options and --precision, before reading the capture
     opts.architecture  # validates width/depth/encoding/activation
-    ckpt = output.with_name(output.name + ".ckpt")
+    ckpt = beside(output, ".ckpt")
     check_paths([capture], [file_out(output), file_out(ckpt)])
     cap = read_capture(capture)
     views = load_views(cap, split)  # type: ignore[arg-type]
+    most_held = max(0, len(views) - 2)  # holdout_frames keeps the first and last view for training
+    if "holdout_views" in given and opts.holdout_views > most_held:
+        raise DamcapError(f"--holdout-views must leave 2 of the {len(views)} training views of {capture} to fit "
+                          f"(at most {most_held}), got {opts.holdout_views}")
     if target_dssim is not None:
         _fit_to_target(capture, cap, views, split, target_dssim, opts, output, width_or_depth_given=bool({"width", "depth"} & given),
                        resume=resume)
@@ -154,6 +159,8 @@ def render(
                               help="frames to render"),
 ) -> None:
     """Render the model into every frame of a split: one linear EXR per frame, background 0."""
+    import numpy as np
+
     from damcap.appearance.dam_file import load_dam
     from damcap.appearance.render import render_frame
     from damcap.common.atomic import write_json_atomic
@@ -161,16 +168,18 @@ def render(
     from damcap.common.exr import write_exr
     from damcap.common.version import damcap_version
 
-    check_paths([model, capture], [folder_out(output)])
+    check_paths([model, capture], [folder_out(output, replaces=holds("render.json"))])  # an earlier render is replaced, nothing else touched
     dam, meta = load_dam(model)
     cap = read_capture(capture)
     frames = cap.split(split)  # type: ignore[arg-type]
     names = frame_output_names([f.file_path for f in frames], ".exr")  # unique: images/0004 and images2/0004 never collide
     if "render.json" in names:
         raise DamcapError(f"{capture}: a frame would be written as render.json; rename the frame")
-    with staged_folder(output) as stage:
+    with staged_folder(output, replace=True) as stage:
         for f, name in zip(frames, names):
             img = render_frame(dam, read_frame(cap, f, with_weights=False), f.camera_centre_world)
+            if not np.isfinite(img).all():  # load_dam's overflow check probes directions; this is the frame's own
+                raise DamcapError(f"{model}: the model's radiance overflows float32 (inf or NaN) on frame {f.file_path}")
             write_exr(stage / name, img, RADIANCE_CHANNELS, dtype="float",
                       attributes={"damcap:colorspace": meta.get("colorspace", "lin_rec709")})
         write_json_atomic(stage / "render.json", {"damcap_version": damcap_version(), "model": str(model.resolve()),
@@ -187,7 +196,8 @@ def evaluate(
     json_path: Optional[Path] = typer.Option(None, "--json", help="write the results as JSON"),
     plot: Optional[Path] = typer.Option(None, "--plot", help="sorted per-frame DSSIM plot (PNG); default next to --json"),
     segmentation: Optional[Path] = typer.Option(None, "--segmentation", help="a folder written by damcap segment"),
-    kmeans: Optional[int] = typer.Option(None, "--kmeans", help="also the k-means baseline with this many materials"),
+    kmeans: Optional[int] = typer.Option(None, "--kmeans", parser=parse_int("--kmeans", (1, MAX_MATERIALS)), metavar="INTEGER",
+                                         help="also the k-means baseline with this many materials"),
     table1: Optional[list[Path]] = typer.Option(None, "--table1", help="the paper's Table 1 on the held-out captures of this synth-set corpus (repeatable: corpora are pooled)"),
     table2: Optional[Path] = typer.Option(None, "--table2", help="the paper's Table 2 (all three tasks) on this real capture"),
     out: Optional[Path] = typer.Option(None, "--out", help="folder for the --table1 / --table2 markdown, JSON and plots"),
@@ -241,15 +251,15 @@ def evaluate(
         if label in models:
             raise DamcapError(f"{path}: two models would share the label {label!r}; give the files different names")
         models[label], made_by[label] = dam, meta.get("made_by")
+    segs = {}
+    if segmentation is not None:  # the whole folder is checked before any scoring
+        from damcap.appearance.segment.file import load_segmentation
+
+        segs["segment"] = load_segmentation(segmentation)
     cap = read_capture(capture)
     train = load_views(cap, "train")
     test = load_views(cap, "test")
     results = {"train": evaluate_split(train, train, models), "test": evaluate_split(train, test, models)}
-    segs = {}
-    if segmentation is not None:
-        from damcap.appearance.segment.file import load_segmentation
-
-        segs["segment"] = load_segmentation(segmentation)
     if kmeans is not None:
         from damcap.appearance.segment.kmeans_baseline import kmeans_baseline
 

@@ -10,7 +10,7 @@ import typer
 from damcap.common.errors import DamcapError
 
 from damcap.cli.app import command
-from damcap.cli.paths import check_paths, file_out, folder_out, staged_folder
+from damcap.cli.paths import beside, check_paths, file_out, folder_out, staged_folder
 
 if TYPE_CHECKING:
     from damcap.capture.hdr import HdrOptions
@@ -28,7 +28,7 @@ def hdr(
     from damcap.capture.hdr import merge_bracket_files, write_hdr
 
     opts.validate()
-    check_paths(files, [file_out(output), file_out(output.with_name(output.name + ".json"))])
+    check_paths(files, [file_out(output), file_out(beside(output, ".json"))])
     if output.suffix.lower() != ".exr":
         raise DamcapError(f"{output}: the output must be an .exr file")
     result = merge_bracket_files(files, opts)  # its warnings: one line each (cli.main)

@@ -12,7 +12,8 @@ import typer
 from damcap.common.errors import DamcapError
 
 from damcap.cli.app import command
-from damcap.cli.paths import Interrupted, Output, Terminated, check_paths, file_out, folder_out, staged_folder
+from damcap.cli.options import parse_int
+from damcap.cli.paths import Interrupted, Output, Terminated, check_paths, file_out, folder_out, holds, staged_folder
 
 if TYPE_CHECKING:
     from damcap.export.turntable import ExportOptions, OrbitOptions
@@ -31,17 +32,10 @@ def _load_mesh(mesh: Optional[Path]):
     return normalise_to_unit_sphere(load_mesh(mesh))
 
 
-def _vertex_labels(path: Path, n_vertices: int) -> np.ndarray:
-    if not path.is_file():
-        raise DamcapError(f"{path}: label file not found")
-    try:
-        labels = np.load(path) if path.suffix == ".npy" else np.loadtxt(path, dtype=np.int64, ndmin=1)
-    except (ValueError, OSError) as e:
-        raise DamcapError(f"{path}: cannot read per-vertex labels ({e}); expected .npy or one integer per line") from None
-    labels = np.asarray(labels).reshape(-1)
-    if labels.shape[0] != n_vertices or not np.issubdtype(labels.dtype, np.integer):
-        raise DamcapError(f"{path}: expected {n_vertices} integer labels (one per mesh vertex), got {labels.shape[0]} of {labels.dtype}")
-    return labels.astype(np.int64)
+def _vertex_labels(path: Path, n_vertices: int, parts: int) -> np.ndarray:
+    from damcap.export.labels import read_vertex_labels
+
+    return read_vertex_labels(path, n_vertices, parts)
 
 
 @command(opts="damcap.export.turntable:ExportOptions", orbit="damcap.export.turntable:OrbitOptions")
@@ -63,7 +57,7 @@ def export(
     elif opts.format == "glsl":
         target = file_out(output if output.suffix in (".glsl", ".frag") else output / "dam.glsl")  # type: ignore[assignment]
     else:
-        target = folder_out(output)  # type: ignore[assignment]
+        target = folder_out(output, replaces=holds("export.json"))  # type: ignore[assignment]
     check_paths([*models, mesh, labels], [target])
     loaded = [load_dam(m) for m in models]
     dams = [m for m, _ in loaded]
@@ -82,7 +76,7 @@ def export(
         return
     if mesh is None:
         raise DamcapError("--format frames needs --mesh SHAPE.obj|ply")
-    with staged_folder(output) as stage:  # frames, PNGs, video and export.json move into OUTPUT at the end
+    with staged_folder(output, replace=True) as stage:  # frames, PNGs, video and export.json move into OUTPUT at the end
         _export_frames(dams, [meta for _, meta in loaded], models, mesh, labels, stage, orbit, opts)
     typer.echo(f"wrote {orbit.views} frames to {output} (frames/*.exr linear, display/*.png sRGB{', turntable.mp4' if opts.video else ''})")
 
@@ -130,7 +124,7 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
     views, resolution, video, fps = opts.views, opts.resolution, export_opts.video, export_opts.fps
     shape = _load_mesh(mesh_path)
     if labels is not None:
-        part = parts_from_vertex_labels(shape.triangles, _vertex_labels(labels, len(shape.vertices)))
+        part = parts_from_vertex_labels(shape.triangles, _vertex_labels(labels, len(shape.vertices), len(dams)))
     elif len(dams) == 1:
         part = np.zeros(len(shape.triangles), np.int64)
     else:
@@ -182,7 +176,8 @@ def view(
     output: Path = typer.Option(..., "-o", "--output", help="HTML file to write"),
     mesh: Optional[Path] = typer.Option(None, "--mesh", help="OBJ/PLY shape (default: a sphere)"),
     serve: bool = typer.Option(False, "--serve/--no-serve", help="serve the page (only it) on 127.0.0.1 until Ctrl-C"),
-    port: int = typer.Option(8765, help="port for --serve: 1-65535, or 0 for any free port"),
+    port: int = typer.Option(8765, parser=parse_int("--port", (0, 65535)), metavar="INTEGER",
+                             help="port for --serve: 1-65535, or 0 for any free port"),
     *,
     cam: ViewerCamera,
 ) -> None:
@@ -197,8 +192,6 @@ def view(
     opts = OrbitOptions(views=1, elevation_deg=cam.elevation_deg, azimuth0_deg=cam.azimuth_deg, resolution=128, distance=cam.distance,
                         fov_deg=cam.fov_deg)
     opts.validate()
-    if not 0 <= port <= 65535:
-        raise DamcapError(f"--port must be 0-65535 (0: any free port), got {port}")
     check_paths([model, mesh], [file_out(output)])
     dam, _ = load_dam(model)
     shape = _load_mesh(mesh)

@@ -13,7 +13,9 @@ import typer
 from damcap.common.errors import DamcapError
 
 from damcap.cli.app import command, progress_bar
-from damcap.cli.paths import check_paths, file_out, on_interrupt
+from damcap.cli.options import parse_int
+from damcap.common.validate import MAX_COUNT
+from damcap.cli.paths import beside, check_paths, file_out, on_interrupt
 
 if TYPE_CHECKING:
     from damcap.appearance.hyper.train import HyperTrainOptions
@@ -41,7 +43,7 @@ def train_hyper_cmd(
 
     opts.validate()
     opts.architecture  # validates channels against the input size
-    state = output.with_name(output.name + ".state")
+    state = beside(output, ".state")  # refuses an empty output path first
     sidecar = output.with_name(output.stem + ".json")
     check_paths([dataset], [file_out(output), file_out(state), file_out(sidecar)])
     paths = corpus_training_captures(dataset)
@@ -83,7 +85,8 @@ def predict(
     capture: Path = typer.Argument(..., help="capture folder"),
     output: Path = typer.Option(..., "-o", "--output", help="model file to write (.dam)"),
     view: Optional[str] = typer.Option(None, "--view", help="input frame (a train-split file_path or its stem); default: the best covered lit one"),
-    refine_steps: int = typer.Option(0, "--refine-steps", min=0, help="K steps of the fit cost on all train views after predicting"),
+    refine_steps: int = typer.Option(0, "--refine-steps", parser=parse_int("--refine-steps", (0, MAX_COUNT)), metavar="INTEGER",
+                                     help="K steps of the fit cost on all train views after predicting"),
     predictor: Optional[Path] = typer.Option(None, "--predictor", help="predictor file (default: the one shipped with damcap)"),
     device: str = typer.Option("cpu", help="cpu | cuda | auto"),
 ) -> None:

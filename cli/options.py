@@ -39,7 +39,6 @@ import dataclasses
 import functools
 import importlib
 import inspect
-import math
 import textwrap
 import types
 import typing
@@ -50,6 +49,7 @@ from typing import Any, Callable, Literal, Union, get_args, get_origin
 import typer
 
 from damcap.common.errors import DamcapError
+from damcap.common.validate import RANGE, Range, check_value
 
 CLI_FLAG = "cli_flag"
 CLI_EXCLUDE = "cli_exclude"
@@ -114,36 +114,34 @@ def _default_of(f: dataclasses.Field, instance: Any) -> Any:
 # --------------------------------------------------------------------------------------------
 
 
-#: the seeds every random generator damcap uses accepts (numpy, torch, COLMAP, Mitsuba)
-SEED_RANGE = (0, 2**31 - 1)
+def parse_int(flag: str, rng: "Range | tuple[int, int] | None" = None) -> Callable[[Any], Any]:
+    """A parser of an integer option, refusing values outside ``rng`` (a :class:`Range` or an
+    inclusive ``(lo, hi)``) with the text as typed."""
+    if isinstance(rng, tuple):
+        rng = Range(*rng)
 
-
-def parse_int(flag: str, bounds: tuple[int, int] | None = None) -> Callable[[Any], Any]:
-    """A parser of an integer option, refusing values outside ``bounds`` (inclusive) when given."""
     def parse(text: Any) -> Any:
         if not isinstance(text, str):
             return text
         try:
-            value = int(text)
+            value: Any = int(text.strip())
         except ValueError:
-            raise DamcapError(f"{flag} must be an integer, got {text!r}") from None
-        if bounds is not None and not bounds[0] <= value <= bounds[1]:
-            raise DamcapError(f"{flag} must be an integer in [{bounds[0]}, {bounds[1]}], got {value}")
-        return value
+            value = text  # check_value names it as not an integer, with the allowed values
+        return check_value(value, rng, integer=True, what=flag, shown=text)
     return parse
 
 
-def parse_float(flag: str) -> Callable[[Any], Any]:
+def parse_float(flag: str, rng: "Range | None" = None) -> Callable[[Any], Any]:
+    """A parser of a number option: finite in float32 (NaN passes every ``x <= 1`` check, so it
+    is refused before any check runs) and inside ``rng``."""
     def parse(text: Any) -> Any:
         if not isinstance(text, str):
             return text
         try:
-            value = float(text)
+            value: Any = float(text)
         except ValueError:
-            raise DamcapError(f"{flag} must be a number, got {text!r}") from None
-        if not math.isfinite(value):
-            raise DamcapError(f"{flag} must be a finite number, got {text!r}")
-        return value
+            value = text
+        return float(check_value(value, rng, integer=False, what=flag, shown=text))
     return parse
 
 
@@ -160,9 +158,11 @@ def parse_choice(flag: str, choices: tuple, what: str | None = None) -> Callable
     return parse
 
 
-def parse_list(flag: str, item: type, container: type) -> Callable[[Any], Any]:
-    one = parse_float(flag) if item is float else parse_int(flag) if item is int else (lambda s: s)
+def parse_list(flag: str, item: type, container: type, rng: "Range | None" = None) -> Callable[[Any], Any]:
+    one = parse_float(flag, rng) if item is float else parse_int(flag, rng) if item is int else (lambda s: s)
     kind = {int: "integers", float: "numbers"}.get(item, "values")
+    each = f" each in {rng.text()}" if rng is not None and rng.lo is not None and rng.hi is not None else \
+        f" each {rng.text()}" if rng is not None else ""
 
     def parse(text: Any) -> Any:
         if not isinstance(text, str):
@@ -170,7 +170,7 @@ def parse_list(flag: str, item: type, container: type) -> Callable[[Any], Any]:
         try:
             return container(one(s.strip()) for s in text.split(","))
         except DamcapError:
-            raise DamcapError(f"{flag} must be comma-separated {kind}, got {text!r}") from None
+            raise DamcapError(f"{flag} must be comma-separated {kind}{each}, got {text!r}") from None
     return parse
 
 
@@ -215,6 +215,8 @@ def option_specs(cls: type, *, exclude: frozenset[str] = frozenset(), prefix: tu
         flag = f.metadata.get(CLI_FLAG) or "--" + "-".join(kebab(p) for p in path)
         first = flag.split(",")[0].split("/")[0]
         help_text = docs.get(f.name, "")
+        if f.metadata.get(RANGE) is not None:
+            help_text += f" (allowed: {f.metadata[RANGE].text()})"
         kw: dict[str, Any] = {"help": help_text, "rich_help_panel": panel}
         parse = f.metadata.get(CLI_PARSE)
         origin = get_origin(tp)
@@ -231,14 +233,14 @@ def option_specs(cls: type, *, exclude: frozenset[str] = frozenset(), prefix: tu
                 flag = f"{first}/--no-{first[2:]}"
         elif tp is int:
             annotation = int
-            kw.update(parser=parse_int(first, SEED_RANGE if f.name == "seed" else None), metavar="INTEGER")
+            kw.update(parser=parse_int(first, f.metadata.get(RANGE)), metavar="INTEGER")
         elif tp is float:
             annotation = float
-            kw.update(parser=parse_float(first), metavar="FLOAT")
+            kw.update(parser=parse_float(first, f.metadata.get(RANGE)), metavar="FLOAT")
         elif origin in (tuple, list) and get_args(tp):
             item = get_args(tp)[0]
             annotation = str
-            kw.update(parser=parse_list(first, item, origin), metavar=f"{item.__name__.upper()},...")
+            kw.update(parser=parse_list(first, item, origin, f.metadata.get(RANGE)), metavar=f"{item.__name__.upper()},...")
             if default not in (None, ...):
                 kw["show_default"] = ",".join(map(str, default))
         elif tp is str or tp is Path:

@@ -9,7 +9,12 @@ folder) to :func:`check_paths`, before it writes anything. The check refuses, wi
 - two outputs that are the same path;
 - an existing output of the wrong kind (a folder where a file is written, a file where a folder
   is);
-- an output whose nearest existing ancestor is not a folder or is not writable.
+- an output whose nearest existing ancestor is not a folder or is not writable (a probe file is
+  created and removed there: permissions alone do not tell for root, /sys, a read-only mount);
+- an existing, non-empty output folder that is not the command's own earlier output
+  (``folder_out(path, replaces=...)``: someone else's files are never merged into or deleted;
+  the command's own earlier output is replaced as a whole, so no stale frame survives); an empty
+  output path; a symbolic-link loop.
 
 Folder outputs that a command writes from scratch are staged (:func:`staged_folder`): files are
 written into a hidden folder beside the output and moved into place (fsynced) only when the
@@ -25,6 +30,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import os
 import shutil
 import tempfile
@@ -45,14 +51,60 @@ class Output:
     path: Path
     kind: Kind
     """``"file"``: one file is written at ``path``; ``"folder"``: files are written inside it"""
+    replaces: Optional[Callable[[Path], bool]] = None
+    """for a folder written from scratch: whether an existing, non-empty folder is this command's
+    own earlier output (which it replaces as a whole); any other non-empty folder is refused"""
+
+
+def _given(path: os.PathLike | str) -> Path:
+    if str(path).strip() == "":
+        raise DamcapError("an output path is empty (''); give a file or folder path")
+    return Path(path)
 
 
 def file_out(path: Optional[os.PathLike | str]) -> Optional[Output]:
-    return None if path is None else Output(Path(path), "file")
+    return None if path is None else Output(_given(path), "file")
 
 
-def folder_out(path: Optional[os.PathLike | str]) -> Optional[Output]:
-    return None if path is None else Output(Path(path), "folder")
+def folder_out(path: Optional[os.PathLike | str], replaces: Optional[Callable[[Path], bool]] = None) -> Optional[Output]:
+    """A folder output; ``replaces``: see :attr:`Output.replaces` (:func:`holds` builds one)."""
+    return None if path is None else Output(_given(path), "folder", replaces)
+
+
+def never(folder: Path) -> bool:
+    """A folder test for :func:`folder_out`: only a new or empty folder (the command replaces
+    nothing, not even its own earlier output)."""
+    return False
+
+
+def holds(record: str, key: Optional[str] = None, value: Optional[str] = None) -> Callable[[Path], bool]:
+    """A folder test for :func:`folder_out`: the folder holds the JSON ``record`` a command writes
+    last (``render.json``), optionally with ``record[key]["generator"] == value``
+    (``holds("transforms.json", "damcap_source", "closed-form")``)."""
+    def test(folder: Path) -> bool:
+        path = folder / record
+        if not path.is_file():
+            return False
+        if key is None:
+            return True
+        try:
+            doc = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError, RecursionError):
+            return False
+        return isinstance(doc, dict) and isinstance(doc.get(key), dict) and doc[key].get("generator") == value
+    return test
+
+
+def beside(path: os.PathLike | str, suffix: str) -> Path:
+    """The sidecar of an output file: ``m.dam`` -> ``m.dam.ckpt`` (``suffix=".ckpt"``).
+
+    Raises:
+        DamcapError: ``path`` names no file ('', '.', '/').
+    """
+    p = _given(path)
+    if p.name in ("", ".", ".."):
+        raise DamcapError(f"{path}: names a folder, not a file; give a file path")
+    return p.with_name(p.name + suffix)
 
 
 def _inside(child: Path, parent: Path) -> bool:
@@ -64,6 +116,30 @@ def _nearest_existing(path: Path) -> Path:
     while not p.exists() and p != p.parent:
         p = p.parent
     return p
+
+
+def _resolve(path: Path) -> Path:
+    """``path.resolve()``, with a symbolic-link loop (or another unresolvable path) as one line."""
+    try:
+        return path.resolve()
+    except RuntimeError:  # Python < 3.13: "Symlink loop from ..."
+        raise DamcapError(f"{path}: is a symbolic link that loops back on itself; give the real path") from None
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise DamcapError(f"{path}: is a symbolic link that loops back on itself; give the real path") from None
+        raise
+
+
+def _probe_writable(folder: Path, out: Path) -> None:
+    """Create and remove a hidden file in ``folder``: permissions alone do not tell (root, /sys, a
+    read-only mount)."""
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".damcap-probe.", dir=folder)
+    except OSError as e:
+        raise DamcapError(f"{folder}: not writable ({e.strerror or e}), so {out} cannot be written; "
+                          f"fix its permissions or choose another output path") from None
+    os.close(fd)
+    os.unlink(probe)
 
 
 def check_paths(inputs: Iterable[Optional[os.PathLike | str]], outputs: Iterable[Optional[Output]]) -> None:
@@ -78,10 +154,10 @@ def check_paths(inputs: Iterable[Optional[os.PathLike | str]], outputs: Iterable
     """
     ins = [Path(i) for i in inputs if i is not None]
     outs = [o for o in outputs if o is not None]
-    resolved_in = [(i, i.resolve()) for i in ins]
+    resolved_in = [(i, _resolve(i)) for i in ins]
     seen: dict[Path, Path] = {}
     for o in outs:
-        r = o.path.resolve()
+        r = _resolve(o.path)
         if r in seen:
             raise DamcapError(f"{o.path}: given for two outputs (also {seen[r]}); choose different output paths")
         seen[r] = o.path
@@ -100,6 +176,10 @@ def check_paths(inputs: Iterable[Optional[os.PathLike | str]], outputs: Iterable
             raise DamcapError(f"{base}: is not a folder, so {o.path} cannot be written; choose another output path")
         if not os.access(base, os.W_OK | os.X_OK):
             raise DamcapError(f"{base}: not writable, so {o.path} cannot be written; fix its permissions or choose another output path")
+        _probe_writable(base, o.path)
+        if o.kind == "folder" and o.replaces is not None and o.path.is_dir() and any(o.path.iterdir()) and not o.replaces(o.path):
+            raise DamcapError(f"{o.path}: exists, is not empty and was not written by this command; choose a new or empty "
+                              f"folder (damcap never merges into or deletes other files)")
 
 
 def frame_output_names(file_paths: Sequence[str], suffix: Optional[str] = None) -> list[str]:
@@ -143,25 +223,59 @@ def frame_output_names(file_paths: Sequence[str], suffix: Optional[str] = None) 
 
 
 @contextlib.contextmanager
-def staged_folder(out: Path) -> Iterator[Path]:
+def staged_folder(out: Path, replace: bool = False) -> Iterator[Path]:
     """Yield a hidden folder beside ``out``; on success move its files into ``out`` (fsynced).
 
-    An existing ``out`` keeps its other files (a file of the same name is replaced). On an error
-    or an interrupt the staged files are removed and ``out`` is as it was.
+    An existing ``out`` keeps its other files (a file of the same name is replaced); with
+    ``replace`` it is replaced as a whole (the command's own earlier output, checked by
+    :func:`check_paths`: no stale file of the earlier run survives). On an error or an interrupt
+    the staged files are removed and ``out`` is as it was.
     """
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
+    made = [p for p in out.parents if not p.exists()]  # deepest first: removed again on an error
     try:
-        yield stage
+        out.parent.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
+    except OSError as e:  # the error names the folder the user gave, not a staging name
+        _remove_empty(made)
+        raise OSError(e.errno, e.strerror or str(e), str(out)) from None
+    done = False
+    try:
+        try:
+            yield stage
+        except OSError as e:  # a file being staged is named as the output file it would have become
+            name = None if e.filename is None else Path(os.fsdecode(e.filename))
+            if name is not None and (name == stage or stage in name.parents):
+                raise OSError(e.errno, e.strerror or str(e), str(out / name.relative_to(stage))) from None
+            raise
+        except DamcapError as e:
+            if str(stage) in str(e):  # the line names the output, not the hidden staging folder
+                e.args = (str(e).replace(str(stage), str(out)),)
+            raise
         files = sorted(p for p in stage.rglob("*") if p.is_file())
         for p in files:
             fsync_path(p)
+        if replace and out.is_dir():
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.replaced-", dir=out.parent))
+            os.rename(out, old / out.name)
+            try:
+                os.rename(stage, out)
+            except OSError:
+                os.rename(old / out.name, out)
+                shutil.rmtree(old, ignore_errors=True)
+                raise
+            shutil.rmtree(old, ignore_errors=True)
+            for d in {out / p.parent.relative_to(stage) for p in files} | {out}:
+                fsync_path(d)
+            fsync_path(out.parent)
+            done = True
+            return
         if not out.exists():
             os.rename(stage, out)
             for d in {out / p.parent.relative_to(stage) for p in files} | {out}:
                 fsync_path(d)
             fsync_path(out.parent)
+            done = True
             return
         folders = set()
         for p in files:
@@ -173,9 +287,18 @@ def staged_folder(out: Path) -> Iterator[Path]:
             folders.add(dst.parent)
         for d in folders:
             fsync_path(d)
+        done = True
     finally:
         if stage.exists():
             shutil.rmtree(stage, ignore_errors=True)
+        if not done:
+            _remove_empty(made)
+
+
+def _remove_empty(folders: Iterable[Path]) -> None:
+    for d in folders:
+        with contextlib.suppress(OSError):
+            d.rmdir()
 
 
 # --------------------------------------------------------------------------------------------

@@ -45,14 +45,16 @@ def reconstruct(
     poses: Optional[str] = typer.Option(None, "--poses", help="known cameras: transforms.json | poses_bounds.npy | colmap:DIR (default: COLMAP registration)"),
     *,
     opts: ReconstructOptions,
+    given: frozenset[str],
 ) -> None:
     """Photos -> capture folder: cameras (COLMAP or known poses), geometry, linear radiance, buffers, split."""
     from damcap.reconstruct.pipeline import WORK_FOLDER, reconstruct_capture
 
-    # every input, the pose file (or COLMAP folder) included, is checked against the output before
-    # reconstruct_capture prepares (clears) the output folder
+    # every input, the pose file (or COLMAP folder), the mesh and the response curve included, is
+    # checked against the output before reconstruct_capture prepares (clears) the output folder
     pose_input = None if poses is None else Path(poses[len("colmap:"):] if poses.startswith("colmap:") else poses)
-    check_paths([photos, masks, pose_input], [folder_out(output)])
+    mesh_input = Path(opts.geometry[len("mesh:"):]) if opts.geometry.startswith("mesh:") and opts.geometry[len("mesh:"):] else None
+    check_paths([photos, masks, pose_input, mesh_input, opts.response], [folder_out(output)])
 
     def kept() -> str:
         work = output / WORK_FOLDER
@@ -60,9 +62,10 @@ def reconstruct(
             return f"the finished stages in {work} are kept; rerun the same command to resume"
         return "nothing was kept"
 
+    # what it picked and why are report lines (stdout): stderr carries only the one error line of a refusal
     with on_interrupt(kept):
         capture, report = reconstruct_capture(photos, output, opts, masks_dir=masks, poses=poses, progress=stage_progress(),
-                                              log=lambda msg: typer.echo(msg, err=True))
+                                              log=typer.echo, explicit=given)
     reg = report.registration
     line = f"cameras: {report.registered}/{report.photos} photos ({reg.get('source')})"
     if reg.get("source") == "sfm":

@@ -11,7 +11,7 @@ import typer
 from damcap.common.errors import DamcapError
 
 from damcap.cli.app import command, progress_bar
-from damcap.cli.paths import check_paths, file_out, folder_out, frame_output_names, staged_folder
+from damcap.cli.paths import check_paths, file_out, folder_out, frame_output_names, holds, staged_folder
 from damcap.cli.options import parse_choice
 
 if TYPE_CHECKING:
@@ -30,21 +30,18 @@ def segment(
 ) -> None:
     """Find n materials (n DAMs) and per-pixel soft weights jointly, unsupervised."""
     from damcap.appearance.segment.choose import choose_materials
-    from damcap.appearance.segment.preview import false_colour
     from damcap.appearance.segment.score import novel_view_dssim
     from damcap.appearance.segment.train import segment_materials
-    from damcap.appearance.segment.file import save_segmentation
+    from damcap.appearance.segment.file import save_segmentation_folder
     from damcap.appearance.views import load_views
-    from damcap.common.atomic import write_json_atomic
-    from damcap.common.capture_folder import read_capture, weight_channels
-    from damcap.common.exr import write_exr, write_png
+    from damcap.common.capture_folder import read_capture
     from damcap.common.version import damcap_version
 
     n = choice.fixed_materials()
     auto = n is None
     base = replace(opts, materials=n) if n is not None else opts
     base.validate()
-    check_paths([capture], [folder_out(output)])
+    check_paths([capture], [folder_out(output, replaces=holds("segment.json"))])
     cap = read_capture(capture)
     train = load_views(cap, "train")
     test = load_views(cap, "test") if cap.test_filenames else []
@@ -69,15 +66,10 @@ def segment(
     provenance = {"damcap_version": damcap_version(), "options": asdict(resolved), "capture": str(capture.resolve())}
     # per-frame names by relative path where frames lie in several folders (images/0004, images2/0004)
     names = frame_output_names([f.file_path for f in cap.split("train")], "")
-    with staged_folder(output) as stage:  # everything moves into OUTPUT together, at the end
-        save_segmentation(stage, model, colorspace=cap.colorspace, provenance=provenance)
-        for v, name in zip(train, names):
-            w = model.weights_of(v)
-            write_exr(stage / "weights" / f"{name}.exr", w, weight_channels(model.materials), dtype="half")
-            write_png(stage / "preview" / f"{name}.png", false_colour(w, v.data.coverage))
-        write_json_atomic(stage / "segment.json", {**provenance, "materials": model.materials, "auto": auto, "choice": asdict(choice), "reason": reason,
-                                                "curve": curve, "history": model.history, "seconds": model.seconds,
-                                                "frames": [v.name for v in train], "outputs": names})
+    with staged_folder(output, replace=True) as stage:  # everything moves into OUTPUT together, at the end
+        save_segmentation_folder(stage, model, train, names, colorspace=cap.colorspace, provenance=provenance,
+                                 summary={"auto": auto, "choice": asdict(choice), "reason": reason, "curve": curve,
+                                          "history": model.history, "seconds": model.seconds})
     typer.echo(f"wrote {model.materials} materials to {output} (material_*.dam, weights/*.exr, preview/*.png, segmenter.safetensors)")
 
 

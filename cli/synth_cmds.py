@@ -12,7 +12,7 @@ from damcap.common.data_dir import DATA_ENV, shared_data_dir
 from damcap.common.errors import DamcapError
 
 from damcap.cli.app import command, progress_bar
-from damcap.cli.paths import check_paths, file_out, folder_out, on_interrupt
+from damcap.cli.paths import check_paths, file_out, folder_out, never, on_interrupt
 from damcap.cli.options import parse_choice
 
 if TYPE_CHECKING:
@@ -31,7 +31,7 @@ def closed_form(
     """Write a capture whose appearance is known in closed form (Lambert + GGX, distant light)."""
     from damcap.synth.closed_form import make_closed_form_capture
 
-    check_paths([], [folder_out(out)])
+    check_paths([], [folder_out(out, replaces=never)])
     cap = make_closed_form_capture(out, opts)
     typer.echo(f"wrote {len(cap.frames)} frames to {out}")
 

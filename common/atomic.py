@@ -6,9 +6,10 @@ import contextlib
 import errno
 import json
 import os
+import shutil
 import tempfile
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Optional
 
 import numpy as np
 
@@ -45,25 +46,60 @@ def atomic_path(path: str | os.PathLike, keep_name: bool = False) -> Iterator[Pa
     it, for formats that record their file's name (an OBJ names its object after it).
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if keep_name:
-        with tempfile.TemporaryDirectory(prefix=f".{path.stem}.", dir=path.parent) as folder:
-            staged = Path(folder) / path.name
-            yield staged
-            _replace_durably(staged, path)
-        return
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; outputs get the usual permissions
-    tmp_path = Path(tmp)
+    created = _make_parents(path)
+    done = False
     try:
-        yield tmp_path
-        _replace_durably(tmp_path, path)
+        with _naming(path):  # an error about the temporary name names the file the user gave
+            if keep_name:
+                stage = Path(tempfile.mkdtemp(prefix=f".{path.stem}.", dir=path.parent))
+                tmp_path = stage / path.name
+            else:
+                fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+                os.close(fd)
+                stage = tmp_path = Path(tmp)
+                umask = os.umask(0)
+                os.umask(umask)
+                os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; outputs get the usual permissions
+        try:
+            with _naming(path, stage):
+                yield tmp_path
+                _replace_durably(tmp_path, path)
+            done = True
+        finally:
+            if stage.is_dir():
+                shutil.rmtree(stage, ignore_errors=True)
+            elif stage.exists():
+                stage.unlink()
     finally:
-        if tmp_path.exists():
-            tmp_path.unlink()
+        if not done:  # folders made for this file go too: a failed write leaves nothing behind
+            for folder in created:
+                with contextlib.suppress(OSError):
+                    folder.rmdir()
+
+
+def _make_parents(path: Path) -> list[Path]:
+    """Create ``path``'s missing parent folders; return them, deepest first."""
+    missing = []
+    p = path.parent
+    while not p.exists() and p != p.parent:
+        missing.append(p)
+        p = p.parent
+    with _naming(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+    return missing
+
+
+@contextlib.contextmanager
+def _naming(path: Path, stage: Optional[Path] = None) -> Iterator[None]:
+    """Re-raise an OSError as one about ``path``: any (``stage`` None), or one that names no file or
+    the temporary ``stage`` (a full disk while writing it); one about another file passes as is."""
+    try:
+        yield
+    except OSError as e:
+        name = None if e.filename is None else Path(os.fsdecode(e.filename))
+        if stage is None or name is None or name == stage or stage in name.parents:
+            raise OSError(e.errno, e.strerror or str(e), str(path)) from None
+        raise
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:

@@ -9,7 +9,6 @@ on the plain arrays of :class:`FrameData`.
 from __future__ import annotations
 
 import copy
-import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +31,9 @@ GEOMETRY_CHANNELS = NORMAL_CHANNELS + POSITION_CHANNELS + (COVERAGE_CHANNEL,)
 NORMAL_UNIT_TOL = 1e-2
 #: max |R^T R - I| and |det R - 1| allowed for a camera-to-world rotation.
 RIGID_TOL = 1e-3
+#: the ``colorspace`` values a capture may state: linear, scene-referred, with these primaries
+#: (the names of ``damcap hdr --colorspace``)
+COLORSPACES: tuple[str, ...] = ("lin_rec709", "acescg")
 #: bytes per pixel a frame needs in memory (radiance, geometry, weights and derived float32
 #: buffers, with copies): what bounds the resolution transforms.json may state
 FRAME_BYTES_PER_PIXEL = 4 * 64
@@ -163,8 +165,42 @@ def _intrinsics(where: str, obj: dict[str, Any], default: Intrinsics | None) -> 
     # a frame's pixels: radiance (3) + geometry (7) + derived buffers, float32, a few copies
     require_resolution(w, h, FRAME_BYTES_PER_PIXEL, "a frame", where)
     if not (vals["fl_x"] > 0 and vals["fl_y"] > 0):
-        raise DamcapError(f"{where}: focal lengths must be positive, got {vals['fl_x']}, {vals['fl_y']}")
+        bad = ", ".join(f"{k}={vals[k]!r}" for k in ("fl_x", "fl_y") if not vals[k] > 0)
+        raise DamcapError(f"{where}: focal lengths must be positive, got {bad}")
     return Intrinsics(vals["fl_x"], vals["fl_y"], vals["cx"], vals["cy"], int(w), int(h))
+
+
+def _frame_file(where: str, root: Path, key: str, value: Any, must_exist: bool) -> str:
+    """A frame's file path (``file_path``, ``geometry_path``, ``weights_path``), checked: a
+    relative path that stays inside the capture folder (and, if ``must_exist``, names a file).
+
+    Raises:
+        DamcapError: naming the key and the value.
+    """
+    if not isinstance(value, str) or not value:
+        raise DamcapError(f"{where}: '{key}' must be a file path relative to the capture folder, got {value!r}")
+    rel = Path(value)
+    if rel.is_absolute() or rel.drive or ".." in rel.parts:
+        raise DamcapError(f"{where}: '{key}' {value!r} points outside the capture folder; "
+                          "frame files are paths relative to it, without '..'")
+    if must_exist and not (root / rel).is_file():
+        what = "is not a file" if (root / rel).exists() else "names a file that does not exist"
+        raise DamcapError(f"{where}: '{key}' {value!r} {what} (in {root})")
+    return value
+
+
+def _split_list(path: Path, key: str, value: Any, names: list[str]) -> list[str]:
+    """A split (``train_filenames`` / ``test_filenames``), checked: distinct frame file paths."""
+    if not isinstance(value, list) or not all(isinstance(s, str) for s in value):
+        raise DamcapError(f"{path}: '{key}' must be a list of file paths")
+    known = set(names)
+    unknown = [s for s in value if s not in known]
+    if unknown:
+        raise DamcapError(f"{path}: '{key}' names {unknown[0]!r}, which is not a frame's file_path")
+    if len(set(value)) != len(value):
+        dup = next(s for s in value if value.count(s) > 1)
+        raise DamcapError(f"{path}: '{key}' lists {dup!r} {value.count(dup)} times (duplicate entry)")
+    return value
 
 
 def rigid_problem(world_from_cam: np.ndarray, tol: float = RIGID_TOL) -> str | None:
@@ -191,12 +227,18 @@ def rigid_problem(world_from_cam: np.ndarray, tol: float = RIGID_TOL) -> str | N
     return None
 
 
-def read_capture(root: str | os.PathLike) -> Capture:
+def read_capture(root: str | os.PathLike, *, check_files: bool = True) -> Capture:
     """Parse ``root/transforms.json`` (structure only; pixels are read by :func:`read_frame`).
+
+    Args:
+        root: the capture folder.
+        check_files: also require every frame's files to exist (``inspect`` leaves that to
+            :func:`read_frame`, to list every missing file).
 
     Raises:
         DamcapError: missing folder or file, invalid JSON, missing keys, non-rigid cameras,
-            split entries that name no frame.
+            frame paths outside the folder (or, with ``check_files``, missing), an unknown
+            colorspace, split entries that name no frame, name one twice or are in both splits.
     """
     root = Path(root)
     if not root.is_dir():
@@ -233,19 +275,25 @@ def read_capture(root: str | os.PathLike) -> Capture:
         for key in ("file_path", "geometry_path", "transform_matrix"):
             if key not in fr:
                 raise DamcapError(f"{where}: missing '{key}'")
+        file_path = _frame_file(where, root, "file_path", fr["file_path"], check_files)
+        where = f"{where} ({file_path})"
+        geometry_path = _frame_file(where, root, "geometry_path", fr["geometry_path"], check_files)
+        weights_path = fr.get("weights_path")
+        if weights_path is not None:
+            _frame_file(where, root, "weights_path", weights_path, check_files)
         try:
             m = np.asarray(fr["transform_matrix"], dtype=np.float64)
         except (TypeError, ValueError):
             raise DamcapError(f"{where}: transform_matrix is not a 4x4 number matrix") from None
         problem = rigid_problem(m)
         if problem:
-            raise DamcapError(f"{where} ({fr['file_path']}): transform_matrix is not a rigid camera-to-world: {problem}")
+            raise DamcapError(f"{where}: transform_matrix is not a rigid camera-to-world: {problem}")
         frames.append(Frame(
-            file_path=str(fr["file_path"]),
-            geometry_path=str(fr["geometry_path"]),
+            file_path=file_path,
+            geometry_path=geometry_path,
             world_from_cam=m,
             intrinsics=_intrinsics(where, fr, shared),
-            weights_path=fr.get("weights_path"),
+            weights_path=weights_path,
             exposure=fr.get("exposure"),
             extra={k: v for k, v in fr.items() if k not in known},
         ))
@@ -253,15 +301,14 @@ def read_capture(root: str | os.PathLike) -> Capture:
     if len(set(names)) != len(names):
         dup = next(n for n in names if names.count(n) > 1)
         raise DamcapError(f"{path}: duplicate file_path entries ({dup!r} appears {names.count(dup)} times)")
-    splits = {}
-    for key in ("train_filenames", "test_filenames"):
-        lst = doc.get(key, [])
-        if not isinstance(lst, list) or not all(isinstance(s, str) for s in lst):
-            raise DamcapError(f"{path}: '{key}' must be a list of file paths")
-        unknown = [s for s in lst if s not in names]
-        if unknown:
-            raise DamcapError(f"{path}: '{key}' names {unknown[0]!r}, which is not a frame's file_path")
-        splits[key] = lst
+    splits = {key: _split_list(path, key, doc.get(key, []), names) for key in ("train_filenames", "test_filenames")}
+    both = [s for s in splits["train_filenames"] if s in set(splits["test_filenames"])]
+    if both:
+        raise DamcapError(f"{path}: {both[0]!r} is in both 'train_filenames' and 'test_filenames'; "
+                          "a frame is either a train or a test frame")
+    colorspace = doc.get("colorspace", "lin_rec709")
+    if colorspace not in COLORSPACES:
+        raise DamcapError(f"{path}: colorspace {colorspace!r} is not one damcap knows; use one of {', '.join(COLORSPACES)}")
     materials = doc.get("materials")
     if materials is not None:  # bounded: weight_channels(materials) and the weight maps are built from it
         if not isinstance(materials, int) or isinstance(materials, bool) or not 1 <= materials <= MAX_MATERIALS:
@@ -273,7 +320,7 @@ def read_capture(root: str | os.PathLike) -> Capture:
         frames=frames,
         train_filenames=splits["train_filenames"],
         test_filenames=splits["test_filenames"],
-        colorspace=str(doc.get("colorspace", "lin_rec709")),
+        colorspace=colorspace,
         materials=materials,
         extra={k: v for k, v in doc.items() if k not in top_known},
     )
@@ -428,7 +475,7 @@ def inspect_capture(root: str | os.PathLike) -> CaptureSummary:
     Raises:
         DamcapError: when ``transforms.json`` itself cannot be parsed (nothing else can be checked).
     """
-    capture = read_capture(root)
+    capture = read_capture(root, check_files=False)  # a missing file is one of the problems listed
     problems: list[str] = []
     covs, mins, maxs, meds = [], [], [], []
     sizes = set()

@@ -7,14 +7,16 @@ capture is finished once its folder holds ``transforms.json``.
 
 from __future__ import annotations
 
-import json
 import os
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 from damcap.common.errors import DamcapError
+from damcap.common.validate import load_json_file
 
 INDEX_NAME = "corpus.json"
+#: the splits ``damcap synth-set`` writes
+SPLITS = ("train", "heldout")
 
 
 def read_corpus_index(corpus: str | os.PathLike, reader: str = "this command") -> dict[str, Any]:
@@ -26,20 +28,38 @@ def read_corpus_index(corpus: str | os.PathLike, reader: str = "this command") -
 
     Raises:
         DamcapError: no index, or one that is not a corpus index (no ``captures`` list of entries
-            with a ``path``).
+            with a ``path``), invalid or too deeply nested JSON, a capture path that is absolute or
+            leaves the corpus folder, an unknown split, a capture listed twice.
     """
     corpus = Path(corpus)
     index = corpus / INDEX_NAME
     if not index.is_file():
         raise DamcapError(f"{corpus}: no {INDEX_NAME}; {reader} reads a corpus written by `damcap synth-set`")
+    doc = load_json_file(index, "corpus index")  # size-limited; bad or too deeply nested JSON is one line
     try:
-        doc = json.loads(index.read_text())
         captures = doc["captures"]
         if not isinstance(captures, list) or not all(isinstance(e, dict) and isinstance(e.get("path"), str) for e in captures):
             raise TypeError("'captures' is not a list of entries with a 'path'")
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as e:
+    except (KeyError, TypeError) as e:
         raise DamcapError(f"{index}: not a damcap corpus index ({e!r}); pass the folder given to damcap synth-set") from None
+    seen: set[PurePosixPath] = set()
+    for k, e in enumerate(captures):
+        _check_entry(index, k, e, seen)
     return doc
+
+
+def _check_entry(index: Path, k: int, entry: dict[str, Any], seen: set[PurePosixPath]) -> None:
+    """Entry ``k`` names a capture folder inside the corpus (relative, no ``..``), once, with a known split."""
+    rel = PurePosixPath(entry["path"].replace("\\", "/"))
+    if not entry["path"].strip() or rel.is_absolute() or ".." in rel.parts or rel == PurePosixPath("."):
+        raise DamcapError(f"{index}: capture {k} has path {entry['path']!r}; capture paths are relative to the corpus "
+                          "folder and stay inside it")
+    if entry.get("split") not in SPLITS:
+        raise DamcapError(f"{index}: capture {k} ({entry['path']}) has split {str(entry.get('split'))[:40]!r}; "
+                          f"expected one of {', '.join(SPLITS)}")
+    if rel in seen:
+        raise DamcapError(f"{index}: capture {entry['path']!r} is listed twice; each capture once")
+    seen.add(rel)
 
 
 def finished_captures(corpus: str | os.PathLike, split: str, reader: str = "this command") -> list[tuple[Path, dict[str, Any]]]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 from pathlib import Path
 from typing import Literal, Mapping, Sequence
@@ -11,6 +12,7 @@ import OpenImageIO as oiio
 
 from damcap.common.atomic import atomic_path
 from damcap.common.errors import DamcapError
+from damcap.common.native_stderr import native_stderr_caught
 
 
 def _one_line(message: str, path: Path) -> str:
@@ -130,6 +132,23 @@ def _write_atomic(path: str | os.PathLike, spec: "oiio.ImageSpec", pixels: np.nd
                 raise DamcapError(f"{path}: cannot write image ({out.geterror().strip()})")
         finally:
             out.close()
+        _verify_written(tmp, path)
+
+
+def _verify_written(tmp: Path, path: str | os.PathLike) -> None:
+    """Read a just-written image back: OpenImageIO reports success for a write that the disk cut
+    short (full disk, file-size limit), and the file is then a truncated image.
+
+    Raises:
+        OSError: ENOSPC naming ``path`` (the caller's one line for a full disk).
+    """
+    with native_stderr_caught():
+        inp = oiio.ImageInput.open(str(tmp))
+        ok = inp is not None and inp.read_image() is not None and not inp.geterror()
+        if inp is not None:
+            inp.close()
+    if not ok:
+        raise OSError(errno.ENOSPC, "the image was written incompletely (disk full or file too large)", str(path))
 
 
 def write_image_u8(path: str | os.PathLike, pixels_u8: np.ndarray, attributes: Mapping[str, str | int | float] | None = None) -> None:
@@ -158,18 +177,23 @@ def write_png(path: str | os.PathLike, pixels_u8: np.ndarray) -> None:
 def read_image_u8(path: str | os.PathLike) -> np.ndarray:
     """Read an 8-bit display image (PNG/JPEG) as (H, W, C) uint8, alpha unassociated (as stored)."""
     path = Path(path)
+    if not path.is_file():
+        raise DamcapError(f"{path}: {'is a folder, not an image' if path.is_dir() else 'file not found'}")
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)
-    inp = oiio.ImageInput.open(str(path), config)
+    with native_stderr_caught() as printed:  # libpng prints its own lines on a damaged PNG
+        inp = oiio.ImageInput.open(str(path), config)
+        if inp is not None:
+            try:
+                spec = inp.spec()
+                check_header_size(path, spec.width, spec.height, spec.nchannels, 1)
+                px = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
+                err = inp.geterror()  # a truncated JPEG/PNG reads with gray filler and an error here
+            finally:
+                inp.close()
     if inp is None:
-        raise DamcapError(f"{path}: cannot read image ({_one_line(oiio.geterror(), path)})")
-    try:
-        spec = inp.spec()
-        check_header_size(path, spec.width, spec.height, spec.nchannels, 1)
-        px = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
-        err = inp.geterror()  # a truncated JPEG/PNG reads with gray filler and an error here
-    finally:
-        inp.close()
+        raise DamcapError(f"{path}: cannot read image ({_one_line(oiio.geterror() or chr(10).join(printed), path)})")
     if px is None or err:
-        raise DamcapError(f"{path}: cannot read pixels, the file is damaged or truncated ({_one_line(err or 'no data', path)})")
+        raise DamcapError(f"{path}: cannot read pixels, the file is damaged or truncated "
+                          f"({_one_line(err or chr(10).join(printed) or 'no data', path)})")
     return np.asarray(px, np.uint8).reshape(spec.height, spec.width, spec.nchannels)

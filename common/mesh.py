@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from damcap.common.errors import DamcapError
+from damcap.common.native_stderr import native_stderr_caught
 
 #: mesh file types :func:`read_mesh` understands (STL is left out: a triangle soup, no shared vertices)
 MESH_SUFFIXES = (".obj", ".ply", ".off", ".glb", ".gltf")
@@ -95,10 +96,24 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
 
 
 def _read_open3d(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    m = _open3d_read(path)
+    return np.asarray(m.vertices, np.float64).reshape(-1, 3).copy(), np.asarray(m.triangles, np.int64).reshape(-1, 3).copy()
+
+
+def _open3d_read(path: Path):
+    """Open3D's mesh reader, its own stderr lines (RPly's) caught: a reader error refuses the file.
+
+    Raises:
+        DamcapError: the reader reported an error (damaged or truncated file), quoting it.
+    """
     import open3d as o3d
 
-    m = o3d.io.read_triangle_mesh(str(path))
-    return np.asarray(m.vertices, np.float64).reshape(-1, 3).copy(), np.asarray(m.triangles, np.int64).reshape(-1, 3).copy()
+    with native_stderr_caught() as printed:
+        mesh = o3d.io.read_triangle_mesh(str(path))
+    errors = [ln for ln in printed if "error" in ln.lower()]
+    if errors:
+        raise DamcapError(f"{path}: cannot read the mesh, the file is damaged or truncated ({errors[0][:200]})")
+    return mesh
 
 
 def _fan(polygons: list[list[int]]) -> np.ndarray:
@@ -264,7 +279,7 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     path = Path(path)
     if not path.is_file():
         raise DamcapError(f"{path}: mesh file not found")
-    mesh = o3d.io.read_triangle_mesh(str(path))
+    mesh = _open3d_read(path)
     if len(mesh.triangles) == 0:
         raise DamcapError(f"{path}: no triangles could be read (empty mesh or unsupported format; use OBJ or PLY)")
     groups = np.asarray(mesh.triangle_material_ids, np.int32) if mesh.has_triangle_material_ids() else None

@@ -12,6 +12,8 @@ import dataclasses
 import json
 import math
 import os
+import types
+import typing
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +35,8 @@ MAX_MATERIALS = 64
 MAX_IMAGE_SIDE = 65535
 #: most optimiser steps, views, frames, samples and similar counts
 MAX_COUNT = 10 ** 9
+#: most pixels in one optimiser step's batch
+MAX_BATCH_PIXELS = 2 ** 24
 #: largest JSON file damcap parses (transforms.json, pose files, records), bytes
 MAX_JSON_BYTES = 256 * 2 ** 20
 #: memory assumed when the machine's cannot be read, bytes
@@ -117,6 +121,147 @@ def bounded_int(value: Any, lo: int, hi: int, what: str, where: str | os.PathLik
     return int(value)
 
 
+#: field metadata key of an option's allowed values (:class:`Range`)
+RANGE = "range"
+
+
+@dataclasses.dataclass(frozen=True)
+class Range:
+    """The values a number may take: between ``lo`` and ``hi`` (None: unbounded on that side),
+    each end included unless ``lo_open`` / ``hi_open``.
+
+    An options dataclass declares it once per field (``field(default=..., metadata=in_range(1,
+    MAX_COUNT))``); the command line refuses a value outside it while parsing, and
+    :func:`check_ranges` refuses it for callers of the library.
+    """
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+
+    def contains(self, v: float) -> bool:
+        """Whether ``v`` lies inside (NaN never does)."""
+        above = self.lo is None or (v > self.lo if self.lo_open else v >= self.lo)
+        below = self.hi is None or (v < self.hi if self.hi_open else v <= self.hi)
+        return bool(above and below) and v == v
+
+    def text(self) -> str:
+        """``[1, 1000000000]``, ``(0, 1]``, ``>= 0``, ``> 0``."""
+        lo, hi = _number_text(self.lo), _number_text(self.hi)
+        if self.hi is None:
+            return f"{'>' if self.lo_open else '>='} {lo}" if self.lo is not None else "any value"
+        if self.lo is None:
+            return f"{'<' if self.hi_open else '<='} {hi}"
+        return f"{'(' if self.lo_open else '['}{lo}, {hi}{')' if self.hi_open else ']'}"
+
+
+def _number_text(x: float | None) -> str:
+    """A bound as a person writes it: whole numbers in full (1000000000), others as ``%g``."""
+    if x is None:
+        return ""
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e16 else f"{x:g}"
+
+
+def in_range(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False, hi_open: bool = False,
+             **metadata: Any) -> dict[str, Any]:
+    """Field metadata declaring a number's allowed values (plus any other metadata given)."""
+    return {RANGE: Range(lo, hi, lo_open, hi_open), **metadata}
+
+
+#: a count of steps, views, samples, ... (>= 1)
+COUNT = in_range(1, MAX_COUNT)
+#: a count where 0 means none / never
+COUNT_OR_ZERO = in_range(0, MAX_COUNT)
+#: a random seed: what numpy, torch, COLMAP and Mitsuba all accept
+SEED = in_range(0, 2 ** 31 - 1)
+#: a positive scale, rate or distance
+POSITIVE = in_range(0, None, lo_open=True)
+#: a weight where 0 is off
+NON_NEGATIVE = in_range(0, None)
+#: a fraction in (0, 1]
+FRACTION = in_range(0, 1, lo_open=True)
+#: an elevation strictly between the poles (at a pole the camera's up is its view), degrees
+ELEVATION_DEG = in_range(-90, 90, lo_open=True, hi_open=True)
+#: a field of view, degrees
+FOV_DEG = in_range(0, 170, lo_open=True, hi_open=True)
+#: an azimuth, degrees (up to one turn either way)
+AZIMUTH_DEG = in_range(-360, 360)
+#: a camera's distance from the centre of an object scaled into the unit sphere (outside it)
+CAMERA_DISTANCE = in_range(1, 1000, lo_open=True)
+
+
+def _shown(value: Any) -> str:
+    return value if isinstance(value, str) else repr(value)
+
+
+def check_value(value: Any, rng: Range | None, *, integer: bool, what: str, shown: str | None = None,
+                where: str | os.PathLike | None = None) -> Any:
+    """``value`` if it is a finite float32 number (``integer``: an int) inside ``rng``.
+
+    Args:
+        shown: the value as the user wrote it (the command line's text), for the message.
+
+    >>> try:
+    ...     check_value(0, Range(1, 10), integer=True, what="--steps", shown="0")
+    ... except DamcapError as e:
+    ...     print(e)
+    --steps must be an integer in [1, 10], got 0
+
+    Raises:
+        DamcapError: naming ``what``, the allowed values and the value.
+    """
+    shown = shown if shown is not None else _shown(value)
+    allowed = f" in {rng.text()}" if rng is not None and (rng.lo is not None and rng.hi is not None) else \
+        f" {rng.text()}" if rng is not None and (rng.lo is not None or rng.hi is not None) else ""
+    if integer:
+        ok = isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+        if not ok or (rng is not None and not rng.contains(int(value))):
+            raise DamcapError(f"{_prefix(where)}{what} must be an integer{allowed}, got {shown}")
+        return int(value)
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+    try:
+        v = float(value) if ok else math.nan
+    except OverflowError:
+        v = math.inf
+    if not (ok and math.isfinite(v) and abs(v) <= float(np.finfo(np.float32).max)) or (rng is not None and not rng.contains(v)):
+        raise DamcapError(f"{_prefix(where)}{what} must be a finite number{allowed}, got {shown}")
+    return value
+
+
+def number_kind(annotation: Any) -> type | None:
+    """``int`` or ``float`` for a numeric annotation (``int``, ``float | None``, ``tuple[int, ...]``,
+    ``list[float]``), else None."""
+    args = [a for a in typing.get_args(annotation) if a is not type(None)]
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType) and len(args) == 1:
+        return number_kind(args[0])
+    if typing.get_origin(annotation) in (list, tuple) and args:
+        return number_kind(args[0])
+    return annotation if annotation in (int, float) else None
+
+
+def check_ranges(options: object) -> None:
+    """Every numeric field of an options dataclass (nested ones included) inside its declared
+    :class:`Range` and finite in float32; list and tuple fields item by item; None passes (not
+    given).
+
+    Raises:
+        DamcapError: naming the first bad field's flag, its allowed values and the value.
+    """
+    hints = typing.get_type_hints(type(options))
+    for f in dataclasses.fields(options):  # type: ignore[arg-type]
+        value = getattr(options, f.name)
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            check_ranges(value)
+            continue
+        kind = number_kind(hints[f.name])
+        if kind is None or value is None:
+            continue
+        name = f.metadata.get("cli_flag", flag(f.name)).split("/")[0].split(",")[0]
+        for v in value if isinstance(value, (list, tuple)) else [value]:
+            check_value(v, f.metadata.get(RANGE), integer=kind is int, what=name)
+
+
 def machine_memory_bytes() -> int:
     """Physical memory of this machine (cgroup limit where lower), bytes."""
     total = FALLBACK_MEMORY_BYTES
@@ -156,23 +301,6 @@ def require_resolution(width: Any, height: Any, bytes_per_pixel: int, what: str,
     return w, h
 
 
-def check_float_fields(options: object) -> None:
-    """Every float field of an options dataclass (and every float in a list/tuple field) is finite
-    in float32, the dtype the library computes in.
-
-    Raises:
-        DamcapError: naming the field's CLI flag and the value.
-    """
-    for f in dataclasses.fields(options):  # type: ignore[arg-type]
-        value = getattr(options, f.name)
-        items = value if isinstance(value, (list, tuple)) else [value]
-        for v in items:
-            if isinstance(v, (float, np.floating)):
-                v32 = abs(float(v)) <= float(np.finfo(np.float32).max)
-                if not (math.isfinite(v) and v32):
-                    raise DamcapError(f"{f.metadata.get('cli_flag', flag(f.name))} must be a finite number, got {value!r}")
-
-
 def load_json_file(path: str | os.PathLike, what: str = "JSON file", max_bytes: int = MAX_JSON_BYTES) -> Any:
     """Parse a JSON file with a size limit; too deep nesting, bad UTF-8 or bad JSON are one line.
 
@@ -200,29 +328,3 @@ def loads_json(text: str | bytes, where: str | os.PathLike, what: str = "JSON") 
                           f"{__import__('sys').getrecursionlimit()}); not a damcap file") from None
     except (ValueError, UnicodeDecodeError) as e:  # JSONDecodeError, int conversion limits
         raise DamcapError(f"{where}: invalid JSON ({str(e).splitlines()[0][:160]})") from None
-
-
-def require_options(options: object, at_least_1: tuple[str, ...] = (), at_least_0: tuple[str, ...] = (),
-                    positive_finite: tuple[str, ...] = ()) -> None:
-    """Check an options dataclass's numeric fields; the error names the CLI flag and the value.
-
-    >>> from types import SimpleNamespace
-    >>> try:
-    ...     require_options(SimpleNamespace(steps=0), at_least_1=("steps",))
-    ... except DamcapError as e:
-    ...     print(e)
-    --steps must be >= 1, got 0
-    """
-    if dataclasses.is_dataclass(options):
-        check_float_fields(options)  # NaN and inf in any float field, named
-    for minimum, names in ((1, at_least_1), (0, at_least_0)):
-        for name in names:
-            value = getattr(options, name)
-            if not value >= minimum:  # NaN-proof: NaN compares false
-                raise DamcapError(f"{flag(name)} must be >= {minimum}, got {value}")
-            if isinstance(value, int) and value > MAX_COUNT:
-                raise DamcapError(f"{flag(name)} must be <= {MAX_COUNT} (the largest count damcap accepts), got {value}")
-    for name in positive_finite:
-        value = getattr(options, name)
-        if not (value > 0 and math.isfinite(value)):
-            raise DamcapError(f"{flag(name)} must be a positive number, got {value}")

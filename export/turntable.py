@@ -10,7 +10,7 @@ import torch
 
 from damcap.appearance.dam import DeepAppearanceMap
 from damcap.common.errors import DamcapError
-from damcap.common.validate import MAX_COUNT, bounded_int, check_float_fields, require_resolution
+from damcap.common.validate import AZIMUTH_DEG, CAMERA_DISTANCE, ELEVATION_DEG, FOV_DEG, MAX_IMAGE_SIDE, check_ranges, in_range, require_resolution
 from damcap.common.cameras import focal_px_from_fov, orbit_world_from_cam
 from damcap.common.mesh import Mesh
 from damcap.common.raycast import MeshRaycaster, SurfaceBuffers
@@ -20,33 +20,24 @@ from damcap.common.raycast import MeshRaycaster, SurfaceBuffers
 class OrbitOptions:
     """Cameras of ``damcap export`` (the mesh is first scaled into the unit sphere)."""
 
-    views: int = 36
+    views: int = field(default=36, metadata=in_range(1, 100_000))
     """frames on the orbit"""
-    elevation_deg: float = field(default=20.0, metadata={"cli_flag": "--elevation"})
+    elevation_deg: float = field(default=20.0, metadata={**ELEVATION_DEG, "cli_flag": "--elevation"})
     """camera elevation above the y = 0 plane, degrees"""
-    azimuth0_deg: float = 0.0
+    azimuth0_deg: float = field(default=0.0, metadata=AZIMUTH_DEG)
     """azimuth of the first frame, degrees"""
-    resolution: int = 512
+    resolution: int = field(default=512, metadata=in_range(8, MAX_IMAGE_SIDE))
     """square frame size, pixels"""
-    distance: float = 3.0
+    distance: float = field(default=3.0, metadata=CAMERA_DISTANCE)
     """camera distance from the origin (the mesh fits in the unit sphere)"""
-    fov_deg: float = field(default=45.0, metadata={"cli_flag": "--fov"})
+    fov_deg: float = field(default=45.0, metadata={**FOV_DEG, "cli_flag": "--fov"})
     """full field of view, degrees"""
-    supersample: int = 1
+    supersample: int = field(default=1, metadata=in_range(1, 16))
     """sub-pixel grid per axis for silhouette coverage (1 = pixel-centre rays only)"""
 
     def validate(self) -> None:
-        check_float_fields(self)
-        bounded_int(self.views, 1, MAX_COUNT, "--views")
-        bounded_int(self.supersample, 1, 16, "--supersample")
+        check_ranges(self)
         require_resolution(self.resolution, self.resolution, 4 * 32 * self.supersample ** 2, f"--resolution {self.resolution}: a frame")
-        if self.views < 1 or self.resolution < 8 or not 0 < self.fov_deg < 170 or not self.distance > 1.0:
-            raise DamcapError(
-                f"orbit needs views >= 1, resolution >= 8, 0 < fov < 170 and distance > 1; got "
-                f"views={self.views}, resolution={self.resolution}, fov={self.fov_deg}, distance={self.distance}"
-            )
-        if not -90 < self.elevation_deg < 90:
-            raise DamcapError(f"--elevation must lie in (-90, 90) degrees, got {self.elevation_deg}")
 
 
 @dataclass(frozen=True)
@@ -58,11 +49,11 @@ class ExportOptions:
     'glsl' (the DAM as a fragment-shader function)"""
     video: bool = False
     """frames: also write an MP4 turntable"""
-    fps: int = 24
+    fps: int = field(default=24, metadata=in_range(1, 1000))
     """frames: video frame rate"""
 
     def validate(self) -> None:
-        bounded_int(self.fps, 1, 1000, "--fps")
+        check_ranges(self)
 
 
 def parts_from_vertex_labels(triangles: np.ndarray, vertex_labels: np.ndarray) -> np.ndarray:

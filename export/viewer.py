@@ -12,6 +12,7 @@ import numpy as np
 
 from damcap.appearance.dam import DeepAppearanceMap
 from damcap.common.mesh import Mesh
+from damcap.common.validate import AZIMUTH_DEG, CAMERA_DISTANCE, ELEVATION_DEG, FOV_DEG
 
 from damcap.export.glsl import glsl_source
 
@@ -20,13 +21,13 @@ from damcap.export.glsl import glsl_source
 class ViewerCamera:
     """The page's initial orbit camera (same convention as :class:`export.turntable.OrbitOptions`)."""
 
-    azimuth_deg: float = field(default=30.0, metadata={"cli_flag": "--azimuth"})
+    azimuth_deg: float = field(default=30.0, metadata={**AZIMUTH_DEG, "cli_flag": "--azimuth"})
     """initial camera azimuth, degrees"""
-    elevation_deg: float = field(default=20.0, metadata={"cli_flag": "--elevation"})
+    elevation_deg: float = field(default=20.0, metadata={**ELEVATION_DEG, "cli_flag": "--elevation"})
     """initial camera elevation, degrees"""
-    distance: float = 3.0
+    distance: float = field(default=3.0, metadata=CAMERA_DISTANCE)
     """camera distance from the origin (the mesh is scaled into the unit sphere)"""
-    fov_deg: float = field(default=45.0, metadata={"cli_flag": "--fov"})
+    fov_deg: float = field(default=45.0, metadata={**FOV_DEG, "cli_flag": "--fov"})
     """full field of view, degrees"""
 
 

@@ -30,6 +30,7 @@ import numpy as np
 
 from damcap.common.corpus_index import finished_captures
 from damcap.common.errors import DamcapError
+from damcap.common.validate import COUNT, COUNT_OR_ZERO
 
 from damcap.appearance.views import ViewData
 from damcap.appearance.evaluate import MethodScores, evaluate_split
@@ -60,11 +61,11 @@ class TableOptions:
 
     fit: FitOptions = FitOptions(checkpoint_every=0)
     """the SGD fit of the representation and learning-to-learn rows"""
-    refine_steps: tuple[int, ...] = (100, 300)
+    refine_steps: tuple[int, ...] = field(default=(100, 300), metadata=COUNT_OR_ZERO)
     """predictor + K refinement steps rows (0 = the predictor alone is always reported)"""
     segment: SegmentOptions = SegmentOptions(materials=3)
     """our segmentation (``materials`` = n, the true count on the synthetic corpus)"""
-    kmeans_steps: int = 1500
+    kmeans_steps: int = field(default=1500, metadata=COUNT)
     """fit steps of each k-means cluster's DAM"""
 
 

@@ -106,8 +106,8 @@ def read_transforms_json(path: str | os.PathLike, photo_sizes: dict[str, tuple[i
             ignored += 1
             continue
         if name in entry_of:  # never resolved silently by the last entry
-            raise DamcapError(f"{path}: photo {name} has two pose entries (frames[{entry_of[name]}] and {where}); "
-                              "keep one")
+            raise DamcapError(f"{path}: photo {name} has two pose entries (frames[{entry_of[name]}] and {where}), a "
+                              "duplicate entry; keep one")
         entry_of[name] = i
         try:
             m = np.asarray(fr["transform_matrix"], dtype=np.float64)

@@ -118,8 +118,12 @@ def list_photos(folder: str | os.PathLike) -> list[str]:
     folder = Path(folder)
     if not folder.is_dir():
         raise DamcapError(f"{folder}: photo folder not found")
-    names = sorted(p.name for p in folder.iterdir()
-                   if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in PHOTO_SUFFIXES)
+    entries = [p for p in folder.iterdir() if not p.name.startswith(".") and p.suffix.lower() in PHOTO_SUFFIXES]
+    not_files = sorted(p.name for p in entries if not p.is_file())
+    if not_files:
+        raise DamcapError(f"{folder / not_files[0]}: named like a photo but is not a file (a folder?); "
+                          "move it out of the photo folder")
+    names = sorted(p.name for p in entries)
     if not names:
         others = sorted(p.name for p in folder.iterdir() if not p.name.startswith("."))[:5]
         raise DamcapError(
@@ -218,16 +222,20 @@ def proxy_srgb_u8(radiance_lin: np.ndarray, percentile: float = PROXY_PERCENTILE
 def _spec_attributes(path: Path) -> tuple[int, int, dict[str, Any]]:
     import OpenImageIO as oiio
 
-    inp = oiio.ImageInput.open(str(path))
+    from damcap.common.native_stderr import native_stderr_caught
+
+    with native_stderr_caught() as printed:  # libpng prints its own lines on a damaged PNG
+        inp = oiio.ImageInput.open(str(path))
+        if inp is not None:
+            try:
+                spec = inp.spec()
+                attrs = {a.name: a.value for a in spec.extra_attribs}
+            finally:
+                inp.close()
     if inp is None:
-        msg = oiio.geterror().strip().splitlines()
+        msg = (oiio.geterror().strip() or "\n".join(printed)).splitlines()
         raise DamcapError(f"{path}: cannot read image ({msg[-1] if msg else 'unknown format'})")
-    try:
-        spec = inp.spec()
-        attrs = {a.name: a.value for a in spec.extra_attribs}
-        return spec.width, spec.height, attrs
-    finally:
-        inp.close()
+    return spec.width, spec.height, attrs
 
 
 def _raw_size(path: Path) -> tuple[int, int]:
@@ -290,6 +298,7 @@ def exposure_factors(paths: list[Path], ignore_exposure: bool = False,
             EXR reference exposure) and others not; the message suggests ``--ignore-exposure``.
     """
     from damcap.capture.exif import Exposure, read_exposure, resolve_exposure_factors
+    from damcap.common.native_stderr import native_stderr_caught
 
     kind = photo_set_kind(paths)
     hint = "or pass --ignore-exposure if all photos were taken at one fixed exposure"
@@ -314,7 +323,8 @@ def exposure_factors(paths: list[Path], ignore_exposure: bool = False,
             f"(factors {factors.min():.4g}..{factors.max():.4g})")
     how = (f"tone curve ({tone_curve}) undone" if kind == "display"
            else "RAW sensor values decoded linearly (black level subtracted, white level 1, demosaiced, colour matrix to Rec.709)")
-    exposures = [read_exposure(p) for p in paths]
+    with native_stderr_caught():  # libpng prints its own lines on a damaged PNG
+        exposures = [read_exposure(p) for p in paths]
     have_time = [e.time_s is not None for e in exposures]
     if ignore_exposure or not any(have_time):
         why = "--ignore-exposure" if ignore_exposure else "no photo has an EXIF exposure time"
@@ -353,16 +363,25 @@ def verify_photos(folder: str | os.PathLike, names: list[str],
         DamcapError: the first unreadable or truncated photo, named (as ``damcap hdr`` and
             ``damcap linearize`` refuse it).
     """
-    from damcap.capture.hdr import read_ldr_codes
-
     folder = Path(folder)
     display = [n for n in names if photo_kind(n) == "display"]
     for k, name in enumerate(display):
         if progress:
             progress("checking photos", k, len(display))
-        read_ldr_codes(folder / name)
+        _read_display_codes(folder / name)
     if progress and display:
         progress("checking photos", len(display), len(display))
+
+
+def _read_display_codes(path: Path) -> np.ndarray:
+    """(H, W, 3) uint8/uint16 codes of a display photo (:func:`damcap.capture.hdr.read_ldr_codes`),
+    with what libpng prints itself on a damaged PNG caught (the error names the file instead)."""
+    from damcap.capture.hdr import read_ldr_codes
+    from damcap.common.native_stderr import native_stderr_caught
+
+    with native_stderr_caught():
+        codes, _ = read_ldr_codes(path)
+    return codes
 
 
 def read_photo_u8(path: str | os.PathLike) -> np.ndarray:
@@ -461,9 +480,7 @@ def read_photo_radiance(path: str | os.PathLike, factor: float, reference: float
     if kind != "display" and log_response is not None:
         raise DamcapError(f"{path}: a response curve undoes the tone curve of 8-bit photos; this photo is a {kind} file")
     if kind == "display":
-        from damcap.capture.hdr import read_ldr_codes
-
-        codes, _ = read_ldr_codes(path)
+        codes = _read_display_codes(path)
         return PhotoRadiance(linearize_photo(codes, float(factor), float(reference), log_response), None)
     rgb, clipped = read_linear_rgb(path) if kind == "linear" else _read_raw(path)
     return PhotoRadiance((rgb * np.float32(reference / factor)).astype(np.float32), clipped)
@@ -475,12 +492,13 @@ def read_photo_linear(path: str | os.PathLike, factor: float, reference: float,
     return read_photo_radiance(path, factor, reference, log_response).radiance_lin
 
 
-def read_mask(path: str | os.PathLike, size: tuple[int, int] | None = None) -> np.ndarray:
+def read_mask(path: str | os.PathLike, size: tuple[int, int] | None = None, photo_name: str = "") -> np.ndarray:
     """A mask file as (H, W) float32 in [0, 1].
 
     Args:
         path: mask image.
         size: (width, height) it must have (the photo's), or None.
+        photo_name: the photo the mask belongs to, named in the size error.
 
     Raises:
         DamcapError: unreadable, or a size different from the photo's.
@@ -489,7 +507,8 @@ def read_mask(path: str | os.PathLike, size: tuple[int, int] | None = None) -> n
 
     m = mask_to_unit(read_image_u8(path))
     if size is not None and (m.shape[1], m.shape[0]) != tuple(size):
-        raise DamcapError(f"{path}: mask is {m.shape[1]}x{m.shape[0]} but its photo is {size[0]}x{size[1]}; masks must match the photos' size")
+        raise DamcapError(f"{path}: mask is {m.shape[1]}x{m.shape[0]} but its photo {photo_name + ' ' if photo_name else ''}is "
+                          f"{size[0]}x{size[1]}; masks must match the photos' size")
     return m
 
 

@@ -2,7 +2,8 @@
 
 Steps (each reports progress):
 
-1. list the photos (8-bit, linear EXR or RAW, one kind; match the masks by base name);
+1. list the photos (8-bit, linear EXR or RAW, one kind; match the masks by base name), and read
+   every input (photos, masks, the pose file, a user mesh, EXIF) before the output folder is touched;
 2. cameras: COLMAP registration (:mod:`colmap`; resumable; linear and RAW photos through 8-bit
    proxies in the work folder) or known poses (:mod:`known_poses`);
 3. normalise the scene (:mod:`normalize`): object at the origin, radius about 1, up = +y;
@@ -17,13 +18,15 @@ Steps (each reports progress):
    version, registration and geometry reports).
 
 Outputs are atomic per file, and ``transforms.json`` (what makes the folder a capture) is removed
-at the start of a rerun and written only at the end. Work files (COLMAP database and model, the
+at the start of a rerun and written only at the end; a run that fails removes the folder it made,
+unless it holds a COLMAP registration a rerun resumes from. Work files (COLMAP database and model, the
 mesh, the report) live in ``CAPTURE/reconstruction/``.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -34,7 +37,7 @@ import numpy as np
 from damcap.common.atomic import atomic_path, write_json_atomic
 from damcap.common.capture_folder import FRAME_BYTES_PER_PIXEL, Capture, Frame, Intrinsics, write_transforms
 from damcap.common.errors import DamcapError
-from damcap.common.validate import MAX_COUNT, MAX_IMAGE_SIDE, bounded_int, check_float_fields, require_memory, require_resolution
+from damcap.common.validate import COUNT, COUNT_OR_ZERO, FRACTION, MAX_IMAGE_SIDE, SEED, check_ranges, in_range, require_memory, require_resolution
 from damcap.common.version import damcap_version
 
 from damcap.reconstruct.geometry import GeometryInputs, GeometryOptions, GeometryResult, build_geometry
@@ -44,7 +47,7 @@ from damcap.reconstruct.normalize import transform_mesh_similarity
 from damcap.reconstruct.photos import exposure_factors, list_photos, match_masks, read_mask, verify_photos
 from damcap.reconstruct.poses import Registration
 from damcap.reconstruct.known_poses import load_known_poses
-from damcap.common.mesh import Mesh
+from damcap.common.mesh import Mesh, load_mesh
 from damcap.reconstruct.colmap.register import SfmOptions, StageProgress, register_photos, triangulate_known
 from damcap.reconstruct.undistort import pinhole_for, resample_to_pinhole
 
@@ -62,27 +65,27 @@ class ReconstructOptions:
     """'auto', 'visual-hull', 'poisson', 'sphere' or 'mesh:FILE'"""
     mesh_align: Literal["auto", "none", "icp"] = "auto"
     """mesh:FILE: 'none' (in the cameras' frame), 'icp' (align to silhouettes/points), 'auto'"""
-    voxels: int = 160
+    voxels: int = field(default=160, metadata=in_range(16, MAX_VOXELS))
     """visual hull: voxels along the object's longest side"""
-    hull_tolerance: int = 0
+    hull_tolerance: int = field(default=0, metadata=COUNT_OR_ZERO)
     """visual hull: views allowed to see background where the object is"""
-    poisson_depth: int = 8
+    poisson_depth: int = field(default=8, metadata=in_range(1, 16))
     """Poisson octree depth"""
-    smooth_iterations: int = 10
+    smooth_iterations: int = field(default=10, metadata=in_range(0, 100000))
     """Taubin smoothing iterations of carved / Poisson meshes"""
-    sphere_max_rms: float = 0.01
+    sphere_max_rms: float = field(default=0.01, metadata=FRACTION)
     """auto: picks the sphere when it fits within this fraction of its radius"""
-    max_image_size: int = 1024
+    max_image_size: int = field(default=1024, metadata=in_range(1, MAX_IMAGE_SIDE))
     """registration: longest image side for features, pixels"""
-    max_num_features: int = 4096
+    max_num_features: int = field(default=4096, metadata=COUNT)
     """registration: SIFT features per photo"""
-    upsample_below: int = 800
+    upsample_below: int = field(default=800, metadata=in_range(0, MAX_IMAGE_SIDE))
     """registration: SIFT doubles images whose longer side (after max_image_size) is below this"""
     pairing: Literal["auto", "exhaustive", "sequential", "retrieval"] = "auto"
     """registration: which photo pairs are matched"""
-    sequential_overlap: int = 5
+    sequential_overlap: int = field(default=5, metadata=COUNT)
     """registration: ring neighbours on each side (file order)"""
-    retrieval_neighbours: int = 8
+    retrieval_neighbours: int = field(default=8, metadata=COUNT)
     """registration: most similar photos matched per photo"""
     camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "SIMPLE_RADIAL"
     """registration: COLMAP camera model"""
@@ -94,17 +97,17 @@ class ReconstructOptions:
     """registration: with --masks, also restrict features to the object (a turntable whose
     background turns with it); off, the static background of a camera moved around a fixed
     object helps registration (a background that stands still in the image is filtered anyway)"""
-    capture_size: int = 512
+    capture_size: int = field(default=512, metadata=in_range(1, MAX_IMAGE_SIDE))
     """longest side of the capture's images, pixels (photos are undistorted and resized once)"""
-    train_views: int = 10
+    train_views: int = field(default=10, metadata=COUNT)
     """frames in the train split (the rest are test)"""
     split: SplitKind = "consecutive"
     """'consecutive' (in file order from ``split_start``, as the paper) or 'spread' (evenly spaced)"""
-    split_start: int = 0
+    split_start: int = field(default=0, metadata=COUNT_OR_ZERO)
     """first train frame of a consecutive split"""
-    min_registered: int = 3
+    min_registered: int = field(default=3, metadata=COUNT)
     """fewest registered photos that make a capture"""
-    min_registered_fraction: float = 0.5
+    min_registered_fraction: float = field(default=0.5, metadata=FRACTION)
     """fewest registered photos, as a fraction of the photos"""
     ignore_exposure: bool = False
     """only linearise; do not divide by the EXIF exposure (photos at one fixed exposure) nor rescale
@@ -117,35 +120,26 @@ class ReconstructOptions:
     lower bound) in the frames' coverage; by default such pixels get coverage A = 0"""
     mask_coverage: bool = True
     """with masks: coverage A is also limited to the mask (keeps background out of silhouettes)"""
-    supersample: int = 3
+    supersample: int = field(default=3, metadata=in_range(1, 16))
     """sub-pixel grid per axis for coverage at silhouettes"""
     dtype: Literal["half", "float"] = "half"
     """radiance storage in images/*.exr"""
-    threads: int = -1
+    threads: int = field(default=-1, metadata=in_range(-1, 4096))
     """CPU threads for COLMAP (-1 = all)"""
-    seed: int = 0
+    seed: int = field(default=0, metadata=SEED)
     """seed of COLMAP's RANSAC and mapping"""
 
     def validate(self) -> None:
         """Raises DamcapError for out-of-range values (NaN, inf, counts beyond what a machine holds)."""
-        check_float_fields(self)
-        for name, lo, hi in (("voxels", 16, MAX_VOXELS), ("max_image_size", 1, MAX_IMAGE_SIDE),
-                             ("max_num_features", 1, MAX_COUNT), ("capture_size", 1, MAX_IMAGE_SIDE),
-                             ("supersample", 1, 16), ("min_registered", 1, MAX_COUNT), ("train_views", 1, MAX_COUNT),
-                             ("hull_tolerance", 0, MAX_COUNT), ("poisson_depth", 1, 16), ("smooth_iterations", 0, 100000),
-                             ("upsample_below", 0, MAX_IMAGE_SIDE), ("sequential_overlap", 1, MAX_COUNT),
-                             ("retrieval_neighbours", 1, MAX_COUNT), ("split_start", 0, MAX_COUNT), ("threads", -1, 4096)):
-            bounded_int(getattr(self, name), lo, hi, f"--{name.replace('_', '-')}")
+        check_ranges(self)
+        if self.threads == 0:
+            raise DamcapError("--threads must be -1 (all) or an integer in [1, 4096], got 0")
         # a voxel grid of voxels^3 (float32 and a label per voxel) and the capture's frame buffers
         require_memory(float(self.voxels) ** 3 * 8, f"--voxels {self.voxels} (a {self.voxels}^3 grid)")
         require_resolution(self.capture_size, self.capture_size, FRAME_BYTES_PER_PIXEL * self.supersample ** 2,
                            f"--capture-size {self.capture_size} with --supersample {self.supersample}: a frame")
-        if not self.sphere_max_rms > 0:
-            raise DamcapError(f"--sphere-max-rms must be positive, got {self.sphere_max_rms}")
         if self.split not in ("consecutive", "spread"):
             raise DamcapError(f"--split must be consecutive or spread, got {self.split!r}")
-        if not 0 <= self.min_registered_fraction <= 1:
-            raise DamcapError(f"--min-registered-fraction must lie in [0, 1], got {self.min_registered_fraction}")
         if self.dtype not in ("half", "float"):
             raise DamcapError(f"--dtype must be half or float, got {self.dtype!r}")
 
@@ -184,6 +178,22 @@ class ReconstructReport:
 # --------------------------------------------------------------------------------------------
 # Pure helpers
 # --------------------------------------------------------------------------------------------
+
+def check_split_options(opts: ReconstructOptions, photos: int, explicit: frozenset[str] = frozenset()) -> None:
+    """Refuse a split the photos cannot give, before any work: ``--train-views`` must leave a
+    test frame and ``--split-start`` must name a photo. Only options in ``explicit`` (set by the
+    user) are refused; a default is clamped by :func:`split_indices`, as are the splits of photos
+    that then fail to register.
+
+    Raises:
+        DamcapError: naming the option, its value and the number of photos.
+    """
+    if "train_views" in explicit and photos > 1 and not opts.train_views < photos:
+        raise DamcapError(f"--train-views must be below the number of photos ({photos}) so that the test split is not empty, "
+                          f"got {opts.train_views}")
+    if "split_start" in explicit and not opts.split_start < photos:
+        raise DamcapError(f"--split-start must be below the number of photos ({photos}), got {opts.split_start}")
+
 
 def split_indices(n: int, train_views: int, kind: SplitKind = "consecutive", start: int = 0) -> tuple[list[int], list[int]]:
     """Train and test frame indices.
@@ -288,13 +298,10 @@ def _registration_images(photos_dir: Path, names: list[str], work: Path, progres
     return RegistrationImages(proxy_dir, by_photo, file_digests(proxy_dir, [by_photo[n] for n in names]))
 
 
-def _registration(photos_dir: Path, names: list[str], sizes: dict[str, tuple[int, int]], work: Path, opts: ReconstructOptions,
-                  masks: dict[str, Path] | None, poses: str | None, progress: StageProgress) -> Registration:
-    if poses:
-        progress("poses", 0, 1)
-        reg = load_known_poses(poses, sizes)
-        progress("poses", 1, 1)
-        return reg
+def _registration(photos_dir: Path, names: list[str], work: Path, opts: ReconstructOptions,
+                  masks: dict[str, Path] | None, known: Registration | None, progress: StageProgress) -> Registration:
+    if known is not None:
+        return known
     images = _registration_images(photos_dir, names, work, progress)
     reg, _ = register_photos(images.folder, images.names(names), work / "sfm", opts.sfm(),
                              images.masks(masks) if opts.mask_features else None, progress, images.content)
@@ -355,7 +362,51 @@ def _check_inputs(photos_dir: Path, masks_dir: str | os.PathLike | None, poses: 
     _mode, mesh_path = parse_mode(opts.geometry)
     if mesh_path is not None and not mesh_path.is_file():
         raise DamcapError(f"{mesh_path}: mesh file not found (--geometry mesh:FILE)")
+    if mesh_path is not None:
+        load_mesh(mesh_path)  # an empty, damaged or degenerate mesh is refused before any work
     return names, masks
+
+
+def _photo_sizes(photos_dir: Path, names: list[str]) -> dict[str, tuple[int, int]]:
+    """Step 1: (width, height) of every photo, from its header."""
+    from damcap.reconstruct.photos import image_size
+
+    return {n: image_size(photos_dir / n) for n in names}
+
+
+def _known_poses(poses: str | None, sizes: dict[str, tuple[int, int]], opts: ReconstructOptions, photos_dir: Path,
+                 progress: StageProgress) -> Registration | None:
+    """Step 1: the cameras of ``--poses`` (None without it), read before any work.
+
+    Photos the file has no pose for are unregistered; too few posed photos are refused here.
+
+    Raises:
+        DamcapError: what the pose file's reader raises; too few posed photos (names some that
+            lack a pose, :func:`_check_enough`).
+    """
+    if not poses:
+        return None
+    progress("poses", 0, 1)
+    reg = load_known_poses(poses, sizes)
+    progress("poses", 1, 1)
+    _check_enough(reg, len(sizes), opts, photos_dir)
+    return reg
+
+
+def _check_masks(masks: dict[str, Path] | None, sizes: dict[str, tuple[int, int]]) -> None:
+    """Step 1: every mask decodes, has its photo's size and marks some object (read before any work).
+
+    Raises:
+        DamcapError: an unreadable or truncated mask, a size other than the photo's, or a mask
+            with no object pixel (all black: the photo would see no object), naming the mask.
+    """
+    from damcap.reconstruct.photos import MASK_THRESHOLD
+
+    for name, path in (masks or {}).items():
+        m = read_mask(path, sizes[name], name)
+        if not (m > MASK_THRESHOLD).any():
+            raise DamcapError(f"{path}: the mask of {name} has no object pixel (white = object, none above "
+                              f"{MASK_THRESHOLD}); fix the mask or move the photo out of the folder")
 
 
 def _response_curve(photos_dir: Path, names: list[str], opts: ReconstructOptions) -> tuple[np.ndarray | None, str]:
@@ -375,14 +426,12 @@ def _response_curve(photos_dir: Path, names: list[str], opts: ReconstructOptions
 
 
 def _cameras(photos_dir: Path, names: list[str], work: Path, opts: ReconstructOptions, masks: dict[str, Path] | None,
-             poses: str | None, progress: StageProgress, log: Callable[[str], None], seconds: dict[str, float]) -> Registration:
+             known: Registration | None, progress: StageProgress, log: Callable[[str], None],
+             seconds: dict[str, float]) -> Registration:
     """Step 2: registration (or known poses), and sparse points triangulated at known poses when the
     geometry needs them."""
-    from damcap.reconstruct.photos import image_size
-
-    sizes = {n: image_size(photos_dir / n) for n in names}
     t0 = time.perf_counter()
-    reg = _registration(photos_dir, names, sizes, work, opts, masks, poses, progress)
+    reg = _registration(photos_dir, names, work, opts, masks, known, progress)
     seconds["registration"] = time.perf_counter() - t0
     _check_enough(reg, len(names), opts, photos_dir)
     if len(reg.points_world) == 0 and _needs_points(opts, masks is not None):
@@ -405,7 +454,7 @@ def _target_masks(reg: Registration, targets: list[Intrinsics], masks: dict[str,
     mask_px = []
     for k, (p, tgt) in enumerate(zip(reg.photos, targets)):
         progress("masks", k, len(reg.photos))
-        m = read_mask(masks[p.name], (p.camera.width, p.camera.height))
+        m = read_mask(masks[p.name], (p.camera.width, p.camera.height), p.name)
         mask_px.append(np.clip(resample_to_pinhole(m, p.camera, tgt), 0, 1))
     progress("masks", len(reg.photos), len(reg.photos))
     return mask_px
@@ -421,8 +470,7 @@ def _scene(reg: Registration, targets: list[Intrinsics], mask_px: list[np.ndarra
     t0 = time.perf_counter()
     progress("geometry", 0, 1)
     inputs = GeometryInputs(cams, targets, mask_px, points, reg.points_seen_from)
-    geo: GeometryResult = build_geometry(inputs, opts.geometry_options(), norm_from_world)
-    log(f"geometry: {geo.reason}")
+    geo: GeometryResult = build_geometry(inputs, opts.geometry_options(), norm_from_world)  # its reason is in the report
     recentre = recentre_transform(geo.mesh.vertices)
     norm_from_world = recentre @ norm_from_world
     cams = transform_world_from_cam(recentre, cams)
@@ -447,7 +495,8 @@ def _remove_stale_frames(out: Path, frames: list[Frame]) -> None:
 
 def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, opts: ReconstructOptions = ReconstructOptions(),
                         masks_dir: str | os.PathLike | None = None, poses: str | None = None,
-                        progress: StageProgress | None = None, log: Callable[[str], None] | None = None) -> tuple[Capture, ReconstructReport]:
+                        progress: StageProgress | None = None, log: Callable[[str], None] | None = None,
+                        explicit: frozenset[str] = frozenset()) -> tuple[Capture, ReconstructReport]:
     """Run the whole reconstruction (see the module docstring).
 
     Args:
@@ -459,6 +508,8 @@ def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, o
         poses: known cameras (``transforms.json``, ``poses_bounds.npy``, ``colmap:DIR``) or None (SfM).
         progress: called as (stage, done, total).
         log: one-line messages (what auto picked and why, dropped photos).
+        explicit: names of the options the user set (``train_views``, ``split_start``): a split
+            the photos cannot give is refused for these, clamped for defaults.
 
     Returns:
         the capture (as written) and a report.
@@ -475,11 +526,33 @@ def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, o
     t_all = time.perf_counter()
 
     names, masks = _check_inputs(photos_dir, masks_dir, poses, opts)
+    check_split_options(opts, len(names), explicit)
     log_response, tone_curve = _response_curve(photos_dir, names, opts)
+    # every input is read and checked before the output folder is touched
+    sizes = _photo_sizes(photos_dir, names)
+    known = _known_poses(poses, sizes, opts, photos_dir, progress)
+    _check_masks(masks, sizes)
+    exposure_factors([photos_dir / n for n in names], opts.ignore_exposure, tone_curve)  # refuses missing EXIF now
+    created = not out.exists()
     _prepare_output(out, [photos_dir] + ([Path(masks_dir)] if masks_dir is not None else []))
+    try:
+        return _reconstruct_into(photos_dir, out, opts, names, masks, masks_dir, poses, known, log_response, tone_curve,
+                                 progress, log, seconds, t_all)
+    except DamcapError:
+        # a folder this run made is removed, unless it holds a registration a rerun resumes from
+        if created and not (out / WORK_FOLDER / "sfm").exists():
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+
+
+def _reconstruct_into(photos_dir: Path, out: Path, opts: ReconstructOptions, names: list[str], masks: dict[str, Path] | None,
+                      masks_dir: str | os.PathLike | None, poses: str | None, known: Registration | None,
+                      log_response: np.ndarray | None, tone_curve: str, progress: StageProgress, log: Callable[[str], None],
+                      seconds: dict[str, float], t_all: float) -> tuple[Capture, ReconstructReport]:
+    """Steps 2 to 7 into the prepared output folder (:func:`reconstruct_capture`)."""
     work = out / WORK_FOLDER
     work.mkdir(exist_ok=True)
-    reg = _cameras(photos_dir, names, work, opts, masks, poses, progress, log, seconds)
+    reg = _cameras(photos_dir, names, work, opts, masks, known, progress, log, seconds)
     # exposure is checked before the long steps
     factors, exposures, reference, lin_note = exposure_factors([photos_dir / p.name for p in reg.photos], opts.ignore_exposure,
                                                                tone_curve)

@@ -23,7 +23,7 @@ import torch
 
 from damcap.common.capture_folder import Capture, Frame, FrameData, Intrinsics, write_capture
 from damcap.common.errors import DamcapError
-from damcap.common.validate import bounded_float, bounded_int, require_resolution
+from damcap.common.validate import ELEVATION_DEG, MAX_IMAGE_SIDE, SEED, check_ranges, in_range, require_resolution
 from damcap.common.version import damcap_version
 from damcap.common.numerics import dot, safe_div, safe_normalize
 
@@ -273,21 +273,21 @@ class ClosedFormOptions:
     """analytic shape: 'sphere' (radius 1) or 'torus' (non-convex; radii 0.9 and 0.4)"""
     light: Literal["directional", "env"] = "directional"
     """'directional' (one distant light) or 'env' (analytic HDR sky, numerically integrated)"""
-    materials: int = 1
+    materials: int = field(default=1, metadata=in_range(1, 2))
     """1, or 2 (laid out by position, with ground-truth weights/)"""
-    views: int = 32
+    views: int = field(default=32, metadata=in_range(3, 100_000))
     """cameras on one circle around the object"""
-    resolution: int = field(default=128, metadata={"cli_flag": "--res"})
+    resolution: int = field(default=128, metadata=in_range(8, MAX_IMAGE_SIDE, cli_flag="--res"))
     """image width and height, pixels"""
-    elevation_deg: float = field(default=25.0, metadata={"cli_flag": "--elevation"})
+    elevation_deg: float = field(default=25.0, metadata={**ELEVATION_DEG, "cli_flag": "--elevation"})
     """camera elevation above the object's equator, degrees"""
-    train_views: int = 10
+    train_views: int = field(default=10, metadata=in_range(2, 100_000))
     """consecutive views (random start) in the train split; the rest are test"""
-    seed: int = 0
+    seed: int = field(default=0, metadata=SEED)
     """chooses the train start, the camera start azimuth and the material colours"""
-    env_grid: int = 24
+    env_grid: int = field(default=24, metadata=in_range(2, 4096))
     """rows of the equirectangular grid that integrates the environment (columns = 2x)"""
-    supersample: int = 3
+    supersample: int = field(default=3, metadata=in_range(1, 64))
     """sub-pixel grid (per axis) that measures coverage A at silhouettes"""
     dtype: Literal["half", "float"] = "half"
     """radiance storage in images/"""
@@ -313,18 +313,10 @@ def render_closed_form(opts: ClosedFormOptions) -> tuple[list[np.ndarray], Intri
     Returns:
         world_from_cam list, shared intrinsics, per-frame data, the materials used.
     """
-    if opts.materials not in (1, 2):
-        raise DamcapError(f"closed-form captures have 1 or 2 materials, got {opts.materials}")
-    if not 2 <= opts.train_views < opts.views:
+    check_ranges(opts)
+    if not opts.train_views < opts.views:
         raise DamcapError(f"--train-views must lie in [2, views - 1], got {opts.train_views} of {opts.views} views")
-    if opts.resolution < 8 or opts.env_grid < 2 or opts.supersample < 1:
-        raise DamcapError(f"--res must be >= 8, --env-grid >= 2 and --supersample >= 1; got {opts.resolution}, "
-                          f"{opts.env_grid}, {opts.supersample}")
-    bounded_float(opts.elevation_deg, -90.0, 90.0, "--elevation", lo_open=True, hi_open=True)  # at the poles up = view
-    bounded_int(opts.views, 3, 100_000, "--views")
-    bounded_int(opts.env_grid, 2, 4096, "--env-grid")
-    bounded_int(opts.seed, 0, 2**31 - 1, "--seed")
-    sub = bounded_int(opts.resolution, 8, 65535, "--res") * bounded_int(opts.supersample, 1, 64, "--supersample")
+    sub = opts.resolution * opts.supersample
     # per frame: float64 rays and hits (~10 arrays of 3 values) at the sub-pixel grid
     require_resolution(sub, sub, 240, "--res x --supersample", copies=1)
     rng = np.random.default_rng(opts.seed)

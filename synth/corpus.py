@@ -32,6 +32,7 @@ from typing import Any, Callable, Literal
 
 from damcap.common.atomic import write_json_atomic
 from damcap.common.errors import DamcapError
+from damcap.common.validate import in_range
 
 from damcap.synth.mitsuba_capture import SynthOptions, make_synthetic_capture
 
@@ -61,7 +62,7 @@ class CorpusOptions:
     'hyper' (224 predictor-training captures, 128 px), 'segment' (the held-out part with 3
     materials, 4 captures, 128 px), 'segment-dev' (6 training-part 3-material captures, 128 px:
     where segmentation defaults are chosen)"""
-    jobs: int = 1
+    jobs: int = field(default=1, metadata=in_range(1, 256))
     """parallel processes (each gets cores / jobs render threads)"""
     dry_run: bool = False
     """write corpus.json (the plan) and render nothing"""

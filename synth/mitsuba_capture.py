@@ -52,7 +52,7 @@ from damcap.common.capture_folder import (
 )
 from damcap.common.errors import DamcapError
 from damcap.common.exr import read_exr, write_exr
-from damcap.common.validate import bounded_int, check_float_fields
+from damcap.common.validate import SEED, check_ranges, in_range
 
 from damcap.common.cameras import focal_px_from_fov, orbit_world_from_cam, pixel_rays_world
 from damcap.synth.geometry import GeometryBuffers, RayCaster, SceneGeometry, frame_geometry
@@ -96,25 +96,25 @@ class SynthOptions:
     light: str = "point"
     """'point[:AZIMUTH_DEG[:ELEVATION_DEG]]' (small spherical area light; position from the seed
     when not given) or 'env:FILE[:ROTATION_DEG]' (environment map rotated about +y)"""
-    materials: int = 1
+    materials: int = field(default=1, metadata=in_range(1, 8))
     """number of materials: 1 (whole object) or 3 (noise regions) as in the paper; 1..8 allowed"""
-    views: int = 32
+    views: int = field(default=32, metadata=in_range(3, MAX_SYNTH_VIEWS))
     """cameras equally spaced on one circle around the object"""
-    resolution: int = field(default=256, metadata={"cli_flag": "--res"})
+    resolution: int = field(default=256, metadata=in_range(8, 4096, cli_flag="--res"))
     """image width and height, pixels"""
-    spp: int = 64
+    spp: int = field(default=64, metadata=in_range(1, 2 ** 20))
     """path-tracing samples per pixel (noise floor, bench/synth.md: at 128 px, 512 under environment
     maps and 256 under the point light keep it under 0.02 DSSIM; twice that at 256 px)"""
-    seed: int = 0
+    seed: int = field(default=0, metadata=SEED)
     """chooses camera elevation and start azimuth, material colours and layout, the train start,
     the point light's position (when not given) and the path tracer's random numbers"""
-    train_views: int = 10
+    train_views: int = field(default=10, metadata=in_range(2, MAX_SYNTH_VIEWS))
     """consecutive views (random start) in the train split; the rest are test"""
-    elevation_deg: float | None = field(default=None, metadata={"cli_flag": "--elevation"})
+    elevation_deg: float | None = field(default=None, metadata=in_range(-80, 80, cli_flag="--elevation"))
     """camera elevation above the xz-plane, degrees; None draws it from the seed in [5, 45]"""
-    max_depth: int = 6
+    max_depth: int = field(default=6, metadata=in_range(2, 1024))
     """path tracer's longest path (2 = direct light only; 6 = up to 4 indirect bounces)"""
-    supersample: int = 4
+    supersample: int = field(default=4, metadata=in_range(1, 16))
     """k: coverage A and weights use a k x k grid of sub-pixel rays"""
     variant: Variant = "auto"
     """Mitsuba variant: 'auto' (llvm_ad_rgb, else scalar_rgb with a warning), 'llvm_ad_rgb', 'scalar_rgb'"""
@@ -123,26 +123,9 @@ class SynthOptions:
 
     def validate(self) -> None:
         """Raise DamcapError naming the first bad value (NaN and inf included)."""
-        check_float_fields(self)
-        bounded_int(self.views, 3, MAX_SYNTH_VIEWS, "--views")
-        bounded_int(self.spp, 1, 2 ** 20, "--spp")
-        bounded_int(self.max_depth, 2, 1024, "--max-depth")
-        if not 1 <= self.materials <= 8:
-            raise DamcapError(f"--materials must be 1 or 3 (at most 8), got {self.materials}")
-        if self.views < 3:
-            raise DamcapError(f"--views must be >= 3, got {self.views}")
-        if not 2 <= self.train_views < self.views:
+        check_ranges(self)
+        if not self.train_views < self.views:
             raise DamcapError(f"--train-views must lie in [2, views - 1], got {self.train_views} of {self.views} views")
-        if not 8 <= self.resolution <= 4096:
-            raise DamcapError(f"--res must lie in [8, 4096], got {self.resolution}")
-        if self.spp < 1:
-            raise DamcapError(f"--spp must be >= 1, got {self.spp}")
-        if self.max_depth < 2:
-            raise DamcapError(f"--max-depth must be >= 2 (2 = direct light only), got {self.max_depth}")
-        if not 1 <= self.supersample <= 16:
-            raise DamcapError(f"--supersample must lie in [1, 16], got {self.supersample}")
-        if self.elevation_deg is not None and not -80 <= self.elevation_deg <= 80:
-            raise DamcapError(f"--elevation must lie in [-80, 80] degrees, got {self.elevation_deg}")
         if self.dtype not in ("half", "float"):
             raise DamcapError(f"--dtype must be half or float, got {self.dtype!r}")
         if self.variant not in ("auto", "llvm_ad_rgb", "scalar_rgb"):

@@ -27,6 +27,7 @@ from damcap.common.colour import linear_to_srgb
 from damcap.common.mesh import Mesh
 from damcap.common.raycast import MeshRaycaster
 from damcap.common.shapes import bumpy_blob, value_noise
+from damcap.common.validate import CAMERA_DISTANCE, ELEVATION_DEG, MAX_IMAGE_SIDE, SEED, check_ranges, in_range, require_resolution
 
 
 def procedural_albedo(points: np.ndarray, seed: int = 0) -> np.ndarray:
@@ -179,31 +180,23 @@ def default_intrinsics(size: int, fov_deg: float = 45.0) -> Intrinsics:
 class PhotoSetOptions:
     """Options of ``damcap synth-photos`` (a textured bumpy blob photographed on one camera ring)."""
 
-    views: int = 24
+    views: int = field(default=24, metadata=in_range(1, 100_000))
     """photos, on one ring around the object"""
-    size: int = 256
+    size: int = field(default=256, metadata=in_range(8, MAX_IMAGE_SIDE))
     """photo width and height, pixels"""
-    elevation_deg: float = field(default=25.0, metadata={"cli_flag": "--elevation"})
+    elevation_deg: float = field(default=25.0, metadata={**ELEVATION_DEG, "cli_flag": "--elevation"})
     """camera ring elevation, degrees"""
-    jitter_deg: float = field(default=5.0, metadata={"cli_flag": "--jitter"})
+    jitter_deg: float = field(default=5.0, metadata=in_range(0, 90, cli_flag="--jitter"))
     """random azimuth and elevation jitter of each camera, degrees"""
-    distance: float = 3.2
+    distance: float = field(default=3.2, metadata=CAMERA_DISTANCE)
     """camera distance from the object's centre (object radius 1)"""
-    seed: int = 0
+    seed: int = field(default=0, metadata=SEED)
     """seeds the shape, the texture, the jitter and the exposures"""
 
     def validate(self) -> None:
         """Raise DamcapError naming the first bad value."""
-        from damcap.common.errors import DamcapError
-        from damcap.common.validate import bounded_int, check_float_fields, require_resolution
-
-        check_float_fields(self)
-        bounded_int(self.views, 1, 100000, "--views")
+        check_ranges(self)
         require_resolution(self.size, self.size, 4 * 32, f"--size {self.size}: a photo")
-        if self.views < 1 or self.size < 8:
-            raise DamcapError(f"--views must be >= 1 and --size >= 8, got {self.views} and {self.size}")
-        if not self.distance > 1:
-            raise DamcapError(f"--distance must be > 1 (the object's radius), got {self.distance}")
 
 
 def make_photo_set(out: str | os.PathLike, opts: PhotoSetOptions) -> list[str]:

@@ -30,7 +30,7 @@ from damcap.common.capture_folder import read_capture, read_frame
 from damcap.common.device import resolve_device
 from damcap.common.corpus_index import finished_captures
 from damcap.common.errors import DamcapError
-from damcap.common.validate import require_options
+from damcap.common.validate import COUNT, COUNT_OR_ZERO, MAX_BATCH_PIXELS, MAX_CHANNELS, MAX_IMAGE_SIDE, SEED, check_ranges, in_range
 
 from damcap.appearance.dam import DamArchitecture, Encoding
 from damcap.common.fingerprint import FINGERPRINT_KEY, fingerprint
@@ -46,45 +46,43 @@ from damcap.appearance.pixels import FOREGROUND_COVERAGE, view_dir_world
 class HyperTrainOptions:
     """Options of ``damcap train-hyper`` (each knob that trades speed for accuracy is here)."""
 
-    steps: int = 3000
+    steps: int = field(default=3000, metadata=COUNT)
     """optimiser steps (Adam)"""
-    batch_size: int = 8
+    batch_size: int = field(default=8, metadata=in_range(1, 65536))
     """(capture, view) pairs per step, over all ranks together"""
-    pixels: int = 4096
+    pixels: int = field(default=4096, metadata=in_range(1, MAX_BATCH_PIXELS))
     """pixels per capture and step scored by the L1 cost"""
-    learning_rate: float = 5e-4
+    learning_rate: float = field(default=5e-4, metadata=in_range(0, 10, lo_open=True))
     """initial Adam learning rate; cosine-decayed to 5% of it"""
-    input_size: int = 256
+    input_size: int = field(default=256, metadata=in_range(1, MAX_IMAGE_SIDE))
     """side of the predictor's input image, pixels"""
-    channels: tuple[int, ...] = (16, 32, 64, 64, 128, 128, 256, 256)
+    channels: tuple[int, ...] = field(default=(16, 32, 64, 64, 128, 128, 256, 256), metadata=in_range(1, MAX_CHANNELS))
     """convolution channels (one stride-2 layer each)"""
     encoding: Encoding = "nr"
     """input encoding of the predicted DAM (32 x 4, no biases)"""
     augment: bool = True
     """exact augmentations: rotation about +y, mirror, tinted light"""
-    max_captures: int = 0
+    max_captures: int = field(default=0, metadata=COUNT_OR_ZERO)
     """use at most this many training captures (0 = all): the training-set-size knob"""
-    val_fraction: float = 0.1
+    val_fraction: float = field(default=0.1, metadata=in_range(0, 1, hi_open=True))
     """training captures kept out for the validation curve and the stopping rule"""
-    eval_every: int = 100
+    eval_every: int = field(default=100, metadata=COUNT)
     """steps between validations"""
-    pixels_per_capture: int = 32768
+    pixels_per_capture: int = field(default=32768, metadata=in_range(1, MAX_BATCH_PIXELS))
     """covered pixels kept in memory per capture (spread over all its views)"""
-    seed: int = 0
+    seed: int = field(default=0, metadata=SEED)
     """seeds initialisation and every random draw"""
     device: str = "cpu"
     """'cpu', 'cuda' or 'auto' (under torchrun each rank uses its LOCAL_RANK GPU)"""
-    checkpoint_every: int = 100
+    checkpoint_every: int = field(default=100, metadata=COUNT_OR_ZERO)
     """steps between checkpoints (0 = never)"""
-    grad_clip: float = 1.0
+    grad_clip: float = field(default=1.0, metadata=in_range(0, 1e6))
     """largest gradient norm of a step (0 = no clipping): a hypernetwork's output weights
     multiply through the DAM's layers, so one bad batch can otherwise throw it far off"""
 
     def validate(self) -> None:
-        require_options(self, at_least_1=("steps", "batch_size", "pixels", "eval_every", "pixels_per_capture", "input_size"),
-                        at_least_0=("max_captures", "checkpoint_every", "grad_clip"), positive_finite=("learning_rate",))
-        if not 0 <= self.val_fraction < 1:
-            raise DamcapError(f"--val-fraction must lie in [0, 1), got {self.val_fraction}")
+        """Raise DamcapError naming the first value outside its range."""
+        check_ranges(self)
         self.architecture  # channels and input size within HyperArchitecture's bounds (named in its error)
 
     @property

@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any, Callable
 
-
 from damcap.common.errors import DamcapError
+from damcap.common.validate import FRACTION, check_ranges, in_range
 
 from damcap.appearance.views import ViewData
 from damcap.appearance.segment.model import SegmentationModel
-from damcap.appearance.segment.options import SegmentOptions
+from damcap.appearance.segment.options import MAX_SEGMENT_MATERIALS, SegmentOptions
 from damcap.appearance.segment.score import material_shares, novel_view_dssim
 from damcap.appearance.segment.train import segment_materials
 
@@ -22,18 +22,23 @@ class ChooseOptions:
 
     materials: str = "auto"
     """number of materials n, or 'auto' (the smallest n whose held-out error stops improving)"""
-    max_materials: int = 4
+    max_materials: int = field(default=4, metadata=in_range(1, MAX_SEGMENT_MATERIALS))
     """largest n tried by --materials auto"""
-    margin: float = 0.1
+    margin: float = field(default=0.1, metadata=in_range(0, 1))
     """--materials auto keeps n when n + 1 improves held-out DSSIM by less than this fraction"""
-    min_gain: float = 0.01
+    min_gain: float = field(default=0.01, metadata=in_range(0, 1))
     """--materials auto keeps n also when n + 1 improves held-out DSSIM by less than this absolute amount"""
-    restarts: int = 2
+    restarts: int = field(default=2, metadata=in_range(1, 100))
     """--materials auto: runs (seeds) per n, the best kept (the held-out error of one run is seed-noisy)"""
-    min_share: float = 0.01
+    min_share: float = field(default=0.01, metadata=FRACTION)
     """--materials auto: smallest share of the training pixels each material must win for n to count"""
-    target_dssim: float | None = None
+    target_dssim: float | None = field(default=None, metadata=FRACTION)
     """with --materials auto: the fewest materials whose held-out DSSIM is at most this"""
+
+    def validate(self) -> None:
+        """Raise DamcapError naming the first value outside its range (--materials included)."""
+        check_ranges(self)
+        self.fixed_materials()
 
     def fixed_materials(self) -> int | None:
         """n of ``--materials N``; None for 'auto'.
@@ -44,9 +49,12 @@ class ChooseOptions:
         if self.materials == "auto":
             return None
         try:
-            return int(self.materials)
+            n = int(self.materials)
         except ValueError:
-            raise DamcapError(f"--materials must be a number or 'auto', got {self.materials!r}") from None
+            n = 0
+        if not 1 <= n <= MAX_SEGMENT_MATERIALS:
+            raise DamcapError(f"--materials must be 'auto' or an integer in [1, {MAX_SEGMENT_MATERIALS}], got {self.materials}")
+        return n
 
 
 @dataclass

@@ -18,14 +18,21 @@ from safetensors import SafetensorError
 from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 
-from damcap.common.atomic import atomic_path
+from damcap.common.atomic import atomic_path, write_json_atomic
+from damcap.common.capture_folder import weight_channels
 from damcap.common.errors import DamcapError
-from damcap.common.validate import MAX_CHANNELS, MAX_IMAGE_SIDE, MAX_MATERIALS, bounded_int, finite_in, loads_json
+from damcap.common.exr import read_exr_channels, write_exr, write_png
+from damcap.common.validate import (MAX_CHANNELS, MAX_IMAGE_SIDE, MAX_MATERIALS, bounded_int, finite_in, load_json_file,
+                                    loads_json)
 
 from damcap.appearance.dam_file import load_dam, read_safetensors_metadata, save_dam
 from damcap.appearance.segment.model import SegmentationModel, SegmentationNet
+from damcap.appearance.segment.preview import false_colour
+from damcap.appearance.views import ViewData
 
 SEGMENTER_FILE = "segmenter.safetensors"
+SUMMARY_FILE = "segment.json"
+WEIGHTS_FOLDER = "weights"
 SEGMENT_FORMAT_VERSION = 1
 
 
@@ -49,8 +56,80 @@ def save_segmentation(folder: str | os.PathLike, model: SegmentationModel, *, co
     return paths
 
 
+def save_segmentation_folder(folder: str | os.PathLike, model: SegmentationModel, views: list[ViewData], names: list[str], *,
+                             colorspace: str, provenance: dict[str, Any], summary: dict[str, Any]) -> None:
+    """Write everything ``damcap segment`` writes into ``folder`` (normally a staging folder).
+
+    The DAMs and segmenter (:func:`save_segmentation`), per training view ``weights/NAME.exr``
+    ((H, W, n) half, channels ``W.0..``) and ``preview/NAME.png``, and ``segment.json``:
+    ``provenance`` + ``summary`` + the material count, the frames and their output names.
+
+    Args:
+        views: the training views, in the order of ``names`` (one output name each).
+    """
+    folder = Path(folder)
+    save_segmentation(folder, model, colorspace=colorspace, provenance=provenance)
+    for v, name in zip(views, names):
+        w = model.weights_of(v)
+        write_exr(folder / WEIGHTS_FOLDER / f"{name}.exr", w, weight_channels(model.materials), dtype="half")
+        write_png(folder / "preview" / f"{name}.png", false_colour(w, v.data.coverage))
+    write_json_atomic(folder / SUMMARY_FILE, {**provenance, **summary, "materials": model.materials,
+                                              "frames": [v.name for v in views], "outputs": list(names)})
+
+
+def _weight_files(folder: Path, summary: dict[str, Any], where: Path) -> list[Path]:
+    """The weight maps segment.json lists (``outputs``), each inside ``weights/``.
+
+    Raises:
+        DamcapError: ``outputs`` not a list of names, a name that leaves the folder, no weights folder.
+    """
+    weights = folder / WEIGHTS_FOLDER
+    if not weights.is_dir():
+        raise DamcapError(f"{weights}: missing weights folder of the segmentation (weights/*.exr); "
+                          f"the folder is incomplete, run damcap segment again")
+    names = summary.get("outputs")
+    if names is None:  # written before segment.json listed its outputs: every map in the folder
+        files = sorted(weights.rglob("*.exr"))
+        if not files:
+            raise DamcapError(f"{weights}: no weight maps (*.exr); the folder is incomplete, run damcap segment again")
+        return files
+    if not isinstance(names, list) or not names or not all(isinstance(n, str) and n for n in names):
+        raise DamcapError(f"{where}: 'outputs' must be a non-empty list of frame names, got {str(names)[:80]}")
+    root = weights.resolve()
+    files = []
+    for n in names:
+        f = weights / f"{n}.exr"
+        if Path(n).is_absolute() or ".." in Path(n).parts or root not in f.resolve().parents:
+            raise DamcapError(f"{where}: output name {n!r} leaves the segmentation folder")
+        files.append(f)
+    return files
+
+
+def check_segmentation_folder(folder: str | os.PathLike, materials: int) -> None:
+    """Check the parts of a segmentation folder beside the segmenter: ``segment.json`` (a JSON
+    object whose ``materials`` is ``materials``) and one readable ``weights/NAME.exr`` with the
+    channels ``W.0 .. W.{n-1}`` per listed frame.
+
+    Raises:
+        DamcapError: naming the missing, damaged or inconsistent file.
+    """
+    folder = Path(folder)
+    path = folder / SUMMARY_FILE
+    summary = load_json_file(path, "segmentation summary")
+    if not isinstance(summary, dict):
+        raise DamcapError(f"{path}: a segmentation summary must be a JSON object, got {type(summary).__name__}")
+    if "materials" not in summary:
+        raise DamcapError(f"{path}: no 'materials' count; not a segment.json written by damcap segment")
+    n = bounded_int(summary["materials"], 1, MAX_MATERIALS, "materials", path)
+    if n != materials:
+        raise DamcapError(f"{path}: materials = {n}, but {SEGMENTER_FILE} holds {materials}; the folder's files do not belong together")
+    for f in _weight_files(folder, summary, path):
+        read_exr_channels(f, weight_channels(n))
+
+
 def load_segmentation(folder: str | os.PathLike) -> SegmentationModel:
-    """Read a folder written by :func:`save_segmentation`.
+    """Read a folder written by ``damcap segment`` (:func:`save_segmentation_folder`): the DAMs and
+    segmenter, with segment.json and the weight maps checked (:func:`check_segmentation_folder`).
 
     Raises:
         DamcapError: missing or damaged files, a newer format, inconsistent material counts.
@@ -99,6 +178,7 @@ def load_segmentation(folder: str | os.PathLike) -> SegmentationModel:
         diff = sorted(set(expected.items()) ^ set(found.items()))[:3]
         raise DamcapError(f"{path}: segmenter weights do not match its architecture (first differences: {diff})")
     psi.load_state_dict({k[4:]: v.float() for k, v in tensors.items() if k.startswith("psi.")})
+    check_segmentation_folder(folder, n)
     dams = [load_dam(folder / f"material_{k}.dam")[0] for k in range(n)]
     return SegmentationModel(
         dams=dams, psi=psi.eval(), radiance_scale=radiance_scale,

@@ -57,6 +57,8 @@ def segment_materials(views: list[ViewData], opts: SegmentOptions, progress: Cal
     opts.validate()
     if not views:
         raise DamcapError("segment needs at least one training view")
+    if opts.frames_per_step > len(views):
+        raise DamcapError(f"--frames-per-step must be at most the {len(views)} training views, got {opts.frames_per_step}")
     t0 = time.perf_counter()
     device = resolve_device(opts.device)
     arch = opts.architecture

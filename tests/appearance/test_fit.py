@@ -207,7 +207,7 @@ def test_holdout_frames_are_interior():
 
 
 def test_bad_options_are_clear():
-    with pytest.raises(DamcapError, match="--steps must be >= 1"):
+    with pytest.raises(DamcapError, match=r"--steps must be an integer in \[1, 1000000000\], got 0"):
         FitOptions(steps=0).validate()
     with pytest.raises(DamcapError, match="learning-rate"):
         FitOptions(learning_rate=-1).validate()
@@ -215,9 +215,9 @@ def test_bad_options_are_clear():
         with pytest.raises(DamcapError, match="--weight-decay must be a finite number"):
             FitOptions(weight_decay=bad).validate()
     for bad in (0.0, 1.0, -0.2):
-        with pytest.raises(DamcapError, match=r"--quantile must lie in \(0, 1\)"):
+        with pytest.raises(DamcapError, match=r"--quantile must be a finite number in \(0, 1\)"):
             FitOptions(quantile=bad).validate()
-    with pytest.raises(DamcapError, match="--quantile must be a finite number, got nan"):
+    with pytest.raises(DamcapError, match=r"--quantile must be a finite number in \(0, 1\), got nan"):
         FitOptions(quantile=float("nan")).validate()
 
 

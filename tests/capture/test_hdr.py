@@ -249,14 +249,22 @@ def test_corrupt_files(tmp_path, frobisher, sim_bracket):
 def test_single_frame_mixed_kinds_and_float_input(tmp_path, frobisher, sim_bracket):
     with pytest.raises(DamcapError, match="at least 2 exposures, got 1.*damcap linearize"):
         merge_bracket_files(frobisher[:1])
-    with pytest.raises(DamcapError, match="mixes RAW and non-RAW"):
+    with pytest.raises(DamcapError, match=rf"{sim_bracket.files[0].name} is a RAW file but .*{frobisher[0].name} is not.*mixes RAW and non-RAW"):
         merge_bracket_files([frobisher[0], sim_bracket.files[0]])
     from damcap.common.exr import write_exr
 
-    exr = tmp_path / "lin.exr"
+    exr, exr2 = tmp_path / "lin.exr", tmp_path / "lin2.exr"
     write_exr(exr, np.ones((4, 4, 3)), ("R", "G", "B"))
+    write_exr(exr2, np.ones((4, 4, 3)), ("R", "G", "B"))
     with pytest.raises(DamcapError, match="already linear"):
-        merge_bracket_files([exr, exr], HdrOptions(exposures_s=[1, 2]))
+        merge_bracket_files([exr, exr2], HdrOptions(exposures_s=[1, 2]))
+
+
+def test_a_bracket_needs_distinct_exposures(frobisher):
+    with pytest.raises(DamcapError, match=rf"{frobisher[0].name}: given twice in the bracket.*distinct exposures"):
+        merge_bracket_files([frobisher[0], frobisher[1], frobisher[0]], HdrOptions(exposures_s=[1, 2, 4]))
+    with pytest.raises(DamcapError, match=rf"{frobisher[0].name} and .*{frobisher[1].name}: --exposures gives both 0.01 s.*distinct"):
+        merge_bracket_files(frobisher[:2], HdrOptions(exposures_s=[0.01, 0.01]))
     with pytest.raises(DamcapError, match="--colorspace"):
         merge_bracket_files(frobisher, HdrOptions(colorspace="srgb"))  # type: ignore[arg-type]
 
@@ -333,5 +341,5 @@ def test_inputs_are_not_modified(tmp_path, sim_bracket):
 
 @pytest.mark.parametrize("phase", [-0.1, 1.0])
 def test_sample_phase_outside_its_range_is_refused(phase):
-    with pytest.raises(DamcapError, match=r"--sample-phase must lie in \[0, 1\)"):
+    with pytest.raises(DamcapError, match=r"--sample-phase must be a finite number in \[0, 1\)"):
         HdrOptions(sample_phase=phase).validate()

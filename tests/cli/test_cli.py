@@ -86,7 +86,7 @@ def test_bad_model_and_options(small_capture, tmp_path, capsys):
     code, _, err = run(["fit", small_capture, "-o", tmp_path / "m.dam", "--encoding", "polar"], capsys)
     assert_one_line_error(code, err, "unknown DAM input encoding 'polar'")
     code, _, err = run(["fit", small_capture, "-o", tmp_path / "m.dam", "--steps", "0"], capsys)
-    assert_one_line_error(code, err, "--steps must be >= 1")
+    assert_one_line_error(code, err, "--steps must be an integer in [1, 1000000000], got 0")
     code, _, err = run(["fit", small_capture, "-o", tmp_path / "m.dam", "--device", "cuda:7"], capsys)
     assert code != 0 and "Traceback" not in err
 

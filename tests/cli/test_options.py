@@ -13,6 +13,7 @@ import pytest
 import damcap.cli.main  # noqa: F401  (registers every command)
 from damcap.cli import app as app_module
 from damcap.cli.options import COMMANDS, DerivedCommand, field_docs
+from damcap.common.validate import RANGE, number_kind, in_range
 from damcap.common.version import damcap_version
 
 from tests.conftest import assert_one_line_error
@@ -40,6 +41,10 @@ class Toy:
     """channel sizes"""
     secret: int = field(default=7, metadata={"cli_exclude": True})
     """not a user option"""
+    rate: float = field(default=0.5, metadata=in_range(0, 1, lo_open=True))
+    """a fraction in (0, 1]"""
+    count: int = field(default=3, metadata=in_range(1, 10))
+    """a count in [1, 10]"""
 
 
 @dataclass(frozen=True)
@@ -114,12 +119,18 @@ def test_values_parse_and_given_names_what_was_typed(toy, capsys):
 
 @pytest.mark.parametrize("args, needles", [
     (["--mode", "slow"], ["--mode must be one of fast, exact, got 'slow'"]),
-    (["--steps", "2.5"], ["--steps must be an integer, got '2.5'"]),
-    (["--scale", "nan"], ["--scale must be a finite number, got 'nan'"]),
+    (["--steps", "2.5"], ["--steps must be an integer, got 2.5"]),
+    (["--scale", "nan"], ["--scale must be a finite number, got nan"]),
     (["--scale", "inf"], ["--scale must be a finite number"]),
+    (["--scale", "1e300"], ["--scale must be a finite number, got 1e300"]),  # finite in float64, not in float32
     (["--limit", "-inf"], ["--limit must be a finite number"]),
-    (["--scale", "big"], ["--scale must be a number, got 'big'"]),
+    (["--scale", "big"], ["--scale must be a finite number, got big"]),
     (["--sizes", "3,x"], ["--sizes must be comma-separated integers, got '3,x'"]),
+    (["--rate", "0"], ["--rate must be a finite number in (0, 1], got 0"]),
+    (["--rate", "1.5"], ["--rate must be a finite number in (0, 1], got 1.5"]),
+    (["--rate", "nan"], ["--rate must be a finite number in (0, 1], got nan"]),
+    (["--count", "0"], ["--count must be an integer in [1, 10], got 0"]),
+    (["--count", "100000000000000000000"], ["--count must be an integer in [1, 10], got 100000000000000000000"]),
     (["--resolution", "32"], ["No such option", "--resolution"]),
     (["--secret", "1"], ["No such option", "--secret"]),
 ])
@@ -199,3 +210,32 @@ def test_shape_command_writes_a_mesh_and_refuses_bad_requests(tmp_path, capsys):
     assert "error:" in err and not (tmp_path / "bad.txt").exists()
     code, _, err = run(["shape", "cube", tmp_path / "c.obj"], capsys)
     assert_one_line_error(code, err, "'cube'", "torus, sphere")
+
+
+def test_range_bounds_are_inclusive_where_declared_and_in_the_help(toy, capsys, monkeypatch):
+    for args in (["--rate", "1"], ["--count", "1"], ["--count", "10"]):
+        code, _, err = run(["toy", *args], capsys)
+        assert code == 0, err
+    assert "(allowed: (0, 1])" in help_text(["toy"], capsys, monkeypatch)
+
+
+@pytest.mark.parametrize("cmd", [c for c in COMMANDS if c.sources], ids=lambda c: c.name)
+def test_every_numeric_option_of_every_command_declares_its_range(cmd):
+    """One source for an option's allowed values: its field's metadata (the CLI checks it while
+    parsing, the library's validate() with check_ranges)."""
+    import typing
+
+    def walk(cls, prefix=""):
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            default = f.default if f.default is not dataclasses.MISSING else None
+            if dataclasses.is_dataclass(default):
+                yield from walk(type(default), f"{prefix}{f.name}.")
+            elif number_kind(hints[f.name]) is not None and not f.metadata.get("cli_exclude"):
+                yield f"{prefix}{f.name}", f.metadata.get(RANGE)
+
+    for param, cls in cmd.classes().items():
+        for name, rng in walk(cls):
+            if name in cmd.exclude.get(param, frozenset()):
+                continue
+            assert rng is not None, f"damcap {cmd.name}: {cls.__name__}.{name} declares no range (metadata=in_range(...))"

@@ -28,9 +28,14 @@ def test_finished_captures_by_split_in_index_order(tmp_path):
 
 @pytest.mark.parametrize("content, needle", [
     (None, "no corpus.json; train-hyper reads a corpus"),
-    ("{not json", "not a damcap corpus index"),
+    ("{not json", "corpus.json: invalid JSON"),
+    ("[" * 100_000 + "]" * 100_000, "corpus.json: corpus index is nested too deeply"),
     ('{"frames": []}', "not a damcap corpus index"),
     ('{"captures": [{"split": "train"}]}', "not a damcap corpus index"),
+    ('{"captures": [{"path": "/etc", "split": "train"}]}', "'/etc'; capture paths are relative"),
+    ('{"captures": [{"path": "../../etc", "split": "train"}]}', "'../../etc'; capture paths are relative"),
+    ('{"captures": [{"path": "captures/a", "split": "banana"}]}', "split 'banana'"),
+    ('{"captures": [{"path": "captures/a", "split": "train"}, {"path": "captures/a/", "split": "train"}]}', "listed twice"),
 ])
 def test_refuses_what_is_not_an_index(tmp_path, content, needle):
     if content is not None:

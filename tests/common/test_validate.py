@@ -16,10 +16,9 @@ from damcap.appearance.segment.options import SegmentOptions
 from damcap.capture.hdr import HdrOptions
 from damcap.capture.linearize import LinearizeOptions
 from damcap.common.errors import DamcapError
-from damcap.common.validate import require_options
 from damcap.common.validate import (
-    MAX_IMAGE_SIDE, bounded_float, bounded_int, check_float_fields, finite_in, load_json_file, loads_json,
-    machine_memory_bytes, require_memory, require_resolution,
+    MAX_IMAGE_SIDE, Range, bounded_float, bounded_int, check_ranges, check_value, finite_in, in_range, load_json_file, loads_json,
+    machine_memory_bytes, number_kind, require_memory, require_resolution,
 )
 from damcap.export.turntable import ExportOptions, OrbitOptions
 from damcap.reconstruct.pipeline import ReconstructOptions
@@ -88,6 +87,51 @@ class TestBoundedFloat:
             bounded_float(math.nan, 0, 1, "q")
 
 
+class TestRange:
+    @pytest.mark.parametrize("rng, inside, outside", [
+        (Range(1, 10), [1, 5, 10], [0, 11, math.nan]),
+        (Range(0, 1, lo_open=True), [1e-30, 0.5, 1], [0, -1e-30, 1.0000001, math.nan]),
+        (Range(-90, 90, lo_open=True, hi_open=True), [-89.999, 0, 89.999], [-90, 90]),
+        (Range(0, None), [0, 1e30], [-1e-30, math.nan]),
+        (Range(None, 3, hi_open=True), [-1e30, 2.999], [3]),
+    ])
+    def test_contains_respects_open_and_closed_ends(self, rng, inside, outside):
+        assert all(rng.contains(v) for v in inside)
+        assert not any(rng.contains(v) for v in outside)
+
+    def test_text_writes_whole_bounds_in_full(self):
+        assert Range(1, 10 ** 9).text() == "[1, 1000000000]"
+        assert Range(0, 1, lo_open=True).text() == "(0, 1]"
+        assert Range(0, 0.02, lo_open=True).text() == "(0, 0.02]"
+        assert Range(0, None).text() == ">= 0" and Range(0, None, lo_open=True).text() == "> 0"
+
+    def test_in_range_keeps_other_metadata(self):
+        meta = in_range(8, 64, cli_flag="--res")
+        assert meta["cli_flag"] == "--res" and meta["range"] == Range(8, 64)
+
+    @pytest.mark.parametrize("value, integer, shown, message", [
+        (0, True, "0", "--n must be an integer in [1, 10], got 0"),
+        ("abc", True, "abc", "--n must be an integer in [1, 10], got abc"),
+        (True, True, None, "--n must be an integer in [1, 10], got True"),
+        (1e300, False, "1e300", "--n must be a finite number in [1, 10], got 1e300"),  # inf in float32
+        (math.nan, False, "nan", "--n must be a finite number in [1, 10], got nan"),
+    ])
+    def test_check_value_names_what_the_bound_and_the_value_as_typed(self, value, integer, shown, message):
+        with pytest.raises(DamcapError) as e:
+            check_value(value, Range(1, 10), integer=integer, what="--n", shown=shown)
+        assert str(e.value) == message
+
+    def test_check_value_without_a_range_still_refuses_non_finite_floats(self):
+        assert check_value(3.4e38, None, integer=False, what="x") == 3.4e38
+        with pytest.raises(DamcapError, match="x must be a finite number, got 1e39"):
+            check_value(1e39, None, integer=False, what="x", shown="1e39")
+
+    def test_number_kind(self):
+        assert number_kind(int) is int and number_kind(float | None) is float
+        assert number_kind(tuple[int, ...]) is int and number_kind(list[float] | None) is float
+        assert number_kind(str) is None and number_kind(bool) is None
+
+
 class TestMemory:
     def test_resolution_beyond_memory_names_the_gib(self):
         with pytest.raises(DamcapError, match=r"would need [\d.e+]+ GiB of memory; this machine allows"):
@@ -146,9 +190,9 @@ class TestOptionsFloats:
         names = {"--" + f.name.replace("_", "-"), f.metadata.get("cli_flag", "")} - {""}
         assert any(n in str(e.value) for n in names), str(e.value)
 
-    def test_check_float_fields_sees_list_items(self):
+    def test_check_ranges_sees_list_items(self):
         with pytest.raises(DamcapError, match="--exposures"):
-            check_float_fields(HdrOptions(exposures_s=[0.1, math.nan]))
+            check_ranges(HdrOptions(exposures_s=[0.1, math.nan]))
 
 
 COUNT_CASES = [
@@ -180,15 +224,16 @@ class TestOptionsCounts:
         assert "\n" not in str(e.value)
 
     def test_hyper_channels_are_bounded(self):
-        with pytest.raises(DamcapError, match=r"predictor channels must be an integer in \[1, 4096\]"):
+        with pytest.raises(DamcapError, match=r"--channels must be an integer in \[1, 4096\]"):
             HyperTrainOptions(channels=(16, 10 ** 9)).validate()
         with pytest.raises(DamcapError, match=r"\[1, 16\]"):
             HyperTrainOptions(channels=(4,) * 40, input_size=4096).validate()
 
-    def test_require_options_is_nan_proof(self):
-        from types import SimpleNamespace
+    def test_check_ranges_is_nan_proof_and_names_the_bound(self):
+        with pytest.raises(DamcapError, match=r"^--steps must be an integer in \[1, 1000000000\], got 1000000000000$"):
+            check_ranges(FitOptions(steps=10 ** 12))
+        with pytest.raises(DamcapError, match=r"^--learning-rate must be a finite number in \(0, 10\], got nan$"):
+            check_ranges(FitOptions(learning_rate=math.nan))
+        with pytest.raises(DamcapError, match=r"^--steps must be an integer in"):
+            check_ranges(FitOptions(steps=2.0))  # an int option given a float by a library caller
 
-        with pytest.raises(DamcapError, match="--steps must be >= 1, got nan"):
-            require_options(SimpleNamespace(steps=math.nan), at_least_1=("steps",))
-        with pytest.raises(DamcapError, match="--steps must be <= 1000000000"):
-            require_options(SimpleNamespace(steps=10 ** 12), at_least_1=("steps",))

@@ -39,7 +39,7 @@ BASE = {
     "train-hyper": ["train-hyper", f"{W}/corpus", "-o", f"{W}/out", "--steps", "1", "--batch-size", "1", "--input-size", "16", "--pixels", "16",
                     "--eval-every", "1", "--checkpoint-every", "0", "--pixels-per-capture", "64", "--channels", "4,4"],
     "predict": ["predict", f"{W}/cap", "-o", f"{W}/out"],
-    "synth": ["synth", f"{W}/out", "--views", "2", "--res", "8", "--spp", "1"],
+    "synth": ["synth", f"{W}/out", "--views", "3", "--train-views", "2", "--res", "8", "--spp", "1"],
     "synth-set": ["synth-set", f"{W}/out", "--dry-run", "--data-dir", f"{W}"],
 }
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.fuzz.conftest import refused, set_transforms, transforms
+from tests.fuzz.conftest import damcap_fork, digest, refused, set_transforms, transforms
 
 # (id, args (with W = the private work folder), paths that must be named, inputs, outputs)
 # Paths are written relative to W; "{W}" is substituted.
@@ -47,13 +47,11 @@ COLLISIONS = [
     ("export-frames-over-labels", "export {W}/seg/material_0.dam {W}/seg/material_1.dam --mesh {W}/mesh.obj --labels {W}/labels.npy -o {W}/labels.npy --views 1 --resolution 8", ["labels.npy"], ["seg", "mesh.obj", "labels.npy"], []),
     ("export-frames-over-mesh", "export {W}/m.dam --mesh {W}/mesh.obj -o {W}/mesh.obj --views 1 --resolution 8", ["mesh.obj"], ["m.dam", "mesh.obj"], []),
     ("export-frames-into-seg", "export {W}/seg/material_0.dam {W}/seg/material_1.dam --mesh {W}/mesh.obj --labels {W}/labels.npy -o {W}/seg --views 1 --resolution 8", ["seg"], ["seg", "mesh.obj", "labels.npy"], []),
-    ("export-same-model-twice-collide", "export {W}/m.dam {W}/m.dam --mesh {W}/mesh.obj --labels {W}/labels.npy -o {W}/frames --views 1 --resolution 8", ["frames"], ["m.dam", "mesh.obj"], []),
     ("view-over-model", "view {W}/m.dam -o {W}/m.dam", ["m.dam"], ["m.dam"], []),
     ("view-over-mesh", "view {W}/m.dam --mesh {W}/mesh.obj -o {W}/mesh.obj", ["mesh.obj"], ["m.dam", "mesh.obj"], []),
     ("view-output-is-dir", "view {W}/m.dam -o {W}/frames", ["frames"], ["m.dam", "frames"], []),
     ("segment-labels-over-mesh", "segment-labels {W}/seg --mesh {W}/mesh.obj -o {W}/mesh.obj", ["mesh.obj"], ["seg", "mesh.obj"], []),
     ("segment-labels-over-material", "segment-labels {W}/seg --mesh {W}/mesh.obj -o {W}/seg/material_0.dam", ["material_0.dam"], ["seg", "mesh.obj"], []),
-    ("segment-labels-weights-over-labels", "segment-labels {W}/seg --mesh {W}/mesh.obj -o {W}/l2.npy --weights {W}/labels.npy", ["labels.npy"], ["seg", "mesh.obj", "labels.npy"], ["l2.npy"]),
     ("segment-labels-weights-equal-output", "segment-labels {W}/seg --mesh {W}/mesh.obj -o {W}/l2.npy --weights {W}/l2.npy", ["l2.npy"], ["seg", "mesh.obj"], ["l2.npy"]),
     ("hdr-output-is-input", "hdr {W}/photos/images/IMG_0000.jpg {W}/photos/images/IMG_0001.jpg -o {W}/photos/images/IMG_0000.jpg", ["IMG_0000.jpg"], ["photos"], []),
     ("hdr-output-is-dir", "hdr {W}/photos/images/IMG_0000.jpg {W}/photos/images/IMG_0001.jpg -o {W}/frames", ["frames"], ["photos", "frames"], []),
@@ -92,31 +90,50 @@ def test_output_collides_or_cannot_be_written(case, work):
             outputs=[work / p for p in outputs])
 
 
-def _frame_collision(cap: Path, what: str) -> None:
-    """Two frames whose outputs share a name: images/0001.exr and images2/0001.exr."""
+def _frame_collision(cap: Path, what: str) -> Path:
+    """Two frames of one base name in one split (``what``): images/0001.exr and images2/0001.exr.
+
+    Returns the base name. The new frame is in ``what``'s split only (a frame in both splits is a
+    different mistake, refused for itself)."""
     doc = transforms(cap)
     (cap / "images2").mkdir()
+    key = "train_filenames" if what == "train" else "test_filenames"
     src = doc["frames"][0]["file_path"]
-    other = [f for f in doc["frames"] if f["file_path"] != src][0]
+    other = [f for f in doc["frames"] if f["file_path"] != src and f["file_path"] in doc.get(key, [])][0]  # in the split
     name = Path(other["file_path"]).name
     (cap / "images2" / name).write_bytes((cap / src).read_bytes())
     other_dup = dict(doc["frames"][0], file_path=f"images2/{name}")
     doc["frames"].append(other_dup)
-    doc["test_filenames"] = doc.get("test_filenames", []) + [f"images2/{name}"]
-    doc["train_filenames"] = doc.get("train_filenames", []) + ([f"images2/{name}"] if what == "train" else [])
+    doc[key] = doc.get(key, []) + [f"images2/{name}"]
     set_transforms(cap, doc)
+    return Path(name)
+
+
+def _kept_apart(args, inputs, *outputs: Path) -> None:
+    """The issue's contract allows output names unique by construction (the relative path, not the
+    base name) instead of a refusal: the command runs, both outputs exist and differ, inputs stay."""
+    before = {p: digest(p) for p in inputs}
+    run = damcap_fork(args)
+    assert run.code == 0 and not run.timed_out, run.err[-2000:]
+    assert all(digest(p) == d for p, d in before.items()), "an input changed"
+    for o in outputs:
+        assert o.is_file(), f"{o} was not written"
+    assert len({o.read_bytes() for o in outputs}) == len(outputs), "the outputs are the same file"
 
 
 def test_render_frames_with_the_same_name_collide(work):
-    _frame_collision(work / "cap", "test")
-    refused(["render", work / "m.dam", work / "cap", "-o", work / "r", "--split", "all"], "images2",
-            inputs=[work / "cap", work / "m.dam"], outputs=[work / "r"])
+    name = _frame_collision(work / "cap", "test")
+    r = work / "r"
+    _kept_apart(["render", work / "m.dam", work / "cap", "-o", r, "--split", "all"], [work / "cap", work / "m.dam"],
+                r / "images" / name.with_suffix(".exr"), r / "images2" / name.with_suffix(".exr"))
 
 
 def test_segment_frames_with_the_same_name_collide(work):
-    _frame_collision(work / "cap", "train")
-    refused(["segment", work / "cap", "-o", work / "s", "--materials", 2, "--steps", 1, "--init-steps", 1,
-             "--batch-pixels", 64, "--psi-resolution", 16], "images2", inputs=[work / "cap"], outputs=[work / "s"])
+    name = _frame_collision(work / "cap", "train")
+    w = work / "s" / "weights"
+    _kept_apart(["segment", work / "cap", "-o", work / "s", "--materials", 2, "--steps", 1, "--init-steps", 1,
+                 "--batch-pixels", 64, "--psi-resolution", 16], [work / "cap"],
+                w / "images" / name.with_suffix(".exr"), w / "images2" / name.with_suffix(".exr"))
 
 
 def test_linearize_photos_with_the_same_stem_collide(work):
@@ -151,3 +168,29 @@ def test_existing_output_folder_of_another_command_is_kept(work):
     (work / "mine" / "notes.txt").write_text("keep me")
     refused(["render", work / "m.dam", work / "cap", "-o", work / "mine"], "mine",
             inputs=[work / "cap", work / "m.dam", work / "mine"])
+
+
+@pytest.mark.parametrize("cmd", ["render", "export", "segment"])
+def test_own_earlier_output_folder_is_replaced_whole(cmd, work):
+    """Rerunning a command onto its own earlier output replaces that folder as a whole: no file of
+    the earlier run survives (a stale frame of another split would pass for a result); the
+    inputs stay byte-identical. (Onto any other non-empty folder it is refused: above.)"""
+    from tests.fuzz.conftest import damcap_fork, digest
+
+    out = {"render": work / "rendered", "export": work / "frames", "segment": work / "seg"}[cmd]
+    args = {
+        "render": ["render", work / "m.dam", work / "cap", "-o", out],
+        # the same model for both parts of the labels: a valid request (two parts, one material)
+        "export": ["export", work / "m.dam", work / "m.dam", "--mesh", work / "mesh.obj", "--labels", work / "labels.npy", "-o", out,
+                   "--views", 1, "--resolution", 8],
+        "segment": ["segment", work / "cap", "-o", out, "--materials", 2, "--steps", 1, "--init-steps", 1, "--batch-pixels", 64,
+                    "--psi-resolution", 16],
+    }[cmd]
+    (out / "stale-from-an-earlier-run.exr").write_bytes(b"old")
+    inputs = [work / "m.dam", work / "mesh.obj", work / "labels.npy", work / "cap"]
+    before = {p: digest(p) for p in inputs}
+    run = damcap_fork(args, timeout=60)
+    assert run.code == 0, run.err
+    assert not (out / "stale-from-an-earlier-run.exr").exists()
+    assert all(digest(p) == d for p, d in before.items())
+    assert not [p for p in out.parent.iterdir() if p.name.startswith(f".{out.name}.")]  # no staging or replaced folder left

@@ -4,9 +4,7 @@
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
-import numpy as np
 import pytest
 
 from tests.fuzz.conftest import (dam_parts, deep_json, exr_claiming, png_bomb, refused, set_transforms, transforms,
@@ -119,12 +117,12 @@ CASES = {
     "frame-is-dev-zero": (_dev_zero_frame, lambda w, f: ["fit", w / "cap", "-o", w / "out", "--steps", 2], "exr"),
     "png-bomb-photo-linearize": (_png_bomb_photo, lambda w, f: ["linearize", w / "photos" / "images", "-o", w / "out"], "IMG_0001.png"),
     "png-bomb-hdr": (lambda w: (w / "bomb.png").write_bytes(png_bomb(100_000, 100_000)) and w / "bomb.png",
-                     lambda w, f: ["hdr", f, w / "photos" / "images" / "IMG_0000.jpg", "-o", w / "out", "--exposures", "0.01,0.02"], "bomb.png"),
+                     lambda w, f: ["hdr", f, w / "photos" / "images" / "IMG_0000.jpg", "-o", w / "out.exr", "--exposures", "0.01,0.02"], "bomb.png"),
     "ply-claims-1e12-vertices": (_ply_bomb, lambda w, f: ["export", w / "m.dam", "--mesh", f, "-o", w / "out", "--views", 1, "--resolution", 8], "bomb.ply"),
     "obj-index-1e15": (_obj_bomb, lambda w, f: ["view", w / "m.dam", "--mesh", f, "-o", w / "out"], "bomb.obj"),
     "labels-npy-claims-1e12": (_npy_bomb, lambda w, f: ["export", w / "seg" / "material_0.dam", w / "seg" / "material_1.dam", "--mesh", w / "mesh.obj",
                                                          "--labels", f, "-o", w / "out", "--views", 1, "--resolution", 8], "bomb.npy"),
-    "segment-json-materials-1e9": (_seg_materials, lambda w, f: ["segment-labels", w / "seg", "--mesh", w / "mesh.obj", "-o", w / "out"], "segment.json"),
+    "segment-json-materials-1e9": (_seg_materials, lambda w, f: ["segment-labels", w / "seg", "--mesh", w / "mesh.obj", "-o", w / "out.npy"], "segment.json"),
     # unbounded sizes through options
     "fit-width-1e6": (lambda w: None, lambda w, f: ["fit", w / "cap", "-o", w / "out", "--width", 10**6, "--steps", 2], "--width"),
     "fit-depth-1e5": (lambda w: None, lambda w, f: ["fit", w / "cap", "-o", w / "out", "--depth", 10**5, "--steps", 2], "--depth"),

@@ -287,7 +287,7 @@ def test_bad_inputs_name_the_value(tmp_path, shared_data):
         make_synthetic_capture(tmp_path / "b", SynthOptions(light="spot", **TINY))
     with pytest.raises(DamcapError, match=r"missing\.hdr: environment map not found \(from --light 'env:"):
         make_synthetic_capture(tmp_path / "c", SynthOptions(light=f"env:{tmp_path / 'missing.hdr'}:10", **TINY))
-    with pytest.raises(DamcapError, match="--materials must be 1 or 3"):
+    with pytest.raises(DamcapError, match=r"--materials must be an integer in \[1, 8\], got 0"):
         make_synthetic_capture(tmp_path / "d", SynthOptions(materials=0, **TINY))
     with pytest.raises(DamcapError, match="--train-views"):
         make_synthetic_capture(tmp_path / "e", SynthOptions(views=8, train_views=8, resolution=32))

@@ -32,9 +32,9 @@ def test_segment_command_writes_everything(two_materials, tmp_path, capsys):
     assert main(["segment", str(path), "-o", str(tmp_path / "x"), "--materials", "2", "--prior-weight", "-1"]) == 2
     assert "--prior-weight" in capsys.readouterr().err
     assert main(["segment", str(path), "-o", str(tmp_path / "x"), "--materials", "2", "--illumination-degree", "3"]) == 2
-    assert "--illumination-degree must be 0, 1 or 2, got 3" in capsys.readouterr().err
+    assert "--illumination-degree must be an integer in [0, 2], got 3" in capsys.readouterr().err
     assert main(["segment", str(path), "-o", str(tmp_path / "x"), "--materials", "2", "--init-colour", "brightest"]) == 2
     assert "--init-colour must be one of pixel, darkest-view, got 'brightest'" in capsys.readouterr().err
     assert main(["segment", str(path), "-o", str(tmp_path / "x"), "--materials", "2", "--colour-floor", "0.5"]) == 2
-    assert "--colour-floor must be in (0, 0.02], got 0.5" in capsys.readouterr().err
+    assert "--colour-floor must be a finite number in (0, 0.02], got 0.5" in capsys.readouterr().err
     assert main(["evaluate", str(path), "--segmentation", str(tmp_path / "nothing")]) == 2

@@ -26,12 +26,13 @@ def _torus_obj(path, scale=1.0, shift=(0.0, 0.0, 0.0)):
 def test_segmentation_carries_onto_meshes(two_materials, segmented, tmp_path, capsys):
     from scipy.spatial import cKDTree
 
-    from damcap.appearance.segment.file import save_segmentation
+    from damcap.appearance.segment.file import save_segmentation_folder
     from damcap.synth.closed_form import two_material_weights
     from damcap.common.mesh import load_mesh
 
     seg = tmp_path / "seg"
-    save_segmentation(seg, segmented, colorspace="lin_rec709", provenance={})
+    _, train, _ = two_materials
+    save_segmentation_folder(seg, segmented, train, [v.name for v in train], colorspace="lin_rec709", provenance={}, summary={})
     same = tmp_path / "torus.obj"
     _torus_obj(same)
     verts = load_mesh(same).vertices  # the vertices as damcap reads them (labels follow this order)
@@ -56,3 +57,14 @@ def test_segmentation_carries_onto_meshes(two_materials, segmented, tmp_path, ca
     assert_one_line_error(code, err, "l.csv", ".npy")
     code, _, err = run_cli(["segment-labels", seg, "--mesh", same, "-o", tmp_path / "l2.npy", "--align", "box"], capsys)
     assert_one_line_error(code, err, "'box'")
+    # the folder is one unit: a damaged segment.json or missing weight maps are refused, naming them
+    summary = (seg / "segment.json").read_text()
+    (seg / "segment.json").write_text(summary.replace('"materials": 2', '"materials": 3'))
+    code, _, err = run_cli(["segment-labels", seg, "--mesh", same, "-o", tmp_path / "l3.npy"], capsys)
+    assert_one_line_error(code, err, "segment.json", "materials = 3")
+    (seg / "segment.json").write_text(summary)
+    first = sorted((seg / "weights").glob("*.exr"))[0]
+    first.write_bytes(b"not an exr")
+    code, _, err = run_cli(["segment-labels", seg, "--mesh", same, "-o", tmp_path / "l3.npy"], capsys)
+    assert_one_line_error(code, err, first.name)
+    assert not (tmp_path / "l3.npy").exists()

@@ -24,18 +24,18 @@ def test_options_json_round_trip():
 
 
 @pytest.mark.parametrize("change, message", [
-    (dict(materials=0), "--materials must be between 1 and 16, got 0"),
-    (dict(materials=17), "--materials must be between 1 and 16, got 17"),
+    (dict(materials=0), "--materials must be an integer in [1, 16], got 0"),
+    (dict(materials=17), "--materials must be an integer in [1, 16], got 17"),
     (dict(steps=0), "--steps must be an integer in [1, 1000000000], got 0"),
     (dict(batch_pixels=0), "--batch-pixels must be an integer in [1, 16777216], got 0"),
     (dict(frames_per_step=-1), "--frames-per-step must be an integer in [1, 1024], got -1"),
     (dict(init_steps=-1), "--init-steps must be an integer in [0, 1000000000], got -1"),
-    (dict(sparsity_beta=-0.1), "--learning-rate must be > 0, --sparsity-beta and --prior-weight >= 0; got 0.005, -0.1, 1.0"),
-    (dict(prior_weight=-1.0), "--learning-rate must be > 0, --sparsity-beta and --prior-weight >= 0; got 0.005, 0.05, -1.0"),
+    (dict(sparsity_beta=-0.1), "--sparsity-beta must be a finite number in [0, 1000000], got -0.1"),
+    (dict(prior_weight=-1.0), "--prior-weight must be a finite number in [0, 1000000], got -1.0"),
     (dict(init_colour="brightest"), "--init-colour must be one of pixel, darkest-view, got 'brightest'"),
-    (dict(colour_floor=0.0), "--colour-floor must be in (0, 0.02], got 0.0"),
-    (dict(colour_floor=0.5), "--colour-floor must be in (0, 0.02], got 0.5"),
-    (dict(illumination_degree=3), "--illumination-degree must be 0, 1 or 2, got 3"),
+    (dict(colour_floor=0.0), "--colour-floor must be a finite number in (0, 0.02], got 0.0"),
+    (dict(colour_floor=0.5), "--colour-floor must be a finite number in (0, 0.02], got 0.5"),
+    (dict(illumination_degree=3), "--illumination-degree must be an integer in [0, 2], got 3"),
 ])
 def test_each_bad_value_is_named(change, message):
     with pytest.raises(DamcapError) as e:

@@ -72,6 +72,9 @@ def reconstruct(
         line += (f", {reg.get('points')} points, mean reprojection error {reg.get('mean_reprojection_error_px', float('nan')):.3f} px, "
                  f"{reg.get('pairs')} pairs ({reg.get('pairing')})")
     typer.echo(line)
+    if reg.get("retry"):
+        other = reg["retry"].get("skipped_first_octave") or reg["retry"].get("upsampled_first_octave")
+        typer.echo(f"features: {reg.get('features')}; the other pass: {other}")
     if reg.get("source") == "sfm" and reg.get("principal_point"):
         typer.echo(principal_point_line(reg["principal_point"]))
     typer.echo(f"geometry: {report.geometry_mode} ({report.geometry_reason})")

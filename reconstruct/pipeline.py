@@ -81,6 +81,10 @@ class ReconstructOptions:
     """registration: SIFT features per photo"""
     upsample_below: int = field(default=800, metadata=in_range(0, MAX_IMAGE_SIDE))
     """registration: SIFT doubles images whose longer side (after max_image_size) is below this"""
+    retry_upsampled_below: float = field(default=0.95, metadata=in_range(0, 1))
+    """registration: when the doubling was skipped and fewer than this fraction of the photos
+    register, register again with it and keep the registration with more photos (0 = never;
+    see SfmOptions)"""
     pairing: Literal["auto", "exhaustive", "sequential", "retrieval"] = "auto"
     """registration: which photo pairs are matched"""
     sequential_overlap: int = field(default=5, metadata=COUNT)
@@ -145,7 +149,8 @@ class ReconstructOptions:
 
     def sfm(self) -> SfmOptions:
         return SfmOptions(max_image_size=self.max_image_size, max_num_features=self.max_num_features,
-                          upsample_below=self.upsample_below, pairing=self.pairing,
+                          upsample_below=self.upsample_below, retry_upsampled_below=self.retry_upsampled_below,
+                          pairing=self.pairing,
                           sequential_overlap=self.sequential_overlap, retrieval_neighbours=self.retrieval_neighbours,
                           camera_model=self.camera_model, refine_principal_point=self.refine_principal_point,
                           single_camera=self.single_camera, num_threads=self.threads,

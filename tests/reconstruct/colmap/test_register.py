@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from damcap.common.errors import DamcapError
-from damcap.reconstruct.colmap.register import SfmOptions, fingerprint, register_photos
+from damcap.reconstruct.colmap import register as register_module
+from damcap.reconstruct.colmap.register import SfmOptions, SfmReport, fingerprint, octave_skipped, register_photos, wants_upsampled_retry
 
 
 def test_fingerprint_is_stable_and_sensitive():
@@ -84,3 +85,73 @@ def test_refine_principal_point_is_one_more_adjustment_on_the_same_matches(tmp_p
     assert rep_resumed.principal_point["used"] and rep_resumed.principal_point["offset_px"] == pytest.approx(est["offset_px"], abs=0.5)
     assert (resumed.photos[0].camera.cx, resumed.photos[0].camera.cy) == (c_refined.cx, c_refined.cy)
     assert json.loads(report_path.read_text())["principal_point"] == rep_resumed.principal_point
+
+
+def test_the_first_octave_is_skipped_only_for_large_photos():
+    assert octave_skipped({(912, 912)}, SfmOptions())             # cape photos: 912 >= 800
+    assert not octave_skipped({(640, 480)}, SfmOptions())
+    assert not octave_skipped({(4000, 3000)}, SfmOptions(upsample_below=1025))  # capped at max_image_size 1024
+    assert octave_skipped({(4000, 3000), (100, 100)}, SfmOptions())  # the longest photo decides
+
+
+@pytest.mark.parametrize("registered, photos, skipped, below, want", [
+    (2, 30, True, 0.95, True), (28, 30, True, 0.95, True), (29, 30, True, 0.95, False),
+    (2, 30, False, 0.95, False), (2, 30, True, 0.0, False),
+])
+def test_retry_rule(registered, photos, skipped, below, want):
+    assert wants_upsampled_retry(registered, photos, skipped, below) is want
+
+
+def _fake_pass(results):
+    """A stand-in for one registration pass: ``results[upsampled]`` registered photos (or an error)."""
+    from damcap.reconstruct.poses import Registration
+
+    calls = []
+
+    def once(photo_dir, names, work_dir, opts, masks, progress, content):
+        upsampled = opts.upsample_below > opts.max_image_size
+        calls.append((work_dir.name, upsampled))
+        n = results[upsampled]
+        if isinstance(n, Exception):
+            raise n
+        rep = SfmReport(photos=len(names), registered=n, points=0, mean_reprojection_error_px=0.0, pairs=0, pairing="exhaustive",
+                        seconds={"features": 1.0}, unregistered={}, resumed=[])
+        reg = Registration(photos=[], source="sfm")
+        reg.stats = {}
+        return reg, rep
+    return once, calls
+
+
+@pytest.mark.parametrize("first, second, kept, passes", [
+    (2, 15, "upsampled first octave (retry)", 2),       # a sparse set: the retry registers more
+    (30, 15, "skipped first octave", 1),                # all registered: no retry
+    (20, 10, "skipped first octave", 2),                # the retry registers fewer: the first is kept
+    (DamcapError("COLMAP could not register the photos"), 12, "upsampled first octave (retry)", 2),
+])
+def test_sparse_sets_are_registered_again_with_the_upsampled_octave(tmp_path, monkeypatch, first, second, kept, passes):
+    from damcap.synth.photos import write_jpeg
+
+    names = [f"p{k}.jpg" for k in range(30)]
+    (tmp_path / "photos").mkdir()
+    for nm in names:
+        write_jpeg(tmp_path / "photos" / nm, np.zeros((900, 900, 3), np.uint8), None)
+    once, calls = _fake_pass({False: first, True: second})
+    monkeypatch.setattr(register_module, "_register_once", once)
+    reg, rep = register_photos(tmp_path / "photos", names, tmp_path / "work", SfmOptions())
+    assert rep.features == kept and len(calls) == passes
+    if passes == 2:
+        assert calls[1] == ("upsampled", True) and rep.retry is not None
+    if kept.endswith("(retry)"):
+        assert rep.seconds["features"] == (1.0 if isinstance(first, Exception) else 2.0)  # both passes' time
+
+
+def test_when_no_pass_registers_the_first_error_is_raised(tmp_path, monkeypatch):
+    from damcap.synth.photos import write_jpeg
+
+    (tmp_path / "photos").mkdir()
+    for k in range(3):
+        write_jpeg(tmp_path / "photos" / f"p{k}.jpg", np.zeros((900, 900, 3), np.uint8), None)
+    once, _ = _fake_pass({False: DamcapError("first pass failed"), True: DamcapError("second pass failed")})
+    monkeypatch.setattr(register_module, "_register_once", once)
+    with pytest.raises(DamcapError, match="first pass failed"):
+        register_photos(tmp_path / "photos", [f"p{k}.jpg" for k in range(3)], tmp_path / "work", SfmOptions())

@@ -60,7 +60,7 @@ def fit(
 ) -> None:
     """Fit a deep appearance map to a capture (L1 or quantile data cost, optional adversarial cost)."""
     from damcap.appearance.dam_file import save_dam
-    from damcap.appearance.fit import adversarial_frames, fit_dam
+    from damcap.appearance.fit import adversarial_frames, fit_dam, holdout_frames
     from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import read_capture
     from damcap.common.version import damcap_version
@@ -71,10 +71,10 @@ def fit(
     check_paths([capture], [file_out(output), file_out(ckpt)])
     cap = read_capture(capture)
     views = load_views(cap, split)  # type: ignore[arg-type]
-    most_held = max(0, len(views) - 2)  # holdout_frames keeps the first and last view for training
-    if "holdout_views" in given and opts.holdout_views > most_held:
+    held = len(holdout_frames(len(views), opts.holdout_views))  # the first and last view always train
+    if "holdout_views" in given and held < opts.holdout_views:
         raise DamcapError(f"--holdout-views must leave 2 of the {len(views)} training views of {capture} to fit "
-                          f"(at most {most_held}), got {opts.holdout_views}")
+                          f"(at most {held}), got {opts.holdout_views}")
     if target_dssim is not None:
         _fit_to_target(capture, cap, views, split, target_dssim, opts, output, width_or_depth_given=bool({"width", "depth"} & given),
                        resume=resume)

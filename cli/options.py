@@ -161,8 +161,7 @@ def parse_choice(flag: str, choices: tuple, what: str | None = None) -> Callable
 def parse_list(flag: str, item: type, container: type, rng: "Range | None" = None) -> Callable[[Any], Any]:
     one = parse_float(flag, rng) if item is float else parse_int(flag, rng) if item is int else (lambda s: s)
     kind = {int: "integers", float: "numbers"}.get(item, "values")
-    each = f" each in {rng.text()}" if rng is not None and rng.lo is not None and rng.hi is not None else \
-        f" each {rng.text()}" if rng is not None else ""
+    each = f" each{rng.phrase()}" if rng is not None else ""
 
     def parse(text: Any) -> Any:
         if not isinstance(text, str):

@@ -80,22 +80,6 @@ def finite_in(value: Any, dtype: str, what: str, where: str | os.PathLike | None
     return v
 
 
-def bounded_float(value: Any, lo: float, hi: float, what: str, where: str | os.PathLike | None = None, *,
-                  dtype: str = "float32", lo_open: bool = False, hi_open: bool = False) -> float:
-    """``value`` finite in ``dtype`` and inside [lo, hi] (``lo_open`` / ``hi_open``: that end excluded).
-
-    Raises:
-        DamcapError: naming the interval and the value.
-    """
-    v = finite_in(value, dtype, what, where)
-    above = v > lo if lo_open else v >= lo
-    below = v < hi if hi_open else v <= hi
-    if not (above and below):
-        interval = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
-        raise DamcapError(f"{_prefix(where)}{what} must lie in {interval}, got {value!r}")
-    return v
-
-
 def bounded_int(value: Any, lo: int, hi: int, what: str, where: str | os.PathLike | None = None) -> int:
     """``value`` as an int in [lo, hi]; a float is accepted only when it is a whole number.
 
@@ -108,17 +92,10 @@ def bounded_int(value: Any, lo: int, hi: int, what: str, where: str | os.PathLik
     Raises:
         DamcapError: not an integer, or outside [lo, hi] (the message names both bounds).
     """
-    if isinstance(value, (bool, np.bool_)):
-        raise DamcapError(f"{_prefix(where)}{what} must be an integer in [{lo}, {hi}], got {value!r}")
-    if isinstance(value, (float, np.floating)):
-        if not (math.isfinite(value) and float(value).is_integer()):
-            raise DamcapError(f"{_prefix(where)}{what} must be an integer in [{lo}, {hi}], got {value!r}")
+    shown = repr(value)
+    if isinstance(value, (float, np.floating)) and math.isfinite(value) and float(value).is_integer():
         value = int(value)
-    if not isinstance(value, (int, np.integer)):
-        raise DamcapError(f"{_prefix(where)}{what} must be an integer in [{lo}, {hi}], got {value!r}")
-    if not lo <= int(value) <= hi:
-        raise DamcapError(f"{_prefix(where)}{what} must be an integer in [{lo}, {hi}], got {value!r}")
-    return int(value)
+    return check_value(value, Range(lo, hi), integer=True, what=what, shown=shown, where=where)
 
 
 #: field metadata key of an option's allowed values (:class:`Range`)
@@ -145,6 +122,13 @@ class Range:
         above = self.lo is None or (v > self.lo if self.lo_open else v >= self.lo)
         below = self.hi is None or (v < self.hi if self.hi_open else v <= self.hi)
         return bool(above and below) and v == v
+
+    def phrase(self) -> str:
+        """What a message says after "must be a number": `` in [1, 10]``, `` >= 0``, or nothing
+        for an unbounded range."""
+        if self.lo is None and self.hi is None:
+            return ""
+        return f" in {self.text()}" if self.lo is not None and self.hi is not None else f" {self.text()}"
 
     def text(self) -> str:
         """``[1, 1000000000]``, ``(0, 1]``, ``>= 0``, ``> 0``."""
@@ -212,8 +196,7 @@ def check_value(value: Any, rng: Range | None, *, integer: bool, what: str, show
         DamcapError: naming ``what``, the allowed values and the value.
     """
     shown = shown if shown is not None else _shown(value)
-    allowed = f" in {rng.text()}" if rng is not None and (rng.lo is not None and rng.hi is not None) else \
-        f" {rng.text()}" if rng is not None and (rng.lo is not None or rng.hi is not None) else ""
+    allowed = rng.phrase() if rng is not None else ""
     if integer:
         ok = isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
         if not ok or (rng is not None and not rng.contains(int(value))):

@@ -242,8 +242,7 @@ def _features_and_matches(photo_dir: Path, names: list[str], work_dir: Path, opt
         ext.max_image_size = opts.max_image_size
         ext.num_threads = opts.num_threads
         ext.sift.max_num_features = opts.max_num_features
-        longest = min(max(max(s) for s in sizes), opts.max_image_size)
-        ext.sift.first_octave = -1 if longest < opts.upsample_below else 0
+        ext.sift.first_octave = 0 if octave_skipped(sizes, opts) else -1
         for k in range(0, n, EXTRACT_CHUNK):
             progress("features", k, n)
             pycolmap.extract_features(str(db_path), str(photo_dir), image_names=names[k:k + EXTRACT_CHUNK], camera_mode=mode,

@@ -17,7 +17,7 @@ from damcap.capture.hdr import HdrOptions
 from damcap.capture.linearize import LinearizeOptions
 from damcap.common.errors import DamcapError
 from damcap.common.validate import (
-    MAX_IMAGE_SIDE, Range, bounded_float, bounded_int, check_ranges, check_value, finite_in, in_range, load_json_file, loads_json,
+    MAX_IMAGE_SIDE, Range, bounded_int, check_ranges, check_value, finite_in, in_range, load_json_file, loads_json,
     machine_memory_bytes, number_kind, require_memory, require_resolution,
 )
 from damcap.export.turntable import ExportOptions, OrbitOptions
@@ -76,15 +76,6 @@ class TestBoundedInt:
     def test_accepts_whole_floats_and_numpy_ints(self):
         assert bounded_int(3.0, 1, 4, "n") == 3
         assert bounded_int(np.int64(4), 1, 4, "n") == 4
-
-
-class TestBoundedFloat:
-    def test_open_and_closed_ends(self):
-        assert bounded_float(1.0, 0, 1, "q") == 1.0
-        with pytest.raises(DamcapError, match=r"q must lie in \(0, 1\)"):
-            bounded_float(1.0, 0, 1, "q", lo_open=True, hi_open=True)
-        with pytest.raises(DamcapError, match="q must be a finite"):
-            bounded_float(math.nan, 0, 1, "q")
 
 
 class TestRange:

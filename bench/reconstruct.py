@@ -208,15 +208,15 @@ def part_registration(fresh: bool, data: Path = DATA, cache: Path = CACHE) -> di
     # instant-ngp's colmap2nerf (fox) runs an OPENCV model and a last bundle adjustment that refines
     # it. Every camera model x principal-point setting on both sets shows what that choice alone does.
     fox_opencv = replace(chosen, camera_model="OPENCV")
-    runs.append(run("fox", "refined-principal-point", replace(chosen, refine_principal_point=True), False, False,
+    runs.append(run("fox", "refined-principal-point", replace(chosen, principal_point="refine"), False, False,
                                  "fox-refined-pp", copy_from="fox-chosen"))
     runs.append(run("fox", "opencv", fox_opencv, False, fresh))
-    runs.append(run("fox", "reference-convention", replace(fox_opencv, refine_principal_point=True), False, False,
+    runs.append(run("fox", "reference-convention", replace(fox_opencv, principal_point="refine"), False, False,
                                  copy_from="fox-opencv"))
-    runs.append(run("mold_gold_cape", "refined-principal-point", replace(chosen, refine_principal_point=True), False,
+    runs.append(run("mold_gold_cape", "refined-principal-point", replace(chosen, principal_point="refine"), False,
                                  False, "cape-refined-pp", copy_from="cape-chosen"))
     runs.append(run("mold_gold_cape", "opencv", fox_opencv, False, fresh, "cape-opencv"))
-    runs.append(run("mold_gold_cape", "fox-convention", replace(fox_opencv, refine_principal_point=True), False,
+    runs.append(run("mold_gold_cape", "fox-convention", replace(fox_opencv, principal_point="refine"), False,
                                  False, "cape-fox-convention", copy_from="cape-opencv"))
     runs.append(run("sceaux_castle", "chosen", chosen, False, fresh))
     return {"runs": runs, "chosen_options": asdict(chosen),
@@ -456,7 +456,7 @@ def write_report(res: dict, command: str, path: Path = REPORT, results: Path = R
               "mapper does), instant-ngp's colmap2nerf fits an OPENCV camera and refines the principal point in a last "
               "bundle adjustment. A principal point d px off the centre turns every camera by about atan(d / focal) "
               "(fox: 15 px / 1376 px = 0.6 deg), more than the target. The fox's *reference-convention* and the cape's "
-              "*fox-convention* register with the fox's convention (`camera_model=OPENCV, refine_principal_point=True`); "
+              "*fox-convention* register with the fox's convention (`camera_model=OPENCV, principal_point=refine`); "
               "*opencv* keeps the centre with that model; *refined-principal-point* refines the point with the default "
               "camera model: every setting on both references (table below).", "",
               "The last column is where the photos themselves put the principal point: a bundle adjustment with the point "
@@ -575,8 +575,8 @@ def pp_estimate_text(r: dict) -> str:
     return f"{dx:+.1f} ± {sx:.1f}, {dy:+.1f} ± {sy:.1f} ({e['tilt_deg']:.2f} deg)"
 
 
-SETTINGS = (("SIMPLE_RADIAL", False), ("SIMPLE_RADIAL", True), ("OPENCV", False), ("OPENCV", True))
-"""camera model x refine principal point: the settings the convention table compares"""
+SETTINGS = (("SIMPLE_RADIAL", "centre"), ("SIMPLE_RADIAL", "refine"), ("OPENCV", "centre"), ("OPENCV", "refine"))
+"""camera model x principal point: the settings the convention table compares"""
 
 
 def convention_table(runs: list[dict], chosen_options: dict) -> list[str]:
@@ -584,10 +584,18 @@ def convention_table(runs: list[dict], chosen_options: dict) -> list[str]:
     principal-point setting (the runs that differ from the chosen options in those two only,
     features on the whole photo), which settings meet 0.1 deg on every set, and how far the
     photos' principal point moves with the camera model (in px and in its 1-sigma)."""
-    varied = ("camera_model", "refine_principal_point")
+    varied = ("camera_model", "principal_point")
+
+    def current(o: dict) -> dict:  # results from before 'principal_point' stored 'refine_principal_point'
+        o = dict(o)
+        if "refine_principal_point" in o:
+            o["principal_point"] = "refine" if o.pop("refine_principal_point") else "centre"
+        return o
+
+    chosen_options = current(chosen_options)
 
     def setting(r: dict) -> tuple | None:
-        o = {**chosen_options, **r["options"]}
+        o = {**chosen_options, **current(r["options"])}
         same = all(o[k] == v for k, v in chosen_options.items() if k not in varied)
         return tuple(o[k] for k in varied) if same and not r["masks"] and r.get("agreement") else None
 
@@ -611,11 +619,11 @@ def convention_table(runs: list[dict], chosen_options: dict) -> list[str]:
         for d in sets:
             r = row.get(d)
             texts.append(f"{r['agreement']['median_abs_deg']:.3f} deg; point {pp_estimate_text(r)}" if r else "-")
-        lines.append(f"| {s[0]} | {'refined' if s[1] else 'image centre'} | " + " | ".join(texts) + " |")
+        lines.append(f"| {s[0]} | {'refined' if s[1] == 'refine' else 'image centre'} | " + " | ".join(texts) + " |")
         if all(d in row for d in sets):
             meets.append((s, all(row[d]["agreement"]["median_abs_deg"] <= 0.1 for d in sets)))
     ok = [s for s, m in meets if m]
-    lines += ["", ("Settings within 0.1 deg on every set: " + ", ".join(f"{m} / {'refined' if r else 'centre'}" for m, r in ok)
+    lines += ["", ("Settings within 0.1 deg on every set: " + ", ".join(f"{m} / {'refined' if r == 'refine' else 'centre'}" for m, r in ok)
                    if ok else f"No setting of the {len(meets)} measured on every set is within 0.1 deg on all of them.")]
     moved = []
     for d in sets:

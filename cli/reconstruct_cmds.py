@@ -42,7 +42,7 @@ def reconstruct(
     photos: Path = typer.Argument(..., help="folder of JPEG/PNG photos of one object"),
     output: Path = typer.Option(..., "-o", "--output", help="capture folder to write (new, or a previous reconstruct output to resume)"),
     masks: Optional[Path] = typer.Option(None, "--masks", help="folder of object masks, same base names as the photos (white = object)"),
-    poses: Optional[str] = typer.Option(None, "--poses", help="known cameras: transforms.json | poses_bounds.npy | colmap:DIR (default: COLMAP registration)"),
+    poses: Optional[str] = typer.Option(None, "--poses", help="known cameras: transforms.json | poses_bounds.npy | colmap:DIR | strecha:DIR (Strecha et al.'s .camera files) (default: COLMAP registration)"),
     *,
     opts: ReconstructOptions,
     given: frozenset[str],
@@ -52,7 +52,8 @@ def reconstruct(
 
     # every input, the pose file (or COLMAP folder), the mesh and the response curve included, is
     # checked against the output before reconstruct_capture prepares (clears) the output folder
-    pose_input = None if poses is None else Path(poses[len("colmap:"):] if poses.startswith("colmap:") else poses)
+    prefix = next((p for p in ("colmap:", "strecha:") if poses is not None and poses.startswith(p)), "")
+    pose_input = None if poses is None else Path(poses[len(prefix):])
     mesh_input = Path(opts.geometry[len("mesh:"):]) if opts.geometry.startswith("mesh:") and opts.geometry[len("mesh:"):] else None
     check_paths([photos, masks, pose_input, mesh_input, opts.response], [folder_out(output)])
 
@@ -89,7 +90,9 @@ def principal_point_line(pp: dict) -> str:
     (dx, dy), (sx, sy) = pp["offset_px"], pp["sd_px"]
     where = (f"principal point: the photos put it ({dx:+.1f}, {dy:+.1f}) px from the image centre (1-sigma {sx:.1f}, "
              f"{sy:.1f} px: {offset_in_sigmas(pp['offset_px'], pp['sd_px']):.1f} sigma off); ")
+    if pp.get("decision"):
+        where += pp["decision"] + "; "
     if pp["used"]:
-        return where + "the cameras use it (--refine-principal-point)"
-    return where + (f"the cameras keep the centre, COLMAP's convention (--refine-principal-point uses it and turns every "
+        return where + "the cameras use it (--principal-point centre keeps the centre)"
+    return where + (f"the cameras keep the centre, COLMAP's convention (--principal-point refine uses it and turns every "
                     f"camera by {pp['tilt_deg']:.2f} deg)")

@@ -100,8 +100,9 @@ def synth_photos(
     *,
     opts: PhotoSetOptions,
 ) -> None:
-    """Photograph a textured synthetic object: JPEGs with EXIF exposure, masks, ground-truth cameras
-    (the input of damcap reconstruct; samples/photos_blob)."""
+    """Photograph a textured synthetic object (an orbit or a turntable, on black or in a textured
+    room): JPEGs with EXIF exposure, masks, ground-truth cameras (the input of damcap reconstruct;
+    samples/photos_blob)."""
     from damcap.synth.photos import make_photo_set
 
     check_paths([], [folder_out(out)])
@@ -109,7 +110,8 @@ def synth_photos(
         raise DamcapError(f"{out}/images exists; choose a new folder")
     opts.validate()
     names = make_photo_set(out, opts)
-    typer.echo(f"wrote {len(names)} photos, masks and transforms.json (ground truth) to {out}")
+    where = " in a textured room" if opts.room else ""
+    typer.echo(f"wrote {len(names)} photos ({opts.motion}{where}), masks and transforms.json (ground truth, object frame) to {out}")
 
 
 @command()

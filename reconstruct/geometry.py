@@ -120,7 +120,7 @@ def project_points(points_world: np.ndarray, world_from_cam: np.ndarray, intr: I
     return uv, in_front
 
 
-def _sample(image: np.ndarray, uv: np.ndarray, outside: float) -> np.ndarray:
+def sample_bilinear(image: np.ndarray, uv: np.ndarray, outside: float) -> np.ndarray:
     """Bilinear samples of a (h, w) image at (P, 2) pixel coordinates; ``outside`` beyond the borders."""
     import cv2
 
@@ -138,6 +138,27 @@ def _sample(image: np.ndarray, uv: np.ndarray, outside: float) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # Visual hull
 # --------------------------------------------------------------------------------------------
+
+def mask_values_at(points_world: np.ndarray, mask: np.ndarray, world_from_cam: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """A photo's mask value at each point, as carving reads it: 1 (unknown) behind the camera and,
+    when the object touches the photo's border, outside the photo; 0 outside a photo that holds
+    the whole object.
+
+    Args:
+        points_world: (P, 3).
+        mask: (h, w) float32 in [0, 1].
+        world_from_cam: (4, 4) OpenGL camera-to-world.
+        intr: the mask's pinhole camera.
+
+    Returns:
+        (P,) float32 in [0, 1].
+    """
+    uv, front = project_points(points_world, world_from_cam, intr)
+    border = max(mask[0].max(), mask[-1].max(), mask[:, 0].max(), mask[:, -1].max())
+    vals = sample_bilinear(mask, uv, outside=1.0 if border > MASK_THRESHOLD else 0.0)
+    vals[~front] = 1.0
+    return vals
+
 
 def carve(masks: list[np.ndarray], world_from_cams: np.ndarray, intrinsics: list[Intrinsics], points_world: np.ndarray,
           tolerance: int = 0) -> np.ndarray:
@@ -161,11 +182,7 @@ def carve(masks: list[np.ndarray], world_from_cams: np.ndarray, intrinsics: list
     smallest = np.ones((tolerance + 1, len(points_world)), np.float32)
     pts = np.asarray(points_world, dtype=np.float32)  # float32: carving is memory-bound
     for mask, m, intr in zip(masks, world_from_cams, intrinsics):
-        uv, front = project_points(pts, m, intr)
-        border = max(mask[0].max(), mask[-1].max(), mask[:, 0].max(), mask[:, -1].max())
-        vals = _sample(mask, uv, outside=1.0 if border > MASK_THRESHOLD else 0.0)
-        vals[~front] = 1.0
-        x = vals
+        x = mask_values_at(pts, mask, m, intr)
         for k in range(tolerance + 1):  # insert into the sorted list of the smallest values
             lo = np.minimum(smallest[k], x)
             x = np.maximum(smallest[k], x)
@@ -173,13 +190,13 @@ def carve(masks: list[np.ndarray], world_from_cams: np.ndarray, intrinsics: list
     return smallest[tolerance]
 
 
-def _grid(box_min: np.ndarray, box_max: np.ndarray, voxels: int) -> tuple[np.ndarray, float, tuple[int, int, int]]:
+def grid_box(box_min: np.ndarray, box_max: np.ndarray, voxels: int) -> tuple[np.ndarray, float, tuple[int, int, int]]:
     size = float((box_max - box_min).max()) / voxels
     dims = tuple(int(max(2, np.ceil((box_max[a] - box_min[a]) / size))) for a in range(3))
     return box_min, size, dims  # type: ignore[return-value]
 
 
-def _centres(origin: np.ndarray, size: float, dims: tuple[int, int, int]) -> np.ndarray:
+def voxel_centres(origin: np.ndarray, size: float, dims: tuple[int, int, int]) -> np.ndarray:
     """(Z*Y*X, 3) voxel centres, z slowest (the [z, y, x] order Open3D's isosurface expects)."""
     zz, yy, xx = np.meshgrid(*(np.arange(dims[a]) for a in (2, 1, 0)), indexing="ij")
     idx = np.stack([xx, yy, zz], axis=-1).reshape(-1, 3)
@@ -266,8 +283,8 @@ def visual_hull(inputs: GeometryInputs, voxels: int = 160, tolerance: int = 0, s
     r = search_radius or 0.9 * float(np.linalg.norm(cams[:, :3, 3], axis=1).min())
     lo, hi = np.full(3, -r), np.full(3, r)
     coarse = 48
-    origin, size, dims = _grid(lo, hi, coarse)
-    occ = carve(inputs.masks, cams, inputs.intrinsics, _centres(origin, size, dims), tolerance).reshape(dims[::-1])
+    origin, size, dims = grid_box(lo, hi, coarse)
+    occ = carve(inputs.masks, cams, inputs.intrinsics, voxel_centres(origin, size, dims), tolerance).reshape(dims[::-1])
     inside = np.argwhere(occ > 0.2)  # generous: the coarse grid only bounds the object
     if len(inside) == 0:
         raise DamcapError("the visual hull is empty: no point is inside every silhouette; check that the masks "
@@ -275,8 +292,8 @@ def visual_hull(inputs: GeometryInputs, voxels: int = 160, tolerance: int = 0, s
     zyx_lo, zyx_hi = inside.min(0), inside.max(0)
     box_lo = origin + (zyx_lo[::-1] - 1.5) * size
     box_hi = origin + (zyx_hi[::-1] + 2.5) * size
-    origin, size, dims = _grid(box_lo, box_hi, voxels)
-    occ = carve(inputs.masks, cams, inputs.intrinsics, _centres(origin, size, dims), tolerance).reshape(dims[::-1])
+    origin, size, dims = grid_box(box_lo, box_hi, voxels)
+    occ = carve(inputs.masks, cams, inputs.intrinsics, voxel_centres(origin, size, dims), tolerance).reshape(dims[::-1])
     occ = gaussian_filter(occ, sigma=0.7, mode="constant")
     mesh = isosurface_mesh(occ, origin + 0.5 * size, size)
     mesh = _clean(mesh.vertices, mesh.triangles, smooth_iterations)
@@ -433,7 +450,7 @@ def _object_points(inputs: GeometryInputs, min_inside: float = 0.7) -> np.ndarra
     for mask, m, intr in zip(inputs.masks, inputs.world_from_cams, inputs.intrinsics):
         uv, front = project_points(pts, m, intr)
         ok = front & (uv[:, 0] >= 0) & (uv[:, 0] < intr.w) & (uv[:, 1] >= 0) & (uv[:, 1] < intr.h)
-        vals = _sample(mask, uv, outside=0.0)
+        vals = sample_bilinear(mask, uv, outside=0.0)
         seen += ok
         inside += ok & (vals > MASK_THRESHOLD)
     return pts[(seen > 0) & (inside >= min_inside * seen)]

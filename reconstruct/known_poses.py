@@ -1,5 +1,6 @@
 """Known poses from files (``--poses transforms.json``, ``--poses poses_bounds.npy``, ``--poses
-colmap:DIR``): :func:`load_known_poses` reads any of them into a :class:`~damcap.reconstruct.poses.Registration`."""
+colmap:DIR``, ``--poses strecha:DIR``): :func:`load_known_poses` reads any of them into a
+:class:`~damcap.reconstruct.poses.Registration`."""
 
 from __future__ import annotations
 
@@ -13,10 +14,17 @@ import numpy as np
 from damcap.common.capture_folder import rigid_problem
 from damcap.common.errors import DamcapError
 from damcap.common.validate import MAX_IMAGE_SIDE, finite_in, load_json_file
-
-from damcap.reconstruct.undistort import PhotoCamera
 from damcap.reconstruct.colmap.model import read_colmap_model
-from damcap.reconstruct.poses import RegisteredPhoto, Registration, photos_by_stem, finish_registration, orthonormalize_rotation, world_from_cam_of_llff
+from damcap.reconstruct.poses import (
+    GL_FROM_CV_CAM,
+    RegisteredPhoto,
+    Registration,
+    finish_registration,
+    orthonormalize_rotation,
+    photos_by_stem,
+    world_from_cam_of_llff,
+)
+from damcap.reconstruct.undistort import PhotoCamera
 
 
 def _checked(path: Path, what: str, m: np.ndarray) -> np.ndarray:
@@ -166,8 +174,163 @@ def read_llff_poses_bounds(path: str | os.PathLike, photo_sizes: dict[str, tuple
     return finish_registration("llff", path, found, names, "", {"bounds_near_far": [float(arr[:, 15].min()), float(arr[:, 16].max())]})
 
 
+#: numbers on each line of a Strecha ``.camera`` file: K (3 rows), radial distortion, R (3 rows), C, image size
+STRECHA_ROWS = (3, 3, 3, 3, 3, 3, 3, 3, 2)
+#: |K's skew| allowed, as a fraction of its focal length (PhotoCamera has no skew)
+STRECHA_MAX_SKEW_REL = 1e-6
+
+
+def photo_camera_of_strecha(k: np.ndarray, file_size: tuple[int, int], photo_size: tuple[int, int]) -> PhotoCamera:
+    """The :class:`PhotoCamera` of a Strecha camera matrix, for the photo as it is.
+
+    Strecha's K (as openMVG and OpenCV read it) puts pixel (i, j)'s centre at (j, i); damcap puts
+    it at (j + 0.5, i + 0.5) (:mod:`damcap.reconstruct.undistort`). In damcap's convention the
+    image spans [0, w] x [0, h], so a resize by s maps every coordinate to s times itself:
+    ``c_photo = s (c_file + 0.5)``, ``f_photo = s f_file``. A factor-2 downscale thus puts the
+    principal point at ``c_file / 2 + 0.25``, not ``c_file / 2``.
+
+    Args:
+        k: (3, 3) float64 upper-triangular intrinsic matrix, K[2, 2] = 1, zero skew, pixels at
+            ``file_size``.
+        file_size: (width, height) the file's K refers to, pixels.
+        photo_size: (width, height) of the photo, pixels (same aspect ratio).
+
+    Returns:
+        pinhole camera at ``photo_size`` (no distortion).
+
+    >>> c = photo_camera_of_strecha(np.array([[2000.0, 0, 1535.5], [0, 2000, 1023.5], [0, 0, 1]]), (3072, 2048), (1536, 1024))
+    >>> (c.fx, c.fy, c.cx, c.cy)
+    (1000.0, 1000.0, 768.0, 512.0)
+    """
+    sx, sy = photo_size[0] / file_size[0], photo_size[1] / file_size[1]
+    return PhotoCamera(int(photo_size[0]), int(photo_size[1]), float(k[0, 0] * sx), float(k[1, 1] * sy),
+                       float((k[0, 2] + 0.5) * sx), float((k[1, 2] + 0.5) * sy))
+
+
+def world_from_cam_of_strecha(rotation_world_from_cam: np.ndarray, centre_world: np.ndarray) -> np.ndarray:
+    """OpenGL camera-to-world of a Strecha camera (a world point X projects as K R^T (X - C)).
+
+    Args:
+        rotation_world_from_cam: (3, 3) R, camera-to-world, OpenCV camera axes (x right, y down,
+            looking down +z).
+        centre_world: (3,) C, the camera centre, world units.
+
+    Returns:
+        (4, 4) float64 world_from_cam, OpenGL camera axes (x right, y up, looking down -z).
+
+    >>> world_from_cam_of_strecha(np.eye(3), np.array([1.0, 2.0, 3.0]))[:3].tolist()
+    [[1.0, 0.0, 0.0, 1.0], [0.0, -1.0, 0.0, 2.0], [0.0, 0.0, -1.0, 3.0]]
+    """
+    m = np.eye(4)
+    m[:3, :3] = rotation_world_from_cam
+    m[:3, 3] = centre_world
+    return m @ GL_FROM_CV_CAM + 0.0
+
+
+def _strecha_rows(path: Path) -> list[list[float]]:
+    """The rows of numbers of one ``.camera`` file, checked against :data:`STRECHA_ROWS`."""
+    try:
+        text = path.read_text(encoding="ascii")
+    except (OSError, UnicodeDecodeError) as e:
+        raise DamcapError(f"{path}: cannot read the Strecha camera file ({e})") from None
+    lines = [ln for ln in text.splitlines() if ln.strip()]
+    if len(lines) != len(STRECHA_ROWS):
+        raise DamcapError(f"{path}: a Strecha camera file has {len(STRECHA_ROWS)} lines (3 of K, distortion, 3 of R, C, "
+                          f"width height), got {len(lines)}")
+    rows = []
+    for i, (line, n) in enumerate(zip(lines, STRECHA_ROWS)):
+        words = line.split()
+        if len(words) != n:
+            raise DamcapError(f"{path}: line {i + 1} needs {n} numbers, got {len(words)} ({line.strip()[:60]!r})")
+        row = []
+        for w in words:
+            try:
+                v = float(w)
+            except ValueError:
+                raise DamcapError(f"{path}: line {i + 1}: {w[:40]!r} is not a number") from None
+            row.append(finite_in(v, "float32", f"line {i + 1} value", path))
+        rows.append(row)
+    return rows
+
+
+def read_strecha_camera(path: str | os.PathLike, photo_size: tuple[int, int]) -> tuple[np.ndarray, PhotoCamera]:
+    """One Strecha ``.camera`` file: (world_from_cam OpenGL (4, 4), the camera at ``photo_size``).
+
+    The file (Strecha et al. 2008, as openMVG reads it): 3 rows of K, 1 row of radial distortion
+    (must be zero: the images are undistorted), 3 rows of R (camera-to-world, OpenCV axes), 1 row
+    of C (centre, world units), 1 row ``width height`` (the image K refers to).
+
+    Raises:
+        DamcapError: wrong layout, non-numbers, NaN/inf, K not of the form ``[[f, 0, c], [0, f, c],
+            [0, 0, 1]]`` with f > 0, non-zero distortion, R not a rotation, size out of range or of
+            another aspect ratio than the photo's. One line naming the file and the value.
+    """
+    path = Path(path)
+    rows = _strecha_rows(path)
+    k = np.array(rows[0:3], dtype=np.float64)
+    dist, rot, centre, size = rows[3], np.array(rows[4:7]), np.array(rows[7]), rows[8]
+    if not (k[0, 0] > 0 and k[1, 1] > 0):
+        raise DamcapError(f"{path}: focal lengths K[0,0], K[1,1] must be > 0, got {k[0, 0]:g}, {k[1, 1]:g}")
+    if k[2, 2] != 1.0 or k[1, 0] != 0.0 or k[2, 0] != 0.0 or k[2, 1] != 0.0:
+        raise DamcapError(f"{path}: K must be upper triangular with K[2,2] = 1, got last rows {k[1:].tolist()}")
+    if abs(k[0, 1]) > STRECHA_MAX_SKEW_REL * k[0, 0]:
+        raise DamcapError(f"{path}: K has skew {k[0, 1]:g}; only cameras without skew are supported")
+    if any(dist):
+        raise DamcapError(f"{path}: radial distortion {dist} is not zero; only undistorted Strecha cameras are supported")
+    if not all(float(v).is_integer() and 1 <= v <= MAX_IMAGE_SIDE for v in size):
+        raise DamcapError(f"{path}: image size must be two whole numbers in [1, {MAX_IMAGE_SIDE}], got {size}")
+    w, h = int(size[0]), int(size[1])
+    if abs(photo_size[0] / w - photo_size[1] / h) > 0.01:
+        raise DamcapError(f"{path}: the camera is for {w}x{h} but the photo is {photo_size[0]}x{photo_size[1]} "
+                          "(a different aspect ratio)")
+    world_from_cam = _checked(path, "R", world_from_cam_of_strecha(rot, centre))
+    return world_from_cam, photo_camera_of_strecha(k, (w, h), photo_size)
+
+
+def read_strecha_cameras(folder: str | os.PathLike, photo_sizes: dict[str, tuple[int, int]]) -> Registration:
+    """Cameras from a folder of Strecha ``.camera`` files (``NNNN.jpg.camera`` for ``NNNN.jpg``).
+
+    Files are matched to photos by name without ``.camera`` (then by base name, so ``0000.jpg.camera``
+    also serves ``0000.png``); files without a photo are ignored (counted in ``stats``), photos
+    without a file are listed as unregistered. Intrinsics are scaled to each photo
+    (:func:`photo_camera_of_strecha`).
+
+    Args:
+        folder: the folder of ``*.camera`` files (Strecha's ``gt_cameras``).
+        photo_sizes: photo file name -> (width, height) pixels.
+
+    Raises:
+        DamcapError: no such folder, no ``.camera`` file, two files for one photo, or what
+            :func:`read_strecha_camera` raises.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DamcapError(f"{folder}: Strecha camera folder not found (--poses strecha:DIR takes a folder of *.camera files)")
+    files = sorted(p for p in folder.iterdir() if p.name.endswith(".camera") and p.is_file())
+    if not files:
+        raise DamcapError(f"{folder}: no *.camera file (Strecha's NNNN.jpg.camera) in the folder")
+    stems = photos_by_stem(list(photo_sizes))
+    found: dict[str, RegisteredPhoto] = {}
+    file_of: dict[str, str] = {}
+    ignored = 0
+    for f in files:
+        image = f.name[: -len(".camera")]
+        name = image if image in photo_sizes else stems.get(Path(image).stem)
+        if name is None:
+            ignored += 1
+            continue
+        if name in file_of:  # never resolved silently by the last file
+            raise DamcapError(f"{folder}: photo {name} has two camera files ({file_of[name]} and {f.name}); keep one")
+        file_of[name] = f.name
+        world_from_cam, cam = read_strecha_camera(f, photo_sizes[name])
+        found[name] = RegisteredPhoto(name, world_from_cam, cam)
+    return finish_registration("strecha", folder, found, list(photo_sizes), f"no .camera file in {folder.name}",
+                               {"pose_entries_without_photo": ignored})
+
+
 def load_known_poses(spec: str, photo_sizes: dict[str, tuple[int, int]]) -> Registration:
-    """Known cameras from ``transforms.json`` (any ``.json``), LLFF ``.npy`` or ``colmap:DIR``.
+    """Known cameras from ``transforms.json`` (any ``.json``), LLFF ``.npy``, ``colmap:DIR`` or
+    ``strecha:DIR`` (a folder of Strecha ``.camera`` files).
 
     Args:
         spec: the ``--poses`` value.
@@ -178,12 +341,15 @@ def load_known_poses(spec: str, photo_sizes: dict[str, tuple[int, int]]) -> Regi
     """
     if spec.startswith("colmap:"):
         return read_colmap_model(spec[len("colmap:"):], sorted(photo_sizes))
+    if spec.startswith("strecha:"):
+        return read_strecha_cameras(spec[len("strecha:"):], photo_sizes)
     path = Path(spec)
     if not path.is_file():
-        raise DamcapError(f"{path}: pose file not found (--poses takes transforms.json, poses_bounds.npy or colmap:DIR)")
+        raise DamcapError(f"{path}: pose file not found (--poses takes transforms.json, poses_bounds.npy, colmap:DIR or "
+                          "strecha:DIR)")
     if path.suffix.lower() == ".json":
         return read_transforms_json(path, photo_sizes)
     if path.suffix.lower() == ".npy":
         return read_llff_poses_bounds(path, photo_sizes)
     raise DamcapError(f"{path}: unknown pose file kind {path.suffix!r}; use a .json (nerfstudio/instant-ngp), "
-                      "an LLFF poses_bounds.npy, or colmap:DIR")
+                      "an LLFF poses_bounds.npy, colmap:DIR or strecha:DIR")

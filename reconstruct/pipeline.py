@@ -5,7 +5,10 @@ Steps (each reports progress):
 1. list the photos (8-bit, linear EXR or RAW, one kind; match the masks by base name), and read
    every input (photos, masks, the pose file, a user mesh, EXIF) before the output folder is touched;
 2. cameras: COLMAP registration (:mod:`colmap`; resumable; linear and RAW photos through 8-bit
-   proxies in the work folder) or known poses (:mod:`known_poses`);
+   proxies in the work folder; with masks, features inside them when the whole photos do not
+   register well) or known poses (:mod:`known_poses`), then their self-check (:mod:`selfcheck`:
+   photos that disagree with the others are named and left out, an inconsistent registration is
+   refused);
 3. normalise the scene (:mod:`normalize`): object at the origin, radius about 1, up = +y;
 4. per photo, one pinhole target camera at ``capture_size`` (:mod:`undistort`); masks resampled;
 5. geometry (:mod:`geometry`), then the final centring on its bounding sphere;
@@ -37,7 +40,7 @@ import numpy as np
 from damcap.common.atomic import atomic_path, write_json_atomic
 from damcap.common.capture_folder import FRAME_BYTES_PER_PIXEL, Capture, Frame, Intrinsics, write_transforms
 from damcap.common.errors import DamcapError
-from damcap.common.validate import COUNT, COUNT_OR_ZERO, FRACTION, MAX_IMAGE_SIDE, SEED, check_ranges, in_range, require_memory, require_resolution
+from damcap.common.validate import COUNT, COUNT_OR_ZERO, FRACTION, MAX_IMAGE_SIDE, POSITIVE, SEED, check_ranges, in_range, require_memory, require_resolution
 from damcap.common.version import damcap_version
 
 from damcap.reconstruct.geometry import GeometryInputs, GeometryOptions, GeometryResult, build_geometry
@@ -48,7 +51,8 @@ from damcap.reconstruct.photos import exposure_factors, list_photos, match_masks
 from damcap.reconstruct.poses import Registration
 from damcap.reconstruct.known_poses import load_known_poses
 from damcap.common.mesh import Mesh, load_mesh
-from damcap.reconstruct.colmap.register import SfmOptions, StageProgress, register_photos, triangulate_known
+from damcap.reconstruct.colmap.register import SfmOptions, StageProgress, masked_options, register_photos, triangulate_known
+from damcap.reconstruct.selfcheck import SelfCheck, SelfCheckOptions, observation_stats, self_check
 from damcap.reconstruct.undistort import pinhole_for, resample_to_pinhole
 
 SplitKind = Literal["consecutive", "spread"]
@@ -93,14 +97,28 @@ class ReconstructOptions:
     """registration: most similar photos matched per photo"""
     camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "SIMPLE_RADIAL"
     """registration: COLMAP camera model"""
-    refine_principal_point: bool = field(default=False, metadata={"cli_flag": "--refine-principal-point/--centred-principal-point"})
-    """registration: also refine the principal point after mapping (see SfmOptions)"""
+    principal_point: Literal["auto", "refine", "centre"] = "auto"
+    """registration: where the cameras' principal point is: 'auto' (off the centre where the
+    photos support it), 'refine' (always where the photos put it), 'centre' (see SfmOptions)"""
     single_camera: bool = field(default=True, metadata={"cli_flag": "--single-camera/--camera-per-photo"})
     """registration: photos of one size share one camera"""
-    mask_features: bool = False
-    """registration: with --masks, also restrict features to the object (a turntable whose
-    background turns with it); off, the static background of a camera moved around a fixed
-    object helps registration (a background that stands still in the image is filtered anyway)"""
+    mask_features: Literal["auto", "always", "never"] = "auto"
+    """registration with --masks: 'never' matches features on the whole photo (the static
+    background of a camera moved around a fixed object helps; a background that stands still in
+    the image is filtered anyway); 'always' keeps only features on the object (a turntable whose
+    background does not turn with it); 'auto' registers the whole photos first and, when the
+    self-check flags photos or fewer than 95% register, again with features on the object, and
+    keeps the registration with more photos that pass the self-check"""
+    self_check: Literal["drop", "warn", "off"] = "drop"
+    """what the self-check of the cameras (reconstruct/selfcheck.py) does: 'drop' leaves out the
+    photos it flags (named) and refuses a registration where more than half are flagged; 'warn'
+    only reports; 'off' does not run it"""
+    min_silhouette_recall: float = field(default=0.95, metadata=FRACTION)
+    """self-check: a photo is flagged when fewer of its mask's pixels see the others' visual hull"""
+    min_silhouette_precision: float = field(default=0.5, metadata=FRACTION)
+    """self-check: a photo is flagged when less of the others' visual hull lands on its mask"""
+    max_reprojection_px: float = field(default=2.0, metadata=POSITIVE)
+    """self-check: a photo is flagged when its sparse points reproject worse (mean, photo pixels)"""
     capture_size: int = field(default=512, metadata=in_range(1, MAX_IMAGE_SIDE))
     """longest side of the capture's images, pixels (photos are undistorted and resized once)"""
     train_views: int = field(default=10, metadata=COUNT)
@@ -146,15 +164,24 @@ class ReconstructOptions:
             raise DamcapError(f"--split must be consecutive or spread, got {self.split!r}")
         if self.dtype not in ("half", "float"):
             raise DamcapError(f"--dtype must be half or float, got {self.dtype!r}")
+        for name, allowed in (("mask_features", ("auto", "always", "never")), ("self_check", ("drop", "warn", "off")),
+                              ("principal_point", ("auto", "refine", "centre"))):
+            if getattr(self, name) not in allowed:
+                raise DamcapError(f"--{name.replace('_', '-')} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
 
     def sfm(self) -> SfmOptions:
         return SfmOptions(max_image_size=self.max_image_size, max_num_features=self.max_num_features,
                           upsample_below=self.upsample_below, retry_upsampled_below=self.retry_upsampled_below,
                           pairing=self.pairing,
                           sequential_overlap=self.sequential_overlap, retrieval_neighbours=self.retrieval_neighbours,
-                          camera_model=self.camera_model, refine_principal_point=self.refine_principal_point,
+                          camera_model=self.camera_model, principal_point=self.principal_point,
                           single_camera=self.single_camera, num_threads=self.threads,
                           seed=self.seed)
+
+    def selfcheck(self) -> SelfCheckOptions:
+        return SelfCheckOptions(min_silhouette_recall=self.min_silhouette_recall,
+                                min_silhouette_precision=self.min_silhouette_precision,
+                                max_reprojection_px=self.max_reprojection_px)
 
     def geometry_options(self) -> GeometryOptions:
         return GeometryOptions(mode=self.geometry, voxels=self.voxels, hull_tolerance=self.hull_tolerance,
@@ -178,6 +205,8 @@ class ReconstructReport:
     registration: dict[str, Any]
     seconds: dict[str, float] = field(default_factory=dict)
     linearisation: str = ""
+    self_check: dict[str, Any] | None = None
+    """:meth:`SelfCheck.to_json` of the cameras kept (before flagged photos were left out); None when off"""
 
 
 # --------------------------------------------------------------------------------------------
@@ -303,13 +332,25 @@ def _registration_images(photos_dir: Path, names: list[str], work: Path, progres
     return RegistrationImages(proxy_dir, by_photo, file_digests(proxy_dir, [by_photo[n] for n in names]))
 
 
+def _object_fraction(masks: dict[str, Path], names: list[str]) -> float:
+    """Mean fraction of a photo's pixels inside its mask."""
+    return float(np.mean([float((read_mask(masks[n]) > 0.5).mean()) for n in names]))
+
+
 def _registration(photos_dir: Path, names: list[str], work: Path, opts: ReconstructOptions,
-                  masks: dict[str, Path] | None, known: Registration | None, progress: StageProgress) -> Registration:
+                  masks: dict[str, Path] | None, known: Registration | None, progress: StageProgress,
+                  masked: bool) -> Registration:
+    """Known poses, or COLMAP on the whole photos (``work/sfm``) or on features inside the masks
+    (``work/sfm-masked``, :func:`~damcap.reconstruct.colmap.register.masked_options`)."""
     if known is not None:
         return known
     images = _registration_images(photos_dir, names, work, progress)
-    reg, _ = register_photos(images.folder, images.names(names), work / "sfm", opts.sfm(),
-                             images.masks(masks) if opts.mask_features else None, progress, images.content)
+    if masked and masks:
+        sfm = masked_options(opts.sfm(), _object_fraction(masks, names))
+        reg, _ = register_photos(images.folder, images.names(names), work / "sfm-masked", sfm, images.masks(masks), progress,
+                                 images.content)
+    else:
+        reg, _ = register_photos(images.folder, images.names(names), work / "sfm", opts.sfm(), None, progress, images.content)
     return images.to_photos(reg)
 
 
@@ -362,8 +403,8 @@ def _check_inputs(photos_dir: Path, masks_dir: str | os.PathLike | None, poses: 
     names = list_photos(photos_dir)
     verify_photos(photos_dir, names)  # a truncated JPEG is refused here, not dropped as unregistered
     masks = match_masks(names, masks_dir) if masks_dir is not None else None
-    if poses and not poses.startswith("colmap:") and Path(poses).suffix.lower() not in (".json", ".npy"):
-        raise DamcapError(f"--poses {poses!r}: use a transforms.json, a poses_bounds.npy or colmap:DIR")
+    if poses and not poses.startswith(("colmap:", "strecha:")) and Path(poses).suffix.lower() not in (".json", ".npy"):
+        raise DamcapError(f"--poses {poses!r}: use a transforms.json, a poses_bounds.npy, colmap:DIR or strecha:DIR")
     _mode, mesh_path = parse_mode(opts.geometry)
     if mesh_path is not None and not mesh_path.is_file():
         raise DamcapError(f"{mesh_path}: mesh file not found (--geometry mesh:FILE)")
@@ -432,37 +473,167 @@ def _response_curve(photos_dir: Path, names: list[str], opts: ReconstructOptions
 
 def _cameras(photos_dir: Path, names: list[str], work: Path, opts: ReconstructOptions, masks: dict[str, Path] | None,
              known: Registration | None, progress: StageProgress, log: Callable[[str], None],
-             seconds: dict[str, float]) -> Registration:
+             seconds: dict[str, float], masked: bool = False) -> Registration:
     """Step 2: registration (or known poses), and sparse points triangulated at known poses when the
     geometry needs them."""
     t0 = time.perf_counter()
-    reg = _registration(photos_dir, names, work, opts, masks, known, progress)
-    seconds["registration"] = time.perf_counter() - t0
+    reg = _registration(photos_dir, names, work, opts, masks, known, progress, masked)
+    seconds["registration"] = seconds.get("registration", 0.0) + time.perf_counter() - t0
     _check_enough(reg, len(names), opts, photos_dir)
     if len(reg.points_world) == 0 and _needs_points(opts, masks is not None):
         t0 = time.perf_counter()
         log("known poses without sparse points: matching features and triangulating them with the poses held fixed")
         images = _registration_images(photos_dir, [p.name for p in reg.photos], work, progress)
         reg = images.to_photos(triangulate_known(images.folder, images.to_images(reg), work / "sfm", opts.sfm(),
-                                                 images.masks(masks) if opts.mask_features else None, progress, images.content))
+                                                 images.masks(masks) if opts.mask_features == "always" else None, progress,
+                                                 images.content))
         seconds["triangulation"] = time.perf_counter() - t0
-    for name, why in sorted(reg.unregistered.items()):
-        log(f"unregistered: {name}: {why}")
     return reg
 
 
 def _target_masks(reg: Registration, targets: list[Intrinsics], masks: dict[str, Path] | None,
-                  progress: StageProgress) -> list[np.ndarray] | None:
-    """Step 4: each photo's mask resampled into its pinhole target, in [0, 1] (None without masks)."""
+                  progress: StageProgress) -> tuple[list[np.ndarray] | None, list[tuple[float | None, int, int | None]]]:
+    """Step 4: each photo's mask resampled into its pinhole target, in [0, 1] (None without masks),
+    and each photo's sparse-point statistics for the self-check (reprojection error, points, points
+    on the object)."""
     if masks is None:
-        return None
-    mask_px = []
+        return None, [observation_stats(p.observations_px, None) for p in reg.photos]
+    mask_px, stats = [], []
     for k, (p, tgt) in enumerate(zip(reg.photos, targets)):
         progress("masks", k, len(reg.photos))
         m = read_mask(masks[p.name], (p.camera.width, p.camera.height), p.name)
+        stats.append(observation_stats(p.observations_px, m))
         mask_px.append(np.clip(resample_to_pinhole(m, p.camera, tgt), 0, 1))
     progress("masks", len(reg.photos), len(reg.photos))
-    return mask_px
+    return mask_px, stats
+
+
+@dataclass
+class CheckedCameras:
+    """One candidate registration with its pinhole targets, target masks and self-check."""
+
+    reg: Registration
+    targets: list[Intrinsics]
+    mask_px: list[np.ndarray] | None
+    check: SelfCheck | None
+    features: str
+    """'whole photos', 'inside the masks' or 'known poses'"""
+
+    def agreeing(self) -> int:
+        """Photos that have cameras and pass the self-check (0 for an inconsistent registration)."""
+        if self.check is None:
+            return len(self.reg.photos)
+        return 0 if self.check.verdict == "inconsistent" else len(self.reg.photos) - len(self.check.flagged)
+
+    def brief(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"features": self.features, "registered": len(self.reg.photos), "agreeing": self.agreeing()}
+        if self.check is not None:
+            out["self_check"] = self.check.verdict
+        return out
+
+
+def _candidate(photos_dir: Path, names: list[str], work: Path, opts: ReconstructOptions, masks: dict[str, Path] | None,
+               known: Registration | None, progress: StageProgress, log: Callable[[str], None], seconds: dict[str, float],
+               masked: bool) -> CheckedCameras:
+    """Cameras of one kind (whole photos or features inside the masks), their targets and masks, and their self-check."""
+    reg = _cameras(photos_dir, names, work, opts, masks, known, progress, log, seconds, masked)
+    targets = [pinhole_for(p.camera, opts.capture_size) for p in reg.photos]
+    mask_px, stats = _target_masks(reg, targets, masks, progress)
+    check = None
+    if opts.self_check != "off":
+        t0 = time.perf_counter()
+        # in the normalised frame (object radius ~1), as the geometry: the check does not depend on the scene's unit
+        norm_from_world = normalization_transform(reg.world_from_cams, reg.points_world if len(reg.points_world) else None)
+        check = self_check([p.name for p in reg.photos], transform_world_from_cam(norm_from_world, reg.world_from_cams), targets,
+                           mask_px, stats, opts.selfcheck(), seed=opts.seed, progress=progress)
+        seconds["self_check"] = seconds.get("self_check", 0.0) + time.perf_counter() - t0
+    features = "known poses" if known is not None else ("inside the masks" if masked and masks else "whole photos")
+    return CheckedCameras(reg, targets, mask_px, check, features)
+
+
+def wants_masked_features(registered: int, photos: int, check: SelfCheck | None) -> bool:
+    """Whether 'auto' registers again with features inside the masks: fewer than 95% of the photos
+    registered, or the self-check flagged any.
+
+    >>> wants_masked_features(119, 119, None), wants_masked_features(4, 30, None)
+    (False, True)
+    """
+    return registered < 0.95 * photos or (check is not None and bool(check.flagged))
+
+
+def _choose_cameras(photos_dir: Path, names: list[str], work: Path, opts: ReconstructOptions, masks: dict[str, Path] | None,
+                    known: Registration | None, progress: StageProgress, log: Callable[[str], None],
+                    seconds: dict[str, float]) -> tuple[CheckedCameras, list[dict[str, Any]]]:
+    """Step 2 with the self-check: the registration to keep and every candidate tried.
+
+    With masks and ``--mask-features auto``, the whole photos are registered first; when
+    :func:`wants_masked_features`, features inside the masks are registered too and the candidate
+    with more photos that pass the self-check is kept (the first on a tie).
+    """
+    args = (photos_dir, names, work, opts, masks, known, progress, log, seconds)
+    first_masked = opts.mask_features == "always" and masks is not None
+    first: CheckedCameras | None = None
+    error: DamcapError | None = None
+    try:
+        first = _candidate(*args, masked=first_masked)
+    except DamcapError as e:
+        error = e
+    tried = [first.brief()] if first is not None else [{"features": "whole photos", "error": str(error)}]
+    auto = masks is not None and known is None and opts.mask_features == "auto"
+    if not auto or (first is not None and not wants_masked_features(len(first.reg.photos), len(names), first.check)):
+        if first is None:
+            raise error  # type: ignore[misc]
+        return first, tried
+    why = (f"{len(first.reg.photos)} of {len(names)} photos registered" + (f", the self-check flagged {len(first.check.flagged)}"
+           if first.check is not None and first.check.flagged else "")) if first is not None else str(error).split(" (")[0]
+    log(f"registration on the whole photos: {why}; registering again with features inside the masks")
+    try:
+        second = _candidate(*args, masked=True)
+    except DamcapError as e:
+        tried.append({"features": "inside the masks", "error": str(e)})
+        if first is None:
+            raise
+        return first, tried
+    tried.append(second.brief())
+    if first is None or second.agreeing() > first.agreeing():
+        return second, tried
+    return first, tried
+
+
+def _apply_self_check(c: CheckedCameras, opts: ReconstructOptions, n_photos: int, photos_dir: Path,
+                      log: Callable[[str], None]) -> tuple[CheckedCameras, dict[str, str]]:
+    """Report the self-check; with ``--self-check drop``, leave out the photos it flags or refuse
+    an inconsistent registration.
+
+    Returns:
+        the cameras kept, and photo name -> why it was left out.
+
+    Raises:
+        DamcapError: more than half of the photos disagree, or too few are left.
+    """
+    if c.check is None:
+        return c, {}
+    log(f"self-check ({c.features}): {c.check.summary()}")
+    flagged = c.check.flagged
+    for name, why in sorted(flagged.items()):
+        log(f"self-check flags {name}: {why}")
+    if opts.self_check != "drop" or not flagged:
+        return c, {}
+    if c.check.verdict == "inconsistent":
+        worst = "; ".join(f"{k}: {v}" for k, v in sorted(flagged.items())[:2])
+        raise DamcapError(
+            f"{photos_dir}: the cameras disagree with the photos ({c.check.summary()}; e.g. {worst}). "
+            "Check that the masks are white on the object and belong to these photos; --self-check warn writes the capture anyway")
+    keep = [k for k, p in enumerate(c.reg.photos) if p.name not in flagged]
+    new_index = np.full(len(c.reg.photos), -1, np.int64)
+    new_index[keep] = np.arange(len(keep))
+    seen = new_index[np.asarray(c.reg.points_seen_from, np.int64)] if len(c.reg.points_seen_from) else np.zeros(0, np.int64)
+    reg = replace(c.reg, photos=[c.reg.photos[k] for k in keep], points_world=np.asarray(c.reg.points_world)[seen >= 0]
+                  if len(seen) else c.reg.points_world, points_seen_from=seen[seen >= 0])
+    dropped = {n: f"self-check: {why}" for n, why in flagged.items()}
+    _check_enough(reg, n_photos, opts, photos_dir)
+    return CheckedCameras(reg, [c.targets[k] for k in keep], [c.mask_px[k] for k in keep] if c.mask_px is not None else None,
+                          c.check, c.features), dropped
 
 
 def _scene(reg: Registration, targets: list[Intrinsics], mask_px: list[np.ndarray] | None, opts: ReconstructOptions,
@@ -510,7 +681,7 @@ def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, o
         out: capture folder to write (new, or one this function wrote before: its registration is reused).
         opts: options.
         masks_dir: folder of object masks with the photos' base names, or None.
-        poses: known cameras (``transforms.json``, ``poses_bounds.npy``, ``colmap:DIR``) or None (SfM).
+        poses: known cameras (``transforms.json``, ``poses_bounds.npy``, ``colmap:DIR``, ``strecha:DIR``) or None (SfM).
         progress: called as (stage, done, total).
         log: one-line messages (what auto picked and why, dropped photos).
         explicit: names of the options the user set (``train_views``, ``split_start``): a split
@@ -545,7 +716,7 @@ def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, o
                                  progress, log, seconds, t_all)
     except DamcapError:
         # a folder this run made is removed, unless it holds a registration a rerun resumes from
-        if created and not (out / WORK_FOLDER / "sfm").exists():
+        if created and not any((out / WORK_FOLDER / sub).exists() for sub in ("sfm", "sfm-masked")):
             shutil.rmtree(out, ignore_errors=True)
         raise
 
@@ -557,13 +728,15 @@ def _reconstruct_into(photos_dir: Path, out: Path, opts: ReconstructOptions, nam
     """Steps 2 to 7 into the prepared output folder (:func:`reconstruct_capture`)."""
     work = out / WORK_FOLDER
     work.mkdir(exist_ok=True)
-    reg = _cameras(photos_dir, names, work, opts, masks, known, progress, log, seconds)
+    chosen, candidates = _choose_cameras(photos_dir, names, work, opts, masks, known, progress, log, seconds)
+    chosen, left_out = _apply_self_check(chosen, opts, len(names), photos_dir, log)
+    reg, targets, mask_px = chosen.reg, chosen.targets, chosen.mask_px
+    for name, why in sorted(reg.unregistered.items()):
+        log(f"unregistered: {name}: {why}")
     # exposure is checked before the long steps
     factors, exposures, reference, lin_note = exposure_factors([photos_dir / p.name for p in reg.photos], opts.ignore_exposure,
                                                                tone_curve)
     log(f"linearisation: {lin_note}")
-    targets = [pinhole_for(p.camera, opts.capture_size) for p in reg.photos]
-    mask_px = _target_masks(reg, targets, masks, progress)
     scene = _scene(reg, targets, mask_px, opts, work, progress, log, seconds)
 
     t0 = time.perf_counter()
@@ -572,6 +745,7 @@ def _reconstruct_into(photos_dir: Path, out: Path, opts: ReconstructOptions, nam
               for k, (p, tgt) in enumerate(zip(reg.photos, targets))]
     frames, dropped = write_frames(out, photos, scene.world_from_cams, scene.mesh, scene.sphere, reference,
                                    opts.supersample, opts.dtype, progress, log, log_response, opts.keep_clipped)
+    dropped = {**left_out, **dropped}
     seconds["frames"] = time.perf_counter() - t0
     geo = scene.geometry
     if not frames:
@@ -584,11 +758,13 @@ def _reconstruct_into(photos_dir: Path, out: Path, opts: ReconstructOptions, nam
     _remove_stale_frames(out, frames)
     seconds["total"] = time.perf_counter() - t_all
     report = ReconstructReport(
-        photos=len(names), registered=len(reg.photos), unregistered=dict(reg.unregistered), frames=len(frames),
+        photos=len(names), registered=len(reg.photos) + len(left_out), unregistered=dict(reg.unregistered), frames=len(frames),
         dropped=dropped, geometry_mode=geo.mode, geometry_reason=geo.reason,
         train=[frames[i].file_path for i in train_idx], test=[frames[i].file_path for i in test_idx],
-        registration={"source": reg.source, **{k: v for k, v in reg.stats.items() if k != "unregistered"}},
-        seconds={k: round(v, 2) for k, v in seconds.items()}, linearisation=lin_note)
+        registration={"source": reg.source, **{k: v for k, v in reg.stats.items() if k != "unregistered"},
+                      "features_used": chosen.features, "candidates": candidates},
+        seconds={k: round(v, 2) for k, v in seconds.items()}, linearisation=lin_note,
+        self_check=chosen.check.to_json() if chosen.check is not None else None)
     sphere = scene.sphere
     source = {
         "tool": "damcap reconstruct", "damcap_version": damcap_version(), "photos": str(photos_dir.resolve()),
@@ -597,7 +773,8 @@ def _reconstruct_into(photos_dir: Path, out: Path, opts: ReconstructOptions, nam
         "geometry": {"mode": geo.mode, "reason": geo.reason, "mesh": f"{WORK_FOLDER}/mesh.ply",
                      **({"sphere_centre": sphere[0].tolist(), "sphere_radius": sphere[1]} if sphere else {}),
                      "stats": _jsonable(geo.stats)},
-        "registration": _jsonable(report.registration), "unregistered": report.unregistered, "dropped": dropped,
+        "registration": _jsonable(report.registration), "self_check": _jsonable(report.self_check),
+        "unregistered": report.unregistered, "dropped": dropped,
         "linearisation": lin_note, "reference_exposure": reference,
     }
     capture = Capture(root=out, frames=frames, train_filenames=report.train, test_filenames=report.test,

@@ -45,6 +45,9 @@ class RegisteredPhoto:
     world_from_cam: np.ndarray
     """(4, 4) float64 camera-to-world, OpenGL camera axes"""
     camera: PhotoCamera
+    observations_px: np.ndarray | None = None
+    """(M, 3) float64 rows (x, y, reprojection error) of its sparse points' observations, photo
+    pixels; None when the cameras came without points"""
 
 
 @dataclass

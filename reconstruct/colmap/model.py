@@ -14,6 +14,31 @@ from damcap.reconstruct.undistort import camera_from_colmap
 from damcap.reconstruct.poses import RegisteredPhoto, Registration, photos_by_stem, finish_registration, world_from_cam_of_colmap
 
 
+def image_observations(rec: Any) -> dict[int, np.ndarray]:
+    """Per registered image of a ``pycolmap.Reconstruction``: its observations of 3D points with
+    their reprojection errors.
+
+    Returns:
+        image id -> (M, 3) float64 rows (x, y, |projection - observation|), image pixels.
+    """
+    xyz_of = {int(pid): p.xyz for pid, p in rec.points3D.items()}
+    out: dict[int, np.ndarray] = {}
+    for image_id in rec.reg_image_ids():
+        img = rec.image(image_id)
+        cam = rec.camera(img.camera_id)
+        obs = [(p.xy, xyz_of[int(p.point3D_id)]) for p in img.points2D if p.has_point3D()]
+        if not obs:
+            out[image_id] = np.zeros((0, 3))
+            continue
+        xy = np.array([o[0] for o in obs], np.float64)
+        xyz = np.array([o[1] for o in obs], np.float64)
+        cam_from_world = np.asarray(img.cam_from_world().matrix(), np.float64)
+        p_cam = xyz @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+        uv = np.asarray(cam.img_from_cam(p_cam), np.float64).reshape(-1, 2)
+        out[image_id] = np.column_stack([xy, np.linalg.norm(uv - xy, axis=1)])
+    return out
+
+
 def registration_of_reconstruction(rec: Any, photo_names: list[str], source: str, where: str) -> Registration:
     """Cameras and points of a ``pycolmap.Reconstruction``, in OpenGL camera axes.
 
@@ -22,6 +47,7 @@ def registration_of_reconstruction(rec: Any, photo_names: list[str], source: str
     stems = photos_by_stem(photo_names)
     found: dict[str, RegisteredPhoto] = {}
     id_to_name: dict[int, str] = {}
+    observations = image_observations(rec)
     for image_id in rec.reg_image_ids():
         img = rec.image(image_id)
         name = img.name if img.name in photo_names else stems.get(Path(img.name).stem)
@@ -37,7 +63,7 @@ def registration_of_reconstruction(rec: Any, photo_names: list[str], source: str
             raise DamcapError(f"{where}: image {img.name!r} has a NaN or infinite camera or pose")
         pc = camera_from_colmap(cam.model.name, cam.width, cam.height, params)
         m = world_from_cam_of_colmap(m)
-        found[name] = RegisteredPhoto(name, m, pc)
+        found[name] = RegisteredPhoto(name, m, pc, observations.get(image_id))
         id_to_name[image_id] = name
     reg = finish_registration(source, Path(where), found, photo_names, "", {})
     index = {p.name: k for k, p in enumerate(reg.photos)}

@@ -29,7 +29,40 @@ class PrincipalPointEstimate:
     tilt_deg: float
     """atan(|offset| / focal): how far every camera turns when this point replaces the centre"""
     used: bool
-    """the registration's cameras use this point (``refine_principal_point``); else the centre"""
+    """the registration's cameras use this point (``principal_point`` 'refine', or 'auto' when
+    :func:`photos_support_offset`); else the centre"""
+    decision: str = ""
+    """why the point is used or not (the rule's figures under 'auto')"""
+
+
+#: 'auto' refines the principal point when its offset is at least this many standard deviations ...
+PP_MIN_SIGMAS = 3.0
+#: ... from at least this many registered photos ...
+PP_MIN_PHOTOS = 5
+#: ... and it turns the cameras by at most this much (a larger tilt means the photos trade it
+#: against the cameras' pitch and yaw: a textured blob on black, 256-384 px, put it 8 deg off)
+PP_MAX_TILT_DEG = 1.0
+
+
+def photos_support_offset(estimate: PrincipalPointEstimate, photos: int) -> tuple[bool, str]:
+    """Whether the photos pin the principal point off the centre (the 'auto' rule) and why.
+
+    Measured (bench/registration_gt.md, ground-truth cameras of Strecha's scenes, principal point
+    (-7.4, -8.35) px off): Herz-Jesu-P8 6.2 sigma, 8 photos, tilt 0.55 deg: refining takes the
+    rotation error from 0.625 to 0.157 deg; castle-P19 14.7 sigma: 0.766 -> 0.460 deg; with 4
+    photos the estimate is 2.8 sigma (kept centred). A textured blob on black (tests): 1.3 sigma, or
+    2.9 sigma at 8.2 deg tilt on a rendered turntable, whose truth is the centre: kept centred.
+
+    >>> photos_support_offset(PrincipalPointEstimate([-6.9, -11.2], [2.0, 2.2], 0.55, False), 8)[0]
+    True
+    >>> photos_support_offset(PrincipalPointEstimate([0.1, 59.1], [0.9, 20.1], 8.2, False), 24)
+    (False, 'kept at the centre: 2.9 sigma (needs 3), 24 photos, tilt 8.20 deg (at most 1)')
+    """
+    sig = offset_in_sigmas(estimate.offset_px, estimate.sd_px)
+    ok = sig >= PP_MIN_SIGMAS and photos >= PP_MIN_PHOTOS and estimate.tilt_deg <= PP_MAX_TILT_DEG
+    figures = (f"{sig:.1f} sigma (needs {PP_MIN_SIGMAS:g}), {photos} photos" + ("" if photos >= PP_MIN_PHOTOS else f" (needs {PP_MIN_PHOTOS})")
+               + f", tilt {estimate.tilt_deg:.2f} deg (at most {PP_MAX_TILT_DEG:g})")
+    return ok, ("refined: " if ok else "kept at the centre: ") + figures
 
 
 def residual_variance(final_cost: float, residuals: int, parameters: int) -> float:

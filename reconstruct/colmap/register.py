@@ -17,7 +17,7 @@ Choices that make a 2-core CPU run practical (bench/reconstruct.md measures them
   two-hop neighbours in the verified match graph (``transitive_neighbours``).
 - Incremental mapping; the largest model is kept and every other photo is listed with a reason.
 - The report says where the photos put the principal point (a bundle adjustment with it free,
-  on a copy unless ``refine_principal_point``, and its 1-sigma from COLMAP's covariance), so a
+  on a copy unless it is used (``principal_point``), and its 1-sigma from COLMAP's covariance), so a
   user sees how far the centred default is from what the photos support.
 
 Resumable: each stage records a fingerprint of its inputs and options in ``work_dir/state.json``;
@@ -42,10 +42,10 @@ from damcap.common.atomic import write_json_atomic
 from damcap.common.errors import DamcapError
 
 from damcap.reconstruct.poses import Registration
-from damcap.reconstruct.colmap.model import registration_of_reconstruction
+from damcap.reconstruct.colmap.model import image_observations, registration_of_reconstruction
 from damcap.reconstruct.colmap.database import database_summary, pair_inliers, read_descriptors, import_pycolmap, unregistered_reasons, write_colmap_masks
 from damcap.reconstruct.colmap.pairs import exhaustive_pairs, retrieval_pairs, ring_pairs, transitive_pairs, vlad_similarity
-from damcap.reconstruct.colmap.principal_point import adjust_principal_point
+from damcap.reconstruct.colmap.principal_point import adjust_principal_point, photos_support_offset
 
 
 #: progress callback: (stage, done, total)
@@ -104,11 +104,13 @@ class SfmOptions:
     """retrieval pairing: VLAD vocabulary size, learned from the set's own descriptors"""
     camera_model: CameraModelName = "SIMPLE_RADIAL"
     """COLMAP camera model fitted to the photos"""
-    refine_principal_point: bool = False
-    """after mapping, one more global bundle adjustment that also refines the principal point
-    (instant-ngp's colmap2nerf does this; COLMAP and LLFF keep it at the image centre). It moves
-    every rotation by about atan(offset / focal): on the fox photos the principal point sits
-    ~15 px off centre (0.6 deg), on the cape ~8 px (0.24 deg); see bench/reconstruct.md"""
+    principal_point: Literal["auto", "refine", "centre"] = "auto"
+    """after mapping, one more global bundle adjustment with the principal point free tells where
+    the photos put it; 'refine' uses it (instant-ngp's colmap2nerf does), 'centre' keeps the image
+    centre (COLMAP's and LLFF's convention), 'auto' uses it where the photos support it
+    (:func:`~damcap.reconstruct.colmap.principal_point.photos_support_offset`). It turns every
+    camera by about atan(offset / focal): Strecha's ground truth sits (-7.4, -8.35) px off
+    (0.46 deg); see docs/registration.md"""
     single_camera: bool = True
     """photos of the same size share one camera (one lens, one zoom); False = one per photo"""
     min_num_inliers: int = 15
@@ -330,6 +332,32 @@ def wants_upsampled_retry(registered: int, photos: int, skipped: bool, retry_bel
     return skipped and retry_below > 0 and registered < retry_below * photos
 
 
+#: masked features: the SIFT budget grows by at most this factor (see :func:`masked_options`)
+MASKED_BUDGET_MAX_FACTOR = 4
+
+
+def masked_options(opts: SfmOptions, object_fraction: float) -> SfmOptions:
+    """Options for features restricted to the object by masks.
+
+    COLMAP finds up to ``max_num_features`` features on the whole image and then drops those
+    outside the mask, so an object filling a fraction ``object_fraction`` of the photo keeps
+    about that fraction of the budget: the budget is divided by it (at most
+    ``MASKED_BUDGET_MAX_FACTOR`` x). The object is a small part of the photo, so SIFT's upsampled
+    first octave is always used (no skip-then-retry).
+
+    Args:
+        opts: the options for whole photos.
+        object_fraction: mean fraction of a photo's pixels inside its mask, (0, 1].
+
+    >>> o = masked_options(SfmOptions(), 0.25)
+    >>> o.max_num_features, o.upsample_below > o.max_image_size, o.retry_upsampled_below
+    (16384, True, 0.0)
+    """
+    factor = min(float(MASKED_BUDGET_MAX_FACTOR), 1.0 / max(float(object_fraction), 1e-6))
+    return replace(opts, max_num_features=int(round(opts.max_num_features * max(factor, 1.0))),
+                   upsample_below=opts.max_image_size + 1, retry_upsampled_below=0.0)
+
+
 def register_photos(photo_dir: str | Path, names: list[str], work_dir: str | Path, opts: SfmOptions = SfmOptions(),
                     masks: dict[str, Path] | None = None, progress: StageProgress | None = None,
                     content: dict[str, str] | None = None) -> tuple[Registration, SfmReport]:
@@ -414,7 +442,8 @@ def _register_once(photo_dir: Path, names: list[str], work_dir: Path, opts: SfmO
 
     _, fp_matches, _ = _fingerprints(photo_dir, names, opts, masks, content)
     # refining the principal point is a later step of mapping (older mapping states stay valid)
-    fp_mapping = fingerprint([fp_matches, opts.seed] + (["refine_principal_point"] if opts.refine_principal_point else []))
+    fp_mapping = fingerprint([fp_matches, opts.seed] + {"refine": ["refine_principal_point"], "centre": [],
+                                                        "auto": ["principal_point auto"]}[opts.principal_point])
 
     if stages.status("mapping", fp_mapping) == "done" and model_dir.is_dir() and report_path.is_file():
         rec = pycolmap.Reconstruction(str(model_dir))
@@ -423,7 +452,7 @@ def _register_once(photo_dir: Path, names: list[str], work_dir: Path, opts: SfmO
         if rep.principal_point is None and rec.num_cameras() == 1:  # a registration from before the estimate
             principal = adjust_principal_point(rec, pycolmap, apply=False)  # on a copy: the model stays as it was
             if principal is not None:
-                rep.principal_point = asdict(replace(principal, used=opts.refine_principal_point))
+                rep.principal_point = asdict(replace(principal, used=opts.principal_point == "refine"))
                 write_json_atomic(report_path, asdict(rep))
         reg = registration_of_reconstruction(rec, names, "sfm", str(model_dir))
         reg.unregistered = dict(rep.unregistered)
@@ -470,7 +499,12 @@ def _register_once(photo_dir: Path, names: list[str], work_dir: Path, opts: SfmO
     rec = ranked[0]
     progress("principal point", 0, 1)
     t0 = time.perf_counter()
-    principal = adjust_principal_point(rec, pycolmap, apply=opts.refine_principal_point)
+    principal = adjust_principal_point(rec, pycolmap, apply=opts.principal_point == "refine")
+    if principal is not None and opts.principal_point == "auto":
+        use, why = photos_support_offset(principal, int(rec.num_reg_images()))
+        if use:  # the same adjustment, now on the registration itself
+            principal = adjust_principal_point(rec, pycolmap, apply=True) or replace(principal, used=True)
+        principal = replace(principal, decision=f"auto: {why}")
     seconds["principal_point"] = time.perf_counter() - t0
     progress("principal point", 1, 1)
     others: dict[str, int] = {}
@@ -550,6 +584,9 @@ def triangulate_known(photo_dir: str | Path, registration: Registration, work_di
     rec = pycolmap.triangulate_points(rec, str(db_path), str(photo_dir), str(out_dir), clear_points=True, options=mopts,
                                       refine_intrinsics=False)
     index = {p.name: k for k, p in enumerate(registration.photos)}
+    for image_id, obs in image_observations(rec).items():
+        k = index[rec.image(image_id).name]
+        registration.photos[k] = replace(registration.photos[k], observations_px=obs)
     pts, seen = [], []
     for _, p3d in rec.points3D.items():
         el = p3d.track.elements[0]

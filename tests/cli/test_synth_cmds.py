@@ -74,3 +74,25 @@ def test_synth_photos_command_is_the_library_photo_set(tmp_path, capsys):
     assert_one_line_error(code, err, "images exists")
     code, _, err = run(["synth-photos", tmp_path / "x", "--distance", "0.5"], capsys)
     assert_one_line_error(code, err, "--distance")
+
+
+def test_synth_photos_turntable_room_and_principal_point_flags(tmp_path, capsys):
+    from damcap.synth.photos import PhotoSetOptions, make_photo_set
+
+    code, stdout, err = run(["synth-photos", tmp_path / "cli", "--views", "2", "--size", "32", "--motion", "turntable", "--room",
+                             "--principal-dx", "2.5", "--principal-dy", "-1", "--jitter", "0"], capsys)
+    assert code == 0, err
+    assert "wrote 2 photos (turntable in a textured room)" in stdout
+    make_photo_set(tmp_path / "lib", PhotoSetOptions(views=2, size=32, motion="turntable", room=True, principal_dx_px=2.5,
+                                                     principal_dy_px=-1.0, jitter_deg=0.0))
+    files = sorted(p.relative_to(tmp_path / "lib") for p in (tmp_path / "lib").rglob("*") if p.is_file())
+    assert len(files) == 5
+    for f in files:
+        assert (tmp_path / "cli" / f).read_bytes() == (tmp_path / "lib" / f).read_bytes(), f
+    doc = json.loads((tmp_path / "cli" / "transforms.json").read_text())
+    assert (doc["cx"], doc["cy"]) == (18.5, 15.0)
+    code, _, err = run(["synth-photos", tmp_path / "x", "--size", "32", "--principal-dx", "8.5"], capsys)
+    assert_one_line_error(code, err, "--principal-dx 8.5", "quarter of --size 32")
+    code, _, err = run(["synth-photos", tmp_path / "y", "--motion", "spin"], capsys)
+    assert_one_line_error(code, err, "--motion", "spin")
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()

@@ -51,3 +51,19 @@ def test_principal_point_line_says_how_far_and_whether_it_is_used():
     line = principal_point_line(pp)
     assert "(+3.0, -4.0) px" in line and "5.0 sigma off" in line and "turns every camera by 0.25 deg" in line
     assert "the cameras use it" in principal_point_line({**pp, "used": True})
+
+
+@pytest.mark.parametrize("offset, sd, tilt, photos, used", [
+    ([-6.9, -11.2], [2.0, 2.2], 0.55, 8, True),    # Herz-Jesu-P8: 6.2 sigma
+    ([-4.1, -12.3], [3.8, 4.8], 0.54, 4, False),   # its first 4 photos: 2.8 sigma, too few photos
+    ([-6.9, -11.2], [2.0, 2.2], 0.55, 4, False),   # significant, but 4 photos
+    ([0.1, 59.1], [0.9, 20.1], 8.2, 24, False),    # a rendered turntable (truth: the centre): 2.9 sigma, 8 deg
+    ([30.0, 0.0], [1.0, 1.0], 1.5, 50, False),     # significant but a tilt beyond 1 deg
+    ([3.0, 0.0], [1.0, 1.0], 0.1, 5, True),        # exactly 3 sigma and 5 photos
+])
+def test_auto_uses_the_principal_point_only_where_the_photos_support_it(offset, sd, tilt, photos, used):
+    from damcap.reconstruct.colmap.principal_point import PrincipalPointEstimate, photos_support_offset
+
+    ok, why = photos_support_offset(PrincipalPointEstimate(offset, sd, tilt, False), photos)
+    assert ok is used
+    assert why.startswith("refined" if used else "kept at the centre") and f"{photos} photos" in why

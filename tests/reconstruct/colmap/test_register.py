@@ -41,7 +41,7 @@ def test_too_few_photos():
 
 def test_refine_principal_point_is_one_more_adjustment_on_the_same_matches(tmp_path):
     """Photos from a camera whose principal point sits 14 px right and 10 px up of the centre.
-    Without refine_principal_point it stays at the centre; with it, the second run reuses the
+    With principal_point="centre" it stays at the centre; with "refine", the second run reuses the
     features and matches, refines the point (it moves off the centre) and fits no worse.
 
     Not asserted: that it lands on the truth. With an object on a black background the
@@ -59,10 +59,10 @@ def test_refine_principal_point_is_one_more_adjustment_on_the_same_matches(tmp_p
     cams = orbit_cameras(n, 3.2, (0.0, 35.0), jitter_deg=4, seed=1)
     names = write_photo_set(tmp_path / "photos", bumpy_blob(subdivisions=5), cams, intr, exposure_series(n, 1),
                             light_dir_world=np.array([0.0, 1.0, 0.0]), seed=1)
-    opts = SfmOptions(camera_model="SIMPLE_PINHOLE")
+    opts = SfmOptions(camera_model="SIMPLE_PINHOLE", principal_point="centre")
     photos = tmp_path / "photos" / "images"
     fixed, rep_fixed = register_photos(photos, names, tmp_path / "work", opts)
-    refined, rep = register_photos(photos, names, tmp_path / "work", replace(opts, refine_principal_point=True))
+    refined, rep = register_photos(photos, names, tmp_path / "work", replace(opts, principal_point="refine"))
     assert rep_fixed.registered >= 0.8 * n
     assert rep.resumed == ["features", "matches"] and "principal_point" in rep.seconds
     c_fixed, c_refined = fixed.photos[0].camera, refined.photos[0].camera
@@ -80,7 +80,7 @@ def test_refine_principal_point_is_one_more_adjustment_on_the_same_matches(tmp_p
     old = json.loads(report_path.read_text())
     del old["principal_point"]
     report_path.write_text(json.dumps(old))
-    resumed, rep_resumed = register_photos(photos, names, tmp_path / "work", replace(opts, refine_principal_point=True))
+    resumed, rep_resumed = register_photos(photos, names, tmp_path / "work", replace(opts, principal_point="refine"))
     assert rep_resumed.resumed == ["features", "matches", "mapping"]
     assert rep_resumed.principal_point["used"] and rep_resumed.principal_point["offset_px"] == pytest.approx(est["offset_px"], abs=0.5)
     assert (resumed.photos[0].camera.cx, resumed.photos[0].camera.cy) == (c_refined.cx, c_refined.cy)

@@ -1,0 +1,465 @@
+"""Registration against ground-truth cameras (issue 26): damcap, its principal-point option, plain
+pycolmap and GLOMAP, side by side on Strecha's scenes (and the cape's LLFF reference).
+
+Scenes (``--scenes``): ``herz-jesus-p8`` (8 photos) and ``castle-p19`` (19 photos) of Strecha et
+al. 2008 (``real/strecha``, 1536x1024, ground-truth cameras read by ``--poses strecha:DIR``), and
+``cape`` (``real/mold_gold_cape``, 119 photos, 912 px; its reference is the LLFF poses, COLMAP
+with the principal point at the image centre: a reference, not ground truth). Four methods per
+scene, in one run:
+
+- ``damcap``: ``register_photos`` with ``SfmOptions(principal_point="centre")`` (no masks; the
+  default before the 'auto' rule, COLMAP's convention);
+- ``damcap refined pp``: ``SfmOptions(principal_point="refine")``; the default 'auto' picks one
+  of the two by :func:`~damcap.reconstruct.colmap.principal_point.photos_support_offset`, whose
+  decision the report lists per run;
+- ``pycolmap incremental``: plain pycolmap 4.2.1 as a new user runs it: ``extract_features``,
+  ``match_exhaustive`` and ``incremental_mapping``, all at their defaults;
+- ``pycolmap global``: ``global_mapping`` (GLOMAP) at its defaults on the same database (its
+  time = the shared extraction and matching + its own mapping).
+
+Reported per method (:func:`gt_errors`, :func:`intrinsics_vs_gt`): registered / total; rotation
+error (median, max) after the similarity that best aligns the camera centres with the reference
+(Umeyama), and after only the best common rotation (chordal mean, independent of the centres);
+camera-centre error after the similarity, relative to the reference centres' extent; focal length
+and principal point against the reference's, at the photos' resolution; damcap's own principal
+point estimate (``SfmReport.principal_point``); wall time. Results:
+``bench/results/registration_gt.json`` (scenes merge across runs) and ``bench/registration_gt.md``.
+
+``--first N`` registers only the scene's first N photos (sorted names; a window of neighbouring
+views), to see how few photos still fix the principal point; such runs are kept under the key
+``SCENE (first N)`` and reported in one table of their own.
+
+Run (from the repository root)::
+
+    .venv/bin/python -m bench.registration_gt [--scenes herz-jesus-p8 castle-p19 cape] [--first N ...] [--methods ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import shutil
+import sys
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import numpy as np
+
+from bench.common import CACHE, REPO, RESULTS, command_line, log, machine_info, shared_data_dir
+
+REPORT = Path(__file__).with_name("registration_gt.md")
+RESULT = RESULTS / "registration_gt.json"
+WORK = CACHE / "registration_gt"
+SCENES = ("herz-jesus-p8", "castle-p19", "cape")
+METHODS = ("damcap", "damcap refined pp", "pycolmap incremental", "pycolmap global")
+
+
+def scene_key(scene: str, first: int | None) -> str:
+    """The results' key of a scene, or of its first ``first`` photos.
+
+    >>> scene_key("castle-p19", 8)
+    'castle-p19 (first 8)'
+    """
+    return scene if first is None else f"{scene} (first {first})"
+
+
+def scene_paths(scene: str, data: Path) -> tuple[Path, str]:
+    """(photo folder, ``--poses`` spec of its reference cameras)."""
+    if scene == "cape":
+        root = data / "real" / "mold_gold_cape"
+        return root / "images", str(root / "poses_bounds.npy")
+    root = data / "real" / "strecha" / scene
+    return root / "images", f"strecha:{root / 'gt_cameras'}"
+
+
+# --------------------------------------------------------------------------------------------
+# Pure parts: errors against the reference, intrinsics, the report
+# --------------------------------------------------------------------------------------------
+
+def gt_errors(est: dict[str, np.ndarray], ref: dict[str, np.ndarray]) -> dict:
+    """How far estimated cameras lie from reference cameras of the same photos.
+
+    Args:
+        est: photo name -> (4, 4) estimated world_from_cam (any world frame and scale, OpenGL axes).
+        ref: photo name -> (4, 4) reference world_from_cam, same axes.
+
+    Returns:
+        ``compared`` (photos in both) and, with at least 3 of them: ``rot_sim_median_deg`` /
+        ``rot_sim_max_deg`` (angle of R_ref^T R_sim R_est, R_sim the rotation of the Umeyama
+        similarity taking the estimated centres onto the reference's), ``rot_common_median_deg`` /
+        ``rot_common_max_deg`` (after the best common rotation only), ``centre_median_rel`` /
+        ``centre_max_rel`` (|s R c + t - c_ref| over ``extent``), ``extent`` (largest distance
+        between two reference centres, reference units).
+    """
+    from damcap.reconstruct.normalize import (rotation_aligned_errors_deg, rotation_angle_deg, similarity_scale,
+                                              transform_points, umeyama_similarity)
+
+    names = sorted(n for n in est if n in ref)
+    if len(names) < 3:
+        return {"compared": len(names)}
+    e = np.stack([est[n] for n in names]).astype(np.float64)
+    r = np.stack([ref[n] for n in names]).astype(np.float64)
+    ref_from_est = umeyama_similarity(e[:, :3, 3], r[:, :3, 3])
+    r_sim = ref_from_est[:3, :3] / similarity_scale(ref_from_est)
+    rot_sim = rotation_angle_deg(np.swapaxes(r[:, :3, :3], -1, -2) @ r_sim @ e[:, :3, :3])
+    rot_common = rotation_aligned_errors_deg(e, r)
+    c_ref = r[:, :3, 3]
+    extent = float(np.max(np.linalg.norm(c_ref[:, None] - c_ref[None], axis=-1)))
+    centre = np.linalg.norm(transform_points(ref_from_est, e[:, :3, 3]) - c_ref, axis=1) / extent
+    return {"compared": len(names), "rot_sim_median_deg": float(np.median(rot_sim)), "rot_sim_max_deg": float(np.max(rot_sim)),
+            "rot_common_median_deg": float(np.median(rot_common)), "rot_common_max_deg": float(np.max(rot_common)),
+            "centre_median_rel": float(np.median(centre)), "centre_max_rel": float(np.max(centre)), "extent": extent}
+
+
+def intrinsics_vs_gt(cams: list, ref) -> dict:
+    """Focal length and principal point of the registered photos' cameras against the reference's.
+
+    Args:
+        cams: the estimated :class:`~damcap.reconstruct.undistort.PhotoCamera` of every registered
+            photo (one shared camera or one each), all at the reference's resolution.
+        ref: the reference camera (:class:`PhotoCamera`) at the same resolution.
+
+    Returns:
+        ``cameras`` (distinct estimates), ``focal_px`` (mean of (fx + fy) / 2 over the photos),
+        ``focal_err_px`` (minus the reference's (fx + fy) / 2), ``focal_spread_px`` (max - min over
+        the photos), ``pp_px`` (mean (cx, cy)), ``pp_err_px`` (minus the reference's), all in
+        pixels (centres at +0.5).
+    """
+    if not cams:
+        return {}
+    f = np.array([(c.fx + c.fy) / 2 for c in cams])
+    pp = np.array([(c.cx, c.cy) for c in cams]).mean(0)
+    f_ref = (ref.fx + ref.fy) / 2
+    return {"cameras": len({(c.fx, c.fy, c.cx, c.cy) for c in cams}), "focal_px": float(f.mean()),
+            "focal_err_px": float(f.mean() - f_ref), "focal_spread_px": float(f.max() - f.min()),
+            "pp_px": [float(pp[0]), float(pp[1])], "pp_err_px": [float(pp[0] - ref.cx), float(pp[1] - ref.cy)]}
+
+
+def pp_rule_refines(estimate: dict | None, photos: int) -> tuple[bool, str]:
+    """What damcap's 'auto' principal point decides for a report's estimate
+    (:func:`~damcap.reconstruct.colmap.principal_point.photos_support_offset`).
+
+    Args:
+        estimate: ``SfmReport.principal_point`` (``offset_px``, ``sd_px``, ``tilt_deg``) or None.
+        photos: registered photos.
+
+    Returns:
+        (refine, why).
+    """
+    from damcap.reconstruct.colmap.principal_point import PrincipalPointEstimate, photos_support_offset
+
+    if not estimate:
+        return False, "no estimate"
+    return photos_support_offset(PrincipalPointEstimate(estimate["offset_px"], estimate["sd_px"], estimate["tilt_deg"], False), photos)
+
+
+def discussion_lines(res: dict) -> list[str]:
+    """What the measurements say, computed from them: the principal-point rule's decision per
+    run against what refining did, and what global mapping did against incremental mapping."""
+    from damcap.reconstruct.colmap.principal_point import PP_MAX_TILT_DEG, PP_MIN_PHOTOS, PP_MIN_SIGMAS
+
+    lines = [(f"Principal-point rule (damcap's 'auto', `photos_support_offset`: refine when the offset is >= {PP_MIN_SIGMAS:g} sigma, >= "
+             f"{PP_MIN_PHOTOS} photos registered, tilt <= {PP_MAX_TILT_DEG:g} deg), against what refining measured "
+             "(rotation sim median, centred -> refined; principal point minus the reference's):"), ""]
+    for key, sc in res.get("scenes", {}).items():
+        rows = {r["method"]: r for r in sc["rows"]}
+        d, r = rows.get("damcap"), rows.get("damcap refined pp")
+        if not d or not d.get("principal_point"):
+            continue
+        refine, why = pp_rule_refines(d["principal_point"], d["registered"])
+        text = f"- {key}: {why}"
+        if r and "errors" in d and "errors" in r:
+            de, re_ = d["errors"], r["errors"]
+            text += (f"; measured {de['rot_sim_median_deg']:.3f} -> {re_['rot_sim_median_deg']:.3f} deg, centre "
+                     f"{100 * de['centre_median_rel']:.2f} -> {100 * re_['centre_median_rel']:.2f} % (median); pp "
+                     f"({d['intrinsics']['pp_err_px'][0]:+.1f}, {d['intrinsics']['pp_err_px'][1]:+.1f}) -> "
+                     f"({r['intrinsics']['pp_err_px'][0]:+.1f}, {r['intrinsics']['pp_err_px'][1]:+.1f}) px")
+        lines.append(text)
+    lines += ["", ("Global (GLOMAP) against incremental mapping on the same database (mapping stage alone; rotation sim "
+              "median / max; centre max):"), ""]
+    for key, sc in res.get("scenes", {}).items():
+        rows = {r["method"]: r for r in sc["rows"]}
+        i, g = rows.get("pycolmap incremental"), rows.get("pycolmap global")
+        if not (i and g and "errors" in i and "errors" in g):
+            continue
+        ie, ge = i["errors"], g["errors"]
+        lines.append(f"- {key}: registered {i['registered']} / {g['registered']} of {i['photos']}; mapping "
+                     f"{i['stage_wall_s']['mapping']:.1f} s / {g['stage_wall_s']['mapping']:.1f} s; rotation "
+                     f"{ie['rot_sim_median_deg']:.3f} / {ie['rot_sim_max_deg']:.3f} deg against "
+                     f"{ge['rot_sim_median_deg']:.3f} / {ge['rot_sim_max_deg']:.3f} deg; centre max "
+                     f"{100 * ie['centre_max_rel']:.2f} % against {100 * ge['centre_max_rel']:.2f} %")
+    return lines
+
+
+def _num(v, fmt: str) -> str:
+    return "-" if v is None else format(v, fmt)
+
+
+def row_cells(row: dict) -> list[str]:
+    """One method's table cells (see :func:`write_report` for the columns)."""
+    e = row.get("errors", {})
+    i = row.get("intrinsics", {})
+    pp = row.get("principal_point")
+    rot_sim = f"{_num(e.get('rot_sim_median_deg'), '.3f')} / {_num(e.get('rot_sim_max_deg'), '.3f')}"
+    rot_common = f"{_num(e.get('rot_common_median_deg'), '.3f')} / {_num(e.get('rot_common_max_deg'), '.3f')}"
+    centre = (f"{100 * e['centre_median_rel']:.2f} / {100 * e['centre_max_rel']:.2f}" if "centre_median_rel" in e else "- / -")
+    focal = f"{i['focal_px']:.1f} ({i['focal_err_px']:+.1f})" if i else "-"
+    if i and i.get("cameras", 1) > 1:
+        focal += f", {i['cameras']} cameras, spread {i['focal_spread_px']:.1f}"
+    ppt = f"({i['pp_err_px'][0]:+.1f}, {i['pp_err_px'][1]:+.1f})" if i else "-"
+    est = (f"({pp['offset_px'][0]:+.1f}, {pp['offset_px'][1]:+.1f}) +- ({pp['sd_px'][0]:.1f}, {pp['sd_px'][1]:.1f})"
+           if pp else "-")
+    reg = f"{row['registered']}/{row['photos']}" + (f" ({row['error'][:60]})" if row.get("error") else "")
+    mapping = row.get("stage_wall_s", {}).get("mapping")
+    wall = f"{row['wall_s']:.1f}" + (f" ({mapping:.1f})" if mapping is not None else "")
+    return [row["method"], reg, rot_sim, rot_common, centre, focal, ppt, est, wall]
+
+
+def write_report(res: dict, path: Path = REPORT) -> None:
+    """The markdown report: one table per scene, each with the command and machine that made it."""
+    lines = ["# Registration against ground-truth cameras (issue 26)", "",
+             ("Generated by `bench/registration_gt.py` from `bench/results/registration_gt.json`. Four methods per scene, "
+             "side by side in one run (the machine is shared: compare times within a scene's run only)."), "",
+             ("Columns: registered / photos; rotation error (deg, median / max) after the similarity that aligns the camera "
+             "centres with the reference (`sim`), and after only the best common rotation (`common`); camera-centre error "
+             "after the similarity, % of the reference centres' extent (median / max); focal length (px, mean over photos; "
+             "in brackets minus the reference's (fx + fy) / 2); principal point minus the reference's (px); the principal "
+             "point damcap estimates (offset from the image centre +- 1 sigma, px; `SfmReport.principal_point`); wall time "
+             "(s; in brackets the mapping stage alone; `pycolmap global` includes the extraction and matching it "
+             "shares with `pycolmap incremental`). All "
+             "pixels at the photos' resolution, pixel centres at +0.5."), ""]
+    for scene in [s for s in SCENES if s in res.get("scenes", {})]:
+        sc = res["scenes"][scene]
+        m = sc["machine"]
+        ref = sc["reference"]
+        lines += [f"## {scene}", "",
+                  (f"Command: `{sc['command']}` ({m['date_utc']}, {m['nproc']} cores, {m['cpu_model']}; pycolmap "
+                  f"{sc.get('pycolmap', '?')})."), "",
+                  (f"Reference: {ref['what']}; focal {ref['focal_px']:.2f} px, principal point ({ref['pp_px'][0]:.2f}, "
+                  f"{ref['pp_px'][1]:.2f}) px = ({ref['pp_offset_px'][0]:+.2f}, {ref['pp_offset_px'][1]:+.2f}) from the "
+                  f"image centre (tilt {ref['pp_tilt_deg']:.3f} deg); {ref['photos']} photos of {ref['width']}x{ref['height']}; "
+                  f"centres' extent {ref['extent']:.3g} units."), "",
+                  ("| method | registered | rotation sim (deg) | rotation common (deg) | centre (% extent) | focal (px) | "
+                  "pp - ref (px) | damcap pp estimate (px) | wall (s) |"),
+                  "|---|---|---|---|---|---|---|---|---|"]
+        lines += ["| " + " | ".join(row_cells(r)) + " |" for r in sc["rows"]]
+        lines += ["| " + " | ".join(row_cells(r)) + " |" for r in sc.get("global_reruns", [])]
+        lines.append("")
+        lines += sorted({f"Global mapping again on the same database: `{c}`." for c in sc.get("global_rerun_commands", [])})
+        if sc.get("global_rerun_commands"):
+            lines.append("")
+    subsets = [k for k in res.get("scenes", {}) if k not in SCENES]
+    if subsets:
+        lines += ["## Fewer photos", "",
+                  ("The first N photos of a scene (sorted names: neighbouring views), same columns; the command of each run "
+                  "below the table."), "",
+                  ("| photos | method | registered | rotation sim (deg) | rotation common (deg) | centre (% extent) | focal (px) | "
+                  "pp - ref (px) | damcap pp estimate (px) | wall (s) |"),
+                  "|---|---|---|---|---|---|---|---|---|---|"]
+        for key in sorted(subsets, key=lambda k: (k.split(" ")[0], res["scenes"][k]["photos"])):
+            lines += [f"| {key} | " + " | ".join(row_cells(r)) + " |" for r in res["scenes"][key]["rows"]]
+        lines += ["", *(f"- `{c}`" for c in sorted({res["scenes"][k]["command"] for k in subsets})), ""]
+    lines += ["## What the measurements say", "", *discussion_lines(res), ""]
+    path.write_text("\n".join(lines), encoding="utf-8")
+
+
+# --------------------------------------------------------------------------------------------
+# The runs
+# --------------------------------------------------------------------------------------------
+
+def run_damcap(images: Path, names: list[str], work: Path, refine_pp: bool) -> dict:
+    from damcap.common.errors import DamcapError
+    from damcap.reconstruct.colmap.register import SfmOptions, register_photos
+
+    shutil.rmtree(work, ignore_errors=True)
+    opts = replace(SfmOptions(), principal_point="refine" if refine_pp else "centre")
+    t0 = time.perf_counter()
+    try:
+        reg, rep = register_photos(images, names, work, opts)
+    except DamcapError as e:
+        return {"registered": 0, "error": str(e)[:300], "wall_s": time.perf_counter() - t0, "options": asdict(opts)}
+    return {"registered": rep.registered, "wall_s": time.perf_counter() - t0, "stage_wall_s": rep.seconds,
+            "features": rep.features, "retry": rep.retry, "principal_point": rep.principal_point,
+            "mean_reprojection_error_px": rep.mean_reprojection_error_px, "options": asdict(opts), "registration": reg}
+
+
+def _best(recs: dict, names: list[str], where: str):
+    from damcap.reconstruct.colmap.model import registration_of_reconstruction
+
+    if not recs:
+        return None, 0
+    best = max(recs.values(), key=lambda r: r.num_reg_images())
+    return registration_of_reconstruction(best, names, "pycolmap", where), len(recs)
+
+
+def run_pycolmap(images: Path, names: list[str], work: Path) -> tuple[dict, dict]:
+    """Plain pycolmap, every call at its defaults: (incremental row, global row)."""
+    import pycolmap
+
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    db = work / "database.db"
+    t0 = time.perf_counter()
+    pycolmap.extract_features(db, images, image_names=names)
+    t_extract = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    pycolmap.match_exhaustive(db)
+    t_match = time.perf_counter() - t0
+    shared = t_extract + t_match
+    rows = []
+    for method, mapper, out in (("pycolmap incremental", pycolmap.incremental_mapping, work / "incremental"),
+                                ("pycolmap global", pycolmap.global_mapping, work / "global")):
+        out.mkdir()
+        t0 = time.perf_counter()
+        try:
+            recs = mapper(db, images, out)
+            error = None
+        except Exception as e:  # noqa: BLE001  (a mapper failure is a result of the study, recorded)
+            recs, error = {}, f"{type(e).__name__}: {e}"
+        t_map = time.perf_counter() - t0
+        reg, models = _best(recs, names, str(out))
+        row = {"registered": len(reg.photos) if reg else 0, "models": models, "wall_s": shared + t_map,
+               "stage_wall_s": {"extract": t_extract, "match": t_match, "mapping": t_map}, "registration": reg}
+        if error:
+            row["error"] = error[:300]
+        rows.append(row)
+    return rows[0], rows[1]
+
+
+def rerun_global(scene: str, data: Path, seed: int) -> dict:
+    """``global_mapping`` again on the database the scene's last ``pycolmap`` run left in the cache,
+    with every random seed of its options set to ``seed`` (-1: its default, a random seed); a
+    row like :func:`run_scene`'s, ``wall_s`` the mapping alone."""
+    import pycolmap
+
+    from damcap.reconstruct.known_poses import load_known_poses
+    from damcap.reconstruct.photos import image_size, list_photos
+
+    images, spec = scene_paths(scene, data)
+    names = list_photos(images)
+    work = WORK / scene / "pycolmap"
+    db = work / "database.db"
+    if not db.is_file():
+        raise SystemExit(f"error: {db} not found; run the scene with the pycolmap methods first")
+    opts = pycolmap.GlobalPipelineOptions()
+    m = opts.mapper
+    for o in (opts, m, m.rotation_averaging, m.global_positioning):
+        o.random_seed = seed
+    out = work / f"global-seed{seed}"
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir()
+    log(f"{scene}: pycolmap global, seed {seed}, on {db}")
+    t0 = time.perf_counter()
+    recs = pycolmap.global_mapping(db, images, out, opts)
+    wall = time.perf_counter() - t0
+    reg, models = _best(recs, names, str(out))
+    ref = load_known_poses(spec, {n: image_size(images / n) for n in names})
+    row = {"method": f"pycolmap global, seed {seed} (mapping only)", "photos": len(names),
+           "registered": len(reg.photos) if reg else 0, "models": models, "wall_s": wall, "stage_wall_s": {"mapping": wall},
+           "seed": seed}
+    if reg is not None and reg.photos:
+        row["errors"] = gt_errors({p.name: p.world_from_cam for p in reg.photos}, {p.name: p.world_from_cam for p in ref.photos})
+        row["intrinsics"] = intrinsics_vs_gt([p.camera for p in reg.photos], ref.photos[0].camera)
+    log(f"  -> {json.dumps(row)}")
+    return row
+
+
+def reference_summary(ref, what: str) -> dict:
+    from damcap.reconstruct.colmap.principal_point import principal_point_tilt_deg
+
+    c = ref.photos[0].camera
+    c_ref = ref.world_from_cams[:, :3, 3]
+    off = [c.cx - c.width / 2, c.cy - c.height / 2]
+    return {"what": what, "photos": len(ref.photos), "width": c.width, "height": c.height, "focal_px": (c.fx + c.fy) / 2,
+            "fx_px": c.fx, "fy_px": c.fy, "pp_px": [c.cx, c.cy], "pp_offset_px": off,
+            "pp_tilt_deg": principal_point_tilt_deg(off, (c.fx + c.fy) / 2),
+            "extent": float(np.max(np.linalg.norm(c_ref[:, None] - c_ref[None], axis=-1)))}
+
+
+def _sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+
+
+def run_scene(scene: str, data: Path, methods: tuple[str, ...], first: int | None = None) -> dict:
+    import pycolmap
+
+    from damcap.reconstruct.known_poses import load_known_poses
+    from damcap.reconstruct.photos import image_size, list_photos
+
+    images, spec = scene_paths(scene, data)
+    names = list_photos(images)[:first]
+    ref = load_known_poses(spec, {n: image_size(images / n) for n in names})
+    ref_cams = {p.name: p.world_from_cam for p in ref.photos}
+    what = ("Strecha ground truth (gt_cameras, K scaled from 3072x2048)" if scene != "cape"
+            else "LLFF poses_bounds.npy (COLMAP, principal point at the image centre): a reference, not ground truth")
+    out = {"photos": len(names), "reference": reference_summary(ref, what), "pycolmap": pycolmap.__version__,
+           "register_py_sha256": _sha(REPO / "reconstruct" / "colmap" / "register.py"), "rows": []}
+    work = WORK / scene_key(scene, first).replace(" ", "-").replace("(", "").replace(")", "")
+    results: dict[str, dict] = {}
+    for method in methods:
+        log(f"{scene_key(scene, first)}: {method} on {len(names)} photos")
+        if method == "damcap":
+            results[method] = run_damcap(images, names, work / "damcap", refine_pp=False)
+        elif method == "damcap refined pp":
+            results[method] = run_damcap(images, names, work / "damcap-refined-pp", refine_pp=True)
+        elif method == "pycolmap incremental" or (method == "pycolmap global" and method not in results):
+            inc, glo = run_pycolmap(images, names, work / "pycolmap")
+            results["pycolmap incremental"], results["pycolmap global"] = inc, glo
+    for method in methods:
+        r = dict(results[method])
+        reg = r.pop("registration", None)
+        row = {"method": method, "photos": len(names), **r}
+        if reg is not None and reg.photos:
+            row["errors"] = gt_errors({p.name: p.world_from_cam for p in reg.photos}, ref_cams)
+            row["intrinsics"] = intrinsics_vs_gt([p.camera for p in reg.photos], ref.photos[0].camera)
+            row["distortion_k1"] = float(np.mean([p.camera.distortion[0] for p in reg.photos]))
+        log(f"  -> {json.dumps({k: v for k, v in row.items() if k not in ('options', 'retry', 'stage_wall_s')})}")
+        out["rows"].append(row)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scenes", nargs="+", default=["herz-jesus-p8", "castle-p19"], choices=list(SCENES))
+    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
+    ap.add_argument("--first", nargs="+", type=int, default=[None], help="register only the first N photos (each N in turn)")
+    ap.add_argument("--global-seeds", nargs="+", type=int, default=None,
+                    help="instead of the study: global_mapping again on each scene's cached database, once per seed")
+    args = ap.parse_args(argv)
+    import damcap.reconstruct.colmap.register  # noqa: F401  (imports pycolmap after OpenImageIO/OpenCV)
+
+    data = shared_data_dir()
+    if args.global_seeds is not None:
+        for scene in args.scenes:
+            rows = [rerun_global(scene, data, seed) for seed in args.global_seeds]
+            res = json.loads(RESULT.read_text(encoding="utf-8"))
+            sc = res["scenes"][scene]
+            kept = [r for r in sc.get("global_reruns", []) if r["seed"] not in args.global_seeds]
+            sc["global_reruns"] = kept + rows
+            sc["global_rerun_commands"] = sorted(set(sc.get("global_rerun_commands", [])) | {command_line("registration_gt", argv)})
+            RESULT.write_text(json.dumps(res, indent=1), encoding="utf-8")
+            write_report(res)
+        return 0
+    for scene in args.scenes:
+        for first in args.first:
+            sc = run_scene(scene, data, tuple(args.methods), first)
+            sc["command"] = command_line("registration_gt", argv)
+            sc["machine"] = machine_info()
+            # read again just before writing: scenes measured by other runs meanwhile are kept
+            res = json.loads(RESULT.read_text(encoding="utf-8")) if RESULT.is_file() else {}
+            res.setdefault("scenes", {})[scene_key(scene, first)] = sc
+            RESULT.write_text(json.dumps(res, indent=1), encoding="utf-8")
+            write_report(res)
+    return 0
+
+
+def rewrite_report() -> None:
+    """The markdown report again from the saved results (no registration is rerun)."""
+    write_report(json.loads(RESULT.read_text(encoding="utf-8")))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -78,6 +78,25 @@ def scene_paths(scene: str, data: Path) -> tuple[Path, str]:
 # Pure parts: errors against the reference, intrinsics, the report
 # --------------------------------------------------------------------------------------------
 
+def centres_extent(centres: np.ndarray) -> float:
+    """Largest distance between two of the (N, 3) camera centres (their units).
+
+    >>> centres_extent(np.array([[0.0, 0, 0], [3.0, 4.0, 0], [1.0, 0, 0]]))
+    5.0
+    """
+    c = np.asarray(centres, np.float64)
+    return float(np.max(np.linalg.norm(c[:, None] - c[None], axis=-1)))
+
+
+def scored(row: dict, reg, ref) -> dict:
+    """``row`` with ``errors`` (:func:`gt_errors`) and ``intrinsics`` (:func:`intrinsics_vs_gt`)
+    of a registration against the reference registration, when it has cameras."""
+    if reg is not None and reg.photos:
+        row["errors"] = gt_errors({p.name: p.world_from_cam for p in reg.photos}, {p.name: p.world_from_cam for p in ref.photos})
+        row["intrinsics"] = intrinsics_vs_gt([p.camera for p in reg.photos], ref.photos[0].camera)
+    return row
+
+
 def gt_errors(est: dict[str, np.ndarray], ref: dict[str, np.ndarray]) -> dict:
     """How far estimated cameras lie from reference cameras of the same photos.
 
@@ -106,7 +125,7 @@ def gt_errors(est: dict[str, np.ndarray], ref: dict[str, np.ndarray]) -> dict:
     rot_sim = rotation_angle_deg(np.swapaxes(r[:, :3, :3], -1, -2) @ r_sim @ e[:, :3, :3])
     rot_common = rotation_aligned_errors_deg(e, r)
     c_ref = r[:, :3, 3]
-    extent = float(np.max(np.linalg.norm(c_ref[:, None] - c_ref[None], axis=-1)))
+    extent = centres_extent(c_ref)
     centre = np.linalg.norm(transform_points(ref_from_est, e[:, :3, 3]) - c_ref, axis=1) / extent
     return {"compared": len(names), "rot_sim_median_deg": float(np.median(rot_sim)), "rot_sim_max_deg": float(np.max(rot_sim)),
             "rot_common_median_deg": float(np.median(rot_common)), "rot_common_max_deg": float(np.max(rot_common)),
@@ -359,9 +378,7 @@ def rerun_global(scene: str, data: Path, seed: int) -> dict:
     row = {"method": f"pycolmap global, seed {seed} (mapping only)", "photos": len(names),
            "registered": len(reg.photos) if reg else 0, "models": models, "wall_s": wall, "stage_wall_s": {"mapping": wall},
            "seed": seed}
-    if reg is not None and reg.photos:
-        row["errors"] = gt_errors({p.name: p.world_from_cam for p in reg.photos}, {p.name: p.world_from_cam for p in ref.photos})
-        row["intrinsics"] = intrinsics_vs_gt([p.camera for p in reg.photos], ref.photos[0].camera)
+    scored(row, reg, ref)
     log(f"  -> {json.dumps(row)}")
     return row
 
@@ -375,7 +392,7 @@ def reference_summary(ref, what: str) -> dict:
     return {"what": what, "photos": len(ref.photos), "width": c.width, "height": c.height, "focal_px": (c.fx + c.fy) / 2,
             "fx_px": c.fx, "fy_px": c.fy, "pp_px": [c.cx, c.cy], "pp_offset_px": off,
             "pp_tilt_deg": principal_point_tilt_deg(off, (c.fx + c.fy) / 2),
-            "extent": float(np.max(np.linalg.norm(c_ref[:, None] - c_ref[None], axis=-1)))}
+            "extent": centres_extent(c_ref)}
 
 
 def _sha(path: Path) -> str:
@@ -391,7 +408,6 @@ def run_scene(scene: str, data: Path, methods: tuple[str, ...], first: int | Non
     images, spec = scene_paths(scene, data)
     names = list_photos(images)[:first]
     ref = load_known_poses(spec, {n: image_size(images / n) for n in names})
-    ref_cams = {p.name: p.world_from_cam for p in ref.photos}
     what = ("Strecha ground truth (gt_cameras, K scaled from 3072x2048)" if scene != "cape"
             else "LLFF poses_bounds.npy (COLMAP, principal point at the image centre): a reference, not ground truth")
     out = {"photos": len(names), "reference": reference_summary(ref, what), "pycolmap": pycolmap.__version__,
@@ -411,9 +427,7 @@ def run_scene(scene: str, data: Path, methods: tuple[str, ...], first: int | Non
         r = dict(results[method])
         reg = r.pop("registration", None)
         row = {"method": method, "photos": len(names), **r}
-        if reg is not None and reg.photos:
-            row["errors"] = gt_errors({p.name: p.world_from_cam for p in reg.photos}, ref_cams)
-            row["intrinsics"] = intrinsics_vs_gt([p.camera for p in reg.photos], ref.photos[0].camera)
+        if scored(row, reg, ref).get("errors") is not None:
             row["distortion_k1"] = float(np.mean([p.camera.distortion[0] for p in reg.photos]))
         log(f"  -> {json.dumps({k: v for k, v in row.items() if k not in ('options', 'retry', 'stage_wall_s')})}")
         out["rows"].append(row)

@@ -108,6 +108,8 @@ def run_reconstruct(root: Path) -> dict:
 def run_pycolmap(root: Path, names: list[str]) -> dict:
     import pycolmap
 
+    from damcap.reconstruct.poses import world_from_cam_of_colmap
+
     work = root / "work-pycolmap"
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir()
@@ -122,13 +124,7 @@ def run_pycolmap(root: Path, names: list[str]) -> dict:
     if not recs:
         return {"registered": 0, "wall_s": wall}
     best = max(recs.values(), key=lambda r: r.num_reg_images())
-    est = {}
-    for im in best.images.values():
-        cam_from_world = np.eye(4)
-        cam_from_world[:3, :4] = im.cam_from_world().matrix()
-        world_from_cam = np.linalg.inv(cam_from_world)
-        world_from_cam[:3, 1:3] *= -1  # OpenCV -> OpenGL camera axes
-        est[im.name] = world_from_cam
+    est = {im.name: world_from_cam_of_colmap(im.cam_from_world().matrix()) for im in best.images.values()}
     return {"registered": best.num_reg_images(), "wall_s": wall, "est": est}
 
 

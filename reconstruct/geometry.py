@@ -259,6 +259,31 @@ def _clean(verts: np.ndarray, tris: np.ndarray, smooth_iterations: int = 0, keep
     return Mesh(v.astype(np.float32), t, n.astype(np.float32), np.zeros(len(t), np.int32))
 
 
+def hull_box(masks: list[np.ndarray], world_from_cams: np.ndarray, intrinsics: list[Intrinsics], tolerance: int = 0,
+             search_radius: float | None = None, coarse: int = 48) -> tuple[np.ndarray, np.ndarray] | None:
+    """The box around the visual hull: a coarse carve (``coarse`` voxels a side) of a cube around
+    the origin, padded by a voxel or two.
+
+    Args:
+        masks, world_from_cams, intrinsics, tolerance: as :func:`carve`; cameras in the normalised
+            frame (the object near the origin).
+        search_radius: half-size of the cube (default: 0.9 x the nearest camera's distance).
+        coarse: voxels along the cube's side.
+
+    Returns:
+        (box_min (3,), box_max (3,)), or None when no point is inside the silhouettes.
+    """
+    cams = np.asarray(world_from_cams, np.float64)
+    r = search_radius or 0.9 * float(np.linalg.norm(cams[:, :3, 3], axis=1).min())
+    origin, size, dims = grid_box(np.full(3, -r), np.full(3, r), coarse)
+    occ = carve(masks, cams, intrinsics, voxel_centres(origin, size, dims), tolerance).reshape(dims[::-1])
+    inside = np.argwhere(occ > 0.2)  # generous: the coarse grid only bounds the object
+    if len(inside) == 0:
+        return None
+    zyx_lo, zyx_hi = inside.min(0), inside.max(0)
+    return origin + (zyx_lo[::-1] - 1.5) * size, origin + (zyx_hi[::-1] + 2.5) * size
+
+
 def visual_hull(inputs: GeometryInputs, voxels: int = 160, tolerance: int = 0, smooth_iterations: int = 10,
                 search_radius: float | None = None) -> tuple[Mesh, dict[str, Any]]:
     """Visual hull mesh from masks and cameras: a coarse pass finds the object's box, a fine pass
@@ -280,18 +305,11 @@ def visual_hull(inputs: GeometryInputs, voxels: int = 160, tolerance: int = 0, s
     if not inputs.masks:
         raise DamcapError("the visual hull needs object masks (--masks DIR)")
     cams = inputs.world_from_cams
-    r = search_radius or 0.9 * float(np.linalg.norm(cams[:, :3, 3], axis=1).min())
-    lo, hi = np.full(3, -r), np.full(3, r)
-    coarse = 48
-    origin, size, dims = grid_box(lo, hi, coarse)
-    occ = carve(inputs.masks, cams, inputs.intrinsics, voxel_centres(origin, size, dims), tolerance).reshape(dims[::-1])
-    inside = np.argwhere(occ > 0.2)  # generous: the coarse grid only bounds the object
-    if len(inside) == 0:
+    box = hull_box(inputs.masks, cams, inputs.intrinsics, tolerance, search_radius)
+    if box is None:
         raise DamcapError("the visual hull is empty: no point is inside every silhouette; check that the masks "
                           "are white on the object and that they belong to these photos")
-    zyx_lo, zyx_hi = inside.min(0), inside.max(0)
-    box_lo = origin + (zyx_lo[::-1] - 1.5) * size
-    box_hi = origin + (zyx_hi[::-1] + 2.5) * size
+    box_lo, box_hi = box
     origin, size, dims = grid_box(box_lo, box_hi, voxels)
     occ = carve(inputs.masks, cams, inputs.intrinsics, voxel_centres(origin, size, dims), tolerance).reshape(dims[::-1])
     occ = gaussian_filter(occ, sigma=0.7, mode="constant")

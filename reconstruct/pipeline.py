@@ -48,7 +48,7 @@ from damcap.reconstruct.normalize import normalization_transform, recentre_trans
 from damcap.reconstruct.frames import FramePhoto, write_frames
 from damcap.reconstruct.normalize import transform_mesh_similarity
 from damcap.reconstruct.photos import exposure_factors, list_photos, match_masks, read_mask, verify_photos
-from damcap.reconstruct.poses import Registration
+from damcap.reconstruct.poses import Registration, registration_without
 from damcap.reconstruct.known_poses import load_known_poses
 from damcap.common.mesh import Mesh, load_mesh
 from damcap.reconstruct.colmap.register import SfmOptions, StageProgress, masked_options, register_photos, triangulate_known
@@ -332,21 +332,17 @@ def _registration_images(photos_dir: Path, names: list[str], work: Path, progres
     return RegistrationImages(proxy_dir, by_photo, file_digests(proxy_dir, [by_photo[n] for n in names]))
 
 
-def _object_fraction(masks: dict[str, Path], names: list[str]) -> float:
-    """Mean fraction of a photo's pixels inside its mask."""
-    return float(np.mean([float((read_mask(masks[n]) > 0.5).mean()) for n in names]))
-
-
 def _registration(photos_dir: Path, names: list[str], work: Path, opts: ReconstructOptions,
                   masks: dict[str, Path] | None, known: Registration | None, progress: StageProgress,
-                  masked: bool) -> Registration:
-    """Known poses, or COLMAP on the whole photos (``work/sfm``) or on features inside the masks
-    (``work/sfm-masked``, :func:`~damcap.reconstruct.colmap.register.masked_options`)."""
+                  object_fraction: float | None) -> Registration:
+    """Known poses, or COLMAP on the whole photos (``work/sfm``) or, given the masks' mean
+    ``object_fraction``, on features inside the masks (``work/sfm-masked``,
+    :func:`~damcap.reconstruct.colmap.register.masked_options`)."""
     if known is not None:
         return known
     images = _registration_images(photos_dir, names, work, progress)
-    if masked and masks:
-        sfm = masked_options(opts.sfm(), _object_fraction(masks, names))
+    if object_fraction is not None and masks:
+        sfm = masked_options(opts.sfm(), object_fraction)
         reg, _ = register_photos(images.folder, images.names(names), work / "sfm-masked", sfm, images.masks(masks), progress,
                                  images.content)
     else:
@@ -439,8 +435,11 @@ def _known_poses(poses: str | None, sizes: dict[str, tuple[int, int]], opts: Rec
     return reg
 
 
-def _check_masks(masks: dict[str, Path] | None, sizes: dict[str, tuple[int, int]]) -> None:
+def _check_masks(masks: dict[str, Path] | None, sizes: dict[str, tuple[int, int]]) -> float | None:
     """Step 1: every mask decodes, has its photo's size and marks some object (read before any work).
+
+    Returns:
+        the mean fraction of a photo's pixels inside its mask (None without masks).
 
     Raises:
         DamcapError: an unreadable or truncated mask, a size other than the photo's, or a mask
@@ -448,11 +447,14 @@ def _check_masks(masks: dict[str, Path] | None, sizes: dict[str, tuple[int, int]
     """
     from damcap.reconstruct.photos import MASK_THRESHOLD
 
+    fractions = []
     for name, path in (masks or {}).items():
-        m = read_mask(path, sizes[name], name)
-        if not (m > MASK_THRESHOLD).any():
+        inside = read_mask(path, sizes[name], name) > MASK_THRESHOLD
+        if not inside.any():
             raise DamcapError(f"{path}: the mask of {name} has no object pixel (white = object, none above "
                               f"{MASK_THRESHOLD}); fix the mask or move the photo out of the folder")
+        fractions.append(float(inside.mean()))
+    return float(np.mean(fractions)) if fractions else None
 
 
 def _response_curve(photos_dir: Path, names: list[str], opts: ReconstructOptions) -> tuple[np.ndarray | None, str]:
@@ -473,11 +475,12 @@ def _response_curve(photos_dir: Path, names: list[str], opts: ReconstructOptions
 
 def _cameras(photos_dir: Path, names: list[str], work: Path, opts: ReconstructOptions, masks: dict[str, Path] | None,
              known: Registration | None, progress: StageProgress, log: Callable[[str], None],
-             seconds: dict[str, float], masked: bool = False) -> Registration:
-    """Step 2: registration (or known poses), and sparse points triangulated at known poses when the
+             seconds: dict[str, float], object_fraction: float | None = None) -> Registration:
+    """Step 2: registration (or known poses; with ``object_fraction``, on features inside the
+    masks: :func:`_registration`), and sparse points triangulated at known poses when the
     geometry needs them."""
     t0 = time.perf_counter()
-    reg = _registration(photos_dir, names, work, opts, masks, known, progress, masked)
+    reg = _registration(photos_dir, names, work, opts, masks, known, progress, object_fraction)
     seconds["registration"] = seconds.get("registration", 0.0) + time.perf_counter() - t0
     _check_enough(reg, len(names), opts, photos_dir)
     if len(reg.points_world) == 0 and _needs_points(opts, masks is not None):
@@ -533,10 +536,10 @@ class CheckedCameras:
 
 
 def _candidate(photos_dir: Path, names: list[str], work: Path, opts: ReconstructOptions, masks: dict[str, Path] | None,
-               known: Registration | None, progress: StageProgress, log: Callable[[str], None], seconds: dict[str, float],
-               masked: bool) -> CheckedCameras:
+               object_fraction: float | None, known: Registration | None, progress: StageProgress,
+               log: Callable[[str], None], seconds: dict[str, float], masked: bool) -> CheckedCameras:
     """Cameras of one kind (whole photos or features inside the masks), their targets and masks, and their self-check."""
-    reg = _cameras(photos_dir, names, work, opts, masks, known, progress, log, seconds, masked)
+    reg = _cameras(photos_dir, names, work, opts, masks, known, progress, log, seconds, object_fraction if masked else None)
     targets = [pinhole_for(p.camera, opts.capture_size) for p in reg.photos]
     mask_px, stats = _target_masks(reg, targets, masks, progress)
     check = None
@@ -562,7 +565,7 @@ def wants_masked_features(registered: int, photos: int, check: SelfCheck | None)
 
 
 def _choose_cameras(photos_dir: Path, names: list[str], work: Path, opts: ReconstructOptions, masks: dict[str, Path] | None,
-                    known: Registration | None, progress: StageProgress, log: Callable[[str], None],
+                    object_fraction: float | None, known: Registration | None, progress: StageProgress, log: Callable[[str], None],
                     seconds: dict[str, float]) -> tuple[CheckedCameras, list[dict[str, Any]]]:
     """Step 2 with the self-check: the registration to keep and every candidate tried.
 
@@ -570,7 +573,7 @@ def _choose_cameras(photos_dir: Path, names: list[str], work: Path, opts: Recons
     :func:`wants_masked_features`, features inside the masks are registered too and the candidate
     with more photos that pass the self-check is kept (the first on a tie).
     """
-    args = (photos_dir, names, work, opts, masks, known, progress, log, seconds)
+    args = (photos_dir, names, work, opts, masks, object_fraction, known, progress, log, seconds)
     first_masked = opts.mask_features == "always" and masks is not None
     first: CheckedCameras | None = None
     error: DamcapError | None = None
@@ -625,11 +628,7 @@ def _apply_self_check(c: CheckedCameras, opts: ReconstructOptions, n_photos: int
             f"{photos_dir}: the cameras disagree with the photos ({c.check.summary()}; e.g. {worst}). "
             "Check that the masks are white on the object and belong to these photos; --self-check warn writes the capture anyway")
     keep = [k for k, p in enumerate(c.reg.photos) if p.name not in flagged]
-    new_index = np.full(len(c.reg.photos), -1, np.int64)
-    new_index[keep] = np.arange(len(keep))
-    seen = new_index[np.asarray(c.reg.points_seen_from, np.int64)] if len(c.reg.points_seen_from) else np.zeros(0, np.int64)
-    reg = replace(c.reg, photos=[c.reg.photos[k] for k in keep], points_world=np.asarray(c.reg.points_world)[seen >= 0]
-                  if len(seen) else c.reg.points_world, points_seen_from=seen[seen >= 0])
+    reg = registration_without(c.reg, set(flagged))
     dropped = {n: f"self-check: {why}" for n, why in flagged.items()}
     _check_enough(reg, n_photos, opts, photos_dir)
     return CheckedCameras(reg, [c.targets[k] for k in keep], [c.mask_px[k] for k in keep] if c.mask_px is not None else None,
@@ -707,13 +706,13 @@ def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, o
     # every input is read and checked before the output folder is touched
     sizes = _photo_sizes(photos_dir, names)
     known = _known_poses(poses, sizes, opts, photos_dir, progress)
-    _check_masks(masks, sizes)
+    object_fraction = _check_masks(masks, sizes)
     exposure_factors([photos_dir / n for n in names], opts.ignore_exposure, tone_curve)  # refuses missing EXIF now
     created = not out.exists()
     _prepare_output(out, [photos_dir] + ([Path(masks_dir)] if masks_dir is not None else []))
     try:
-        return _reconstruct_into(photos_dir, out, opts, names, masks, masks_dir, poses, known, log_response, tone_curve,
-                                 progress, log, seconds, t_all)
+        return _reconstruct_into(photos_dir, out, opts, names, masks, object_fraction, masks_dir, poses, known, log_response,
+                                 tone_curve, progress, log, seconds, t_all)
     except DamcapError:
         # a folder this run made is removed, unless it holds a registration a rerun resumes from
         if created and not any((out / WORK_FOLDER / sub).exists() for sub in ("sfm", "sfm-masked")):
@@ -722,13 +721,13 @@ def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, o
 
 
 def _reconstruct_into(photos_dir: Path, out: Path, opts: ReconstructOptions, names: list[str], masks: dict[str, Path] | None,
-                      masks_dir: str | os.PathLike | None, poses: str | None, known: Registration | None,
+                      object_fraction: float | None, masks_dir: str | os.PathLike | None, poses: str | None, known: Registration | None,
                       log_response: np.ndarray | None, tone_curve: str, progress: StageProgress, log: Callable[[str], None],
                       seconds: dict[str, float], t_all: float) -> tuple[Capture, ReconstructReport]:
     """Steps 2 to 7 into the prepared output folder (:func:`reconstruct_capture`)."""
     work = out / WORK_FOLDER
     work.mkdir(exist_ok=True)
-    chosen, candidates = _choose_cameras(photos_dir, names, work, opts, masks, known, progress, log, seconds)
+    chosen, candidates = _choose_cameras(photos_dir, names, work, opts, masks, object_fraction, known, progress, log, seconds)
     chosen, left_out = _apply_self_check(chosen, opts, len(names), photos_dir, log)
     reg, targets, mask_px = chosen.reg, chosen.targets, chosen.mask_px
     for name, why in sorted(reg.unregistered.items()):

@@ -16,7 +16,7 @@ Known poses from files are read by :mod:`damcap.reconstruct.known_poses`; a COLM
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -71,6 +71,26 @@ class Registration:
     def world_from_cams(self) -> np.ndarray:
         """(N, 4, 4) float64 camera-to-world of every registered photo."""
         return np.stack([p.world_from_cam for p in self.photos]) if self.photos else np.zeros((0, 4, 4))
+
+
+def registration_without(reg: Registration, names: set[str]) -> Registration:
+    """The registration without the photos in ``names``; the sparse points whose observing photo
+    (``points_seen_from``) is left out go with it, the others keep their photo's new index.
+
+    >>> from damcap.reconstruct.undistort import PhotoCamera
+    >>> cam = PhotoCamera(4, 4, 2.0, 2.0, 2.0, 2.0)
+    >>> reg = Registration([RegisteredPhoto(n, np.eye(4), cam) for n in "abc"], points_world=np.arange(9.0).reshape(3, 3),
+    ...                    points_seen_from=np.array([0, 1, 2]))
+    >>> out = registration_without(reg, {"b"})
+    >>> [p.name for p in out.photos], out.points_world[:, 0].tolist(), out.points_seen_from.tolist()
+    (['a', 'c'], [0.0, 6.0], [0, 1])
+    """
+    keep = [k for k, p in enumerate(reg.photos) if p.name not in names]
+    new_index = np.full(len(reg.photos), -1, np.int64)
+    new_index[keep] = np.arange(len(keep))
+    seen = new_index[np.asarray(reg.points_seen_from, np.int64)] if len(reg.points_seen_from) else np.zeros(0, np.int64)
+    points = np.asarray(reg.points_world)[seen >= 0] if len(seen) else reg.points_world
+    return replace(reg, photos=[reg.photos[k] for k in keep], points_world=points, points_seen_from=seen[seen >= 0])
 
 
 def world_from_cam_of_colmap(cam_from_world_cv: np.ndarray) -> np.ndarray:

@@ -30,8 +30,7 @@ from damcap.common.cameras import pixel_rays_world
 from damcap.common.capture_folder import Intrinsics
 from damcap.common.validate import FRACTION, POSITIVE, in_range
 
-from damcap.reconstruct.geometry import MASK_THRESHOLD, carve, grid_box, mask_values_at, project_points, sample_bilinear, voxel_centres
-from damcap.reconstruct.normalize import optical_axes_focus
+from damcap.reconstruct.geometry import MASK_THRESHOLD, grid_box, hull_box, mask_values_at, project_points, sample_bilinear, voxel_centres
 
 
 Verdict = Literal["consistent", "photos flagged", "inconsistent", "not checked"]
@@ -316,33 +315,6 @@ def verdict_of(flagged: int, photos: int) -> Verdict:
 # The check
 # --------------------------------------------------------------------------------------------
 
-def consensus_grid(masks: list[np.ndarray], world_from_cams: np.ndarray, intrinsics: list[Intrinsics], tolerance: int,
-                   voxels: int) -> tuple[np.ndarray, float, tuple[int, int, int]] | None:
-    """The box of the tolerant visual hull of all photos, gridded with ``voxels`` along its longest side.
-
-    A coarse carve inside a cube around the point the cameras look at (0.9 x the nearest camera's
-    distance) finds the box.
-
-    Returns:
-        (grid origin (3,) = corner of voxel [0,0,0], voxel size, (X, Y, Z) dims), or None when even
-        the tolerant hull is empty.
-    """
-    cams = np.asarray(world_from_cams, np.float64)
-    focus, cond = optical_axes_focus(cams)
-    if cond < 1e-3:
-        focus = cams[:, :3, 3].mean(0) - cams[:, :3, 2].mean(0)
-    r = 0.9 * float(np.linalg.norm(cams[:, :3, 3] - focus, axis=1).min())
-    origin, size, dims = grid_box(focus - r, focus + r, 40)
-    occ = carve(masks, cams, intrinsics, voxel_centres(origin, size, dims), tolerance).reshape(dims[::-1])
-    inside = np.argwhere(occ > 0.2)
-    if len(inside) == 0:
-        return None
-    zyx_lo, zyx_hi = inside.min(0), inside.max(0)
-    box_lo = origin + (zyx_lo[::-1] - 1.0) * size
-    box_hi = origin + (zyx_hi[::-1] + 2.0) * size
-    return grid_box(box_lo, box_hi, voxels)
-
-
 def self_check(names: list[str], world_from_cams: np.ndarray, intrinsics: list[Intrinsics],
                masks: list[np.ndarray] | None, observations: list[tuple[float | None, int, int | None]],
                opts: SelfCheckOptions = SelfCheckOptions(), seed: int = 0,
@@ -351,7 +323,8 @@ def self_check(names: list[str], world_from_cams: np.ndarray, intrinsics: list[I
 
     Args:
         names: N photo names.
-        world_from_cams: (N, 4, 4) OpenGL camera-to-world.
+        world_from_cams: (N, 4, 4) OpenGL camera-to-world in the normalised frame (the point the
+            cameras look at on the origin, object radius about 1: :func:`~damcap.reconstruct.normalize.normalization_transform`).
         intrinsics: N pinhole cameras of ``masks``.
         masks: N (h, w) float32 masks in [0, 1] in those pinhole cameras, or None.
         observations: N :func:`observation_stats` of each photo's sparse points.
@@ -369,11 +342,12 @@ def self_check(names: list[str], world_from_cams: np.ndarray, intrinsics: list[I
     for k in range(n):
         rep, pts, obj = observations[k]
         checks.append(PhotoCheck(names[k], reprojection_px=rep, points=pts, object_points=obj))
-    focus, cond = optical_axes_focus(cams) if n >= 2 else (cams[0, :3, 3] - cams[0, :3, 2], 0.0)
+    focus = np.zeros(3)  # the normalised frame's origin: the point the cameras look at
     voxels_on = 0
     if masks is not None and n >= 2:
         tol = consensus_tolerance(n - 1, opts.tolerance_fraction)
-        grid = consensus_grid(masks, cams, intrinsics, tol, opts.voxels)
+        box = hull_box(masks, cams, intrinsics, tol)
+        grid = grid_box(*box, opts.voxels) if box is not None else None
         if grid is None:
             for c in checks:
                 c.silhouette_precision, c.silhouette_recall = 0.0, 0.0

@@ -186,15 +186,17 @@ def render_room(room: MeshRaycaster, room_from_cam: np.ndarray, intr: Intrinsics
         radiance_lin: (h, w, 3) float32 room radiance, 0 on a miss.
     """
     origin, d = pixel_rays_world(room_from_cam, intr.fl_x, intr.fl_y, intr.cx, intr.cy, intr.w, intr.h)
-    t_room = room.cast(origin, d.astype(np.float32))["t_hit"]
+    d = d.astype(np.float32)
+    hit = room.cast(origin, d)
+    t_room = hit["t_hit"]
     ss = int(supersample)
     if ss > 1:
         offs = (np.stack(np.meshgrid(np.arange(ss), np.arange(ss)), -1).reshape(-1, 2) + 0.5) / ss - 0.5
         _, d = pixel_rays_world(room_from_cam, intr.fl_x, intr.fl_y, intr.cx, intr.cy, intr.w, intr.h, offsets=offs)
-    else:
-        d = d[None]
-    d = d.astype(np.float32)
-    hit = room.cast(origin, d)
+        d = d.astype(np.float32)
+        hit = room.cast(origin, d)
+    else:  # the pixel centres' rays, cast once
+        d, hit = d[None], {k: v[None] for k, v in hit.items()}
     ok = np.isfinite(hit["t_hit"])
     dv = d[ok]
     pos = origin.astype(np.float32) + hit["t_hit"][ok][:, None] * dv

@@ -8,6 +8,7 @@ relative to a reference exposure, so equal radiance gives equal values in every 
 
 from __future__ import annotations
 
+import functools
 import os
 import shutil
 import tempfile
@@ -64,6 +65,9 @@ def linearize_photo(
     img = np.asarray(srgb)
     if img.ndim != 3 or img.shape[2] != 3:
         raise DamcapError(f"a photo must be (H, W, 3), got shape {img.shape}")
+    if log_response is None and np.issubdtype(img.dtype, np.integer):
+        # integer codes: the curve once per code, then a table look-up (the same values, ~10x faster)
+        return (_srgb_table(int(np.iinfo(img.dtype).max) + 1) * (reference_exposure / h)).astype(np.float32)[img]
     encoded = _encoded(img)
     if log_response is None:
         lin = srgb_to_linear(encoded)
@@ -84,6 +88,12 @@ def clipped_mask(srgb: np.ndarray, level: float = CLIP_LEVEL) -> np.ndarray:
     [[True, False]]
     """
     return (_encoded(np.asarray(srgb)) >= level).any(axis=-1)
+
+
+@functools.lru_cache(maxsize=2)
+def _srgb_table(levels: int) -> np.ndarray:
+    """(levels,) float64: the sRGB decoding curve at each integer code ``z / (levels - 1)``."""
+    return srgb_to_linear(np.arange(levels) / float(levels - 1))
 
 
 def _encoded(img: np.ndarray) -> np.ndarray:

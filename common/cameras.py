@@ -96,7 +96,25 @@ def pixel_rays_world(
     offs = np.asarray(offsets, dtype=np.float64)
     u = j[None] + offs[:, 0, None, None]
     v = i[None] + offs[:, 1, None, None]
-    d_cam = np.stack([(u - cx) / fl_x, -(v - cy) / fl_y, -np.ones_like(u)], axis=-1)
+    return world_from_cam[:3, 3].copy(), rays_world_at(world_from_cam, fl_x, fl_y, cx, cy, u, v)
+
+
+def rays_world_at(world_from_cam: np.ndarray, fl_x: float, fl_y: float, cx: float, cy: float, u: np.ndarray,
+                  v: np.ndarray) -> np.ndarray:
+    """Unit world-space ray directions through image points (u right, v down, pixels; pixel
+    (i, j) spans [j, j+1] x [i, i+1]) of a pinhole camera with OpenGL axes.
+
+    Args:
+        world_from_cam: (4, 4) camera-to-world.
+        fl_x, fl_y, cx, cy: pinhole intrinsics, pixels.
+        u, v: (...) float image coordinates, pixels.
+
+    Returns:
+        (..., 3) float64 unit directions.
+
+    >>> rays_world_at(np.eye(4), 10.0, 10.0, 5.0, 5.0, np.array([5.0]), np.array([5.0])).tolist()
+    [[0.0, 0.0, -1.0]]
+    """
+    d_cam = np.stack([(u - cx) / fl_x, -(v - cy) / fl_y, -np.ones(np.shape(u))], axis=-1)
     d_cam /= np.linalg.norm(d_cam, axis=-1, keepdims=True)
-    d_world = d_cam @ world_from_cam[:3, :3].T
-    return world_from_cam[:3, 3].copy(), d_world
+    return d_cam @ world_from_cam[:3, :3].T

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from damcap.common.cameras import pixel_rays_world
+from damcap.common.cameras import pixel_rays_world, rays_world_at
 from damcap.common.mesh import Mesh
 
 
@@ -107,7 +107,9 @@ class MeshRaycaster:
                     edge |= pad[1 + di:1 + di + h, 1 + dj:1 + dj + w] != visible
             edge &= visible
             if edge.any():
-                _, d_sub = pixel_rays_world(world_from_cam, fl_x, fl_y, cx, cy, w, h, offsets=offs)
-                sub = np.isfinite(self.cast(origin, d_sub[:, edge])["t_hit"]).mean(0)
+                ii, jj = np.nonzero(edge)  # sub-pixel rays of the silhouette pixels only
+                d_sub = rays_world_at(world_from_cam, fl_x, fl_y, cx, cy, jj[None] + 0.5 + offs[:, :1],
+                                      ii[None] + 0.5 + offs[:, 1:])
+                sub = np.isfinite(self.cast(origin, d_sub)["t_hit"]).mean(0)
                 coverage[edge] = np.maximum(sub, 1.0 / ss**2)
         return SurfaceBuffers(normal_world=normal, position_world=position, coverage=coverage, triangle_id=tri)

@@ -5,6 +5,7 @@ folder. Frames the geometry misses are dropped with a reason."""
 
 from __future__ import annotations
 
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -99,9 +100,20 @@ def write_frames(out: Path, photos: list[FramePhoto], world_from_cams: np.ndarra
     Returns:
         the frames written, and the dropped photos with their reasons.
     """
+    with ThreadPoolExecutor(max_workers=1) as writer:  # writes one frame while the next is ray cast
+        return _write_frames(out, photos, world_from_cams, mesh, sphere, reference, supersample, dtype, progress, log,
+                             log_response, keep_clipped, writer)
+
+
+def _write_frames(out: Path, photos: list[FramePhoto], world_from_cams: np.ndarray, mesh: Mesh,
+                  sphere: tuple[np.ndarray, float] | None, reference: float, supersample: int, dtype: str,
+                  progress: Callable[[str, int, int], None], log: Callable[[str], None], log_response: np.ndarray | None,
+                  keep_clipped: bool, writer: ThreadPoolExecutor) -> tuple[list[Frame], dict[str, str]]:
+    """:func:`write_frames`' loop; each frame's files go to ``writer`` (at most two pending)."""
     rc = MeshRaycaster(mesh)
     frames: list[Frame] = []
     dropped: dict[str, str] = {}
+    pending: list[Future] = []
     for k, p in enumerate(photos):
         progress("frames", k, len(photos))
         tgt = p.target
@@ -133,7 +145,11 @@ def write_frames(out: Path, photos: list[FramePhoto], world_from_cams: np.ndarra
                       intrinsics=tgt, exposure=p.exposure,
                       extra={"photo": p.name, "exposure_relative": float(p.exposure_factor / reference),
                              **({"clipped_pixels": clipped_px} if clipped_px else {})})
-        write_frame(Capture(out, [frame], [], []), frame, data, dtype=dtype)
+        while len(pending) >= 2:
+            pending.pop(0).result()  # raises the writer's error here
+        pending.append(writer.submit(write_frame, Capture(out, [frame], [], []), frame, data, dtype=dtype))
         frames.append(frame)
+    for f in pending:
+        f.result()
     progress("frames", len(photos), len(photos))
     return frames, dropped

@@ -1,6 +1,6 @@
 """Geometry for a capture from what a CPU has: silhouettes, sparse points, a sphere, or a user mesh.
 
-Dense multi-view stereo needs CUDA in COLMAP, so ``--geometry`` offers:
+COLMAP's dense stereo needs CUDA (not in the pycolmap wheel), so ``--geometry`` offers:
 
 - ``visual-hull``: space carving from the object masks and calibrated cameras (a voxel is kept
   while every camera that sees it sees the object there), smoothed, meshed with Open3D's
@@ -10,6 +10,9 @@ Dense multi-view stereo needs CUDA in COLMAP, so ``--geometry`` offers:
   estimated from neighbours and turned toward a camera that sees each point.
 - ``sphere``: an analytic sphere fitted to the silhouettes (each silhouette ray is tangent to
   the sphere) or to the points: model only what the scene requires.
+- ``dense``: multi-view stereo (:func:`damcap.reconstruct.dense.dense_geometry`: plane sweep in
+  torch, fused by screened Poisson), trimmed by the silhouettes when masks are given. It reaches
+  into concavities the visual hull bridges; it needs texture to match.
 - ``mesh:FILE``: a user mesh in the cameras' world frame (the input poses' frame), aligned to the
   silhouettes or points by scaled ICP when it does not fit them as given.
 - ``auto``: with masks, the sphere when the silhouettes fit one within ``sphere_max_rms`` of its
@@ -35,7 +38,7 @@ from damcap.common.mesh import Mesh, load_mesh, signed_volume, vertex_normals_ar
 from damcap.common.raycast import MeshRaycaster
 from damcap.common.shapes import sphere_mesh
 
-GeometryMode = Literal["auto", "visual-hull", "poisson", "sphere", "mesh"]
+GeometryMode = Literal["auto", "visual-hull", "poisson", "sphere", "dense", "mesh"]
 MeshAlign = Literal["auto", "none", "icp"]
 #: mask value above which a pixel is the object
 MASK_THRESHOLD = 0.5
@@ -46,7 +49,7 @@ class GeometryOptions:
     """How ``damcap reconstruct`` builds the geometry (``--geometry`` and friends)."""
 
     mode: str = "auto"
-    """'auto', 'visual-hull', 'poisson', 'sphere' or 'mesh:FILE'"""
+    """'auto', 'visual-hull', 'poisson', 'sphere', 'dense' or 'mesh:FILE'"""
     voxels: int = 160
     """visual hull: voxels along the longest side of the object's box"""
     hull_tolerance: int = 0
@@ -76,6 +79,8 @@ class GeometryInputs:
     """(P, 3) sparse points"""
     points_seen_from: np.ndarray = field(default_factory=lambda: np.zeros((0,), np.int64))
     """(P,) index of a camera observing each point"""
+    images: list[np.ndarray] | None = None
+    """N (h, w, 3) float32 linear photos at the intrinsics' resolution (dense stereo), or None"""
 
 
 @dataclass
@@ -181,12 +186,18 @@ def carve(masks: list[np.ndarray], world_from_cams: np.ndarray, intrinsics: list
     """
     smallest = np.ones((tolerance + 1, len(points_world)), np.float32)
     pts = np.asarray(points_world, dtype=np.float32)  # float32: carving is memory-bound
+    alive = np.arange(len(pts))  # points not yet carved to 0 by tolerance + 1 views: only they can change
     for mask, m, intr in zip(masks, world_from_cams, intrinsics):
-        x = mask_values_at(pts, mask, m, intr)
+        if len(alive) == 0:
+            break
+        x = mask_values_at(pts[alive], mask, m, intr)
+        sm = smallest[:, alive]
         for k in range(tolerance + 1):  # insert into the sorted list of the smallest values
-            lo = np.minimum(smallest[k], x)
-            x = np.maximum(smallest[k], x)
-            smallest[k] = lo
+            lo = np.minimum(sm[k], x)
+            x = np.maximum(sm[k], x)
+            sm[k] = lo
+        smallest[:, alive] = sm
+        alive = alive[sm[tolerance] > 0]
     return smallest[tolerance]
 
 
@@ -224,13 +235,13 @@ def isosurface_mesh(volume_zyx: np.ndarray, origin: np.ndarray, voxel_size: floa
     verts = tm.vertex.positions.numpy().astype(np.float64)
     tris = tm.triangle.indices.numpy().astype(np.int32)
     verts = origin + (verts - 1.0) * voxel_size
-    mesh = _clean(verts, tris)
+    mesh = clean_surface(verts, tris)
     if signed_volume(mesh.vertices, mesh.triangles) < 0:
         mesh = Mesh(mesh.vertices, mesh.triangles[:, ::-1].copy(), -mesh.vertex_normals, mesh.triangle_groups)
     return mesh
 
 
-def _clean(verts: np.ndarray, tris: np.ndarray, smooth_iterations: int = 0, keep_largest: bool = True) -> Mesh:
+def clean_surface(verts: np.ndarray, tris: np.ndarray, smooth_iterations: int = 0, keep_largest: bool = True) -> Mesh:
     """Tidy a reconstructed surface with Open3D: weld equal vertices, drop triangles with a repeated
     index, keep the largest connected part, Taubin-smooth, recompute normals (float32 result).
 
@@ -314,7 +325,7 @@ def visual_hull(inputs: GeometryInputs, voxels: int = 160, tolerance: int = 0, s
     occ = carve(inputs.masks, cams, inputs.intrinsics, voxel_centres(origin, size, dims), tolerance).reshape(dims[::-1])
     occ = gaussian_filter(occ, sigma=0.7, mode="constant")
     mesh = isosurface_mesh(occ, origin + 0.5 * size, size)
-    mesh = _clean(mesh.vertices, mesh.triangles, smooth_iterations)
+    mesh = clean_surface(mesh.vertices, mesh.triangles, smooth_iterations)
     touches = bool((occ[[0, -1]] > 0.5).any() or (occ[:, [0, -1]] > 0.5).any() or (occ[:, :, [0, -1]] > 0.5).any())
     return mesh, {"voxel_size": size, "grid": list(dims), "box_min": box_lo.tolist(), "box_max": box_hi.tolist(),
                   "touches_box": touches, "triangles": int(len(mesh.triangles))}
@@ -510,7 +521,7 @@ def poisson_mesh(inputs: GeometryInputs, depth: int = 8, smooth_iterations: int 
     lo, hi = p.min(0), p.max(0)
     pad = 0.05 * (hi - lo)
     mesh = mesh.crop(o3d.geometry.AxisAlignedBoundingBox(lo - pad, hi + pad))
-    out = _clean(np.asarray(mesh.vertices), np.asarray(mesh.triangles), smooth_iterations)
+    out = clean_surface(np.asarray(mesh.vertices), np.asarray(mesh.triangles), smooth_iterations)
     return out, {"points_used": int(len(p)), "points_given": int(len(pts_all)), "triangles": int(len(out.triangles))}
 
 
@@ -668,8 +679,8 @@ def parse_mode(mode: str) -> tuple[GeometryMode, Path | None]:
         if not mode[5:]:
             raise DamcapError("--geometry mesh:FILE needs a file name after 'mesh:'")
         return "mesh", p
-    if mode not in ("auto", "visual-hull", "poisson", "sphere"):
-        raise DamcapError(f"--geometry {mode!r}: use auto, visual-hull, poisson, sphere or mesh:FILE")
+    if mode not in ("auto", "visual-hull", "poisson", "sphere", "dense"):
+        raise DamcapError(f"--geometry {mode!r}: use auto, visual-hull, poisson, sphere, dense or mesh:FILE")
     return mode, None  # type: ignore[return-value]
 
 
@@ -715,6 +726,8 @@ def build_geometry(inputs: GeometryInputs, opts: GeometryOptions = GeometryOptio
     if mode == "poisson":
         mesh, stats = poisson_mesh(inputs, opts.poisson_depth, opts.smooth_iterations)
         return GeometryResult(mesh, mode, f"Poisson surface of {stats['points_used']} sparse points", None, stats)
+    if mode == "dense":  # built on this module's pieces, so it lives above it
+        raise DamcapError("--geometry dense is built by damcap.reconstruct.dense.dense_geometry, not build_geometry")
     if mode == "sphere":
         c, r, rms, what = sphere_fit(inputs)
         return GeometryResult(sphere_mesh(c, r), mode, f"sphere fitted to {what} (rms {rms / r:.2%} of radius)",

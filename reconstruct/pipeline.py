@@ -43,11 +43,12 @@ from damcap.common.errors import DamcapError
 from damcap.common.validate import COUNT, COUNT_OR_ZERO, FRACTION, MAX_IMAGE_SIDE, POSITIVE, SEED, check_ranges, in_range, require_memory, require_resolution
 from damcap.common.version import damcap_version
 
-from damcap.reconstruct.geometry import GeometryInputs, GeometryOptions, GeometryResult, build_geometry
+from damcap.reconstruct.geometry import GeometryInputs, GeometryOptions, GeometryResult, build_geometry, parse_mode
 from damcap.reconstruct.normalize import normalization_transform, recentre_transform, similarity_scale, transform_points, transform_world_from_cam
+from damcap.reconstruct.dense import DenseOptions, dense_geometry
 from damcap.reconstruct.frames import FramePhoto, write_frames
 from damcap.reconstruct.normalize import transform_mesh_similarity
-from damcap.reconstruct.photos import exposure_factors, list_photos, match_masks, read_mask, verify_photos
+from damcap.reconstruct.photos import exposure_factors, list_photos, match_masks, read_mask, read_photo_radiance, verify_photos
 from damcap.reconstruct.poses import Registration, registration_without
 from damcap.reconstruct.known_poses import load_known_poses
 from damcap.common.mesh import Mesh, load_mesh
@@ -66,7 +67,7 @@ class ReconstructOptions:
     """Every option of ``damcap reconstruct`` (the CLI mirrors them one to one)."""
 
     geometry: str = "auto"
-    """'auto', 'visual-hull', 'poisson', 'sphere' or 'mesh:FILE'"""
+    """'auto', 'visual-hull', 'poisson', 'sphere', 'dense' (multi-view stereo) or 'mesh:FILE'"""
     mesh_align: Literal["auto", "none", "icp"] = "auto"
     """mesh:FILE: 'none' (in the cameras' frame), 'icp' (align to silhouettes/points), 'auto'"""
     voxels: int = field(default=160, metadata=in_range(16, MAX_VOXELS))
@@ -79,6 +80,12 @@ class ReconstructOptions:
     """Taubin smoothing iterations of carved / Poisson meshes"""
     sphere_max_rms: float = field(default=0.01, metadata=FRACTION)
     """auto: picks the sphere when it fits within this fraction of its radius"""
+    dense_size: int = field(default=320, metadata=in_range(16, MAX_IMAGE_SIDE))
+    """dense: longest side of the images stereo matches, pixels (at most the capture size)"""
+    dense_planes: int = field(default=64, metadata=in_range(4, 1024))
+    """dense: depth hypotheses per view"""
+    dense_views: int = field(default=40, metadata=in_range(2, 100_000))
+    """dense: most views that get a depth map (spread over the cameras)"""
     max_image_size: int = field(default=1024, metadata=in_range(1, MAX_IMAGE_SIDE))
     """registration: longest image side for features, pixels"""
     max_num_features: int = field(default=4096, metadata=COUNT)
@@ -187,6 +194,9 @@ class ReconstructOptions:
         return GeometryOptions(mode=self.geometry, voxels=self.voxels, hull_tolerance=self.hull_tolerance,
                                smooth_iterations=self.smooth_iterations, poisson_depth=self.poisson_depth,
                                sphere_max_rms=self.sphere_max_rms, mesh_align=self.mesh_align)
+
+    def dense_options(self) -> DenseOptions:
+        return DenseOptions(image_size=self.dense_size, depth_planes=self.dense_planes, max_views=self.dense_views)
 
 
 @dataclass
@@ -352,15 +362,13 @@ def _registration(photos_dir: Path, names: list[str], work: Path, opts: Reconstr
 
 def _needs_points(opts: ReconstructOptions, has_masks: bool) -> bool:
     """Whether the geometry mode needs sparse points (Poisson; auto/sphere without masks;
-    aligning a user mesh without masks)."""
-    from damcap.reconstruct.geometry import parse_mode
-
+    aligning a user mesh without masks; dense without masks: its depth range)."""
     mode, _ = parse_mode(opts.geometry)
     if mode == "poisson":
         return True
     if has_masks:
         return False
-    return mode in ("auto", "sphere") or (mode == "mesh" and opts.mesh_align == "icp")
+    return mode in ("auto", "sphere", "dense") or (mode == "mesh" and opts.mesh_align == "icp")
 
 
 def _check_enough(reg: Registration, n_photos: int, opts: ReconstructOptions, photos_dir: Path) -> None:
@@ -394,8 +402,6 @@ class NormalisedScene:
 def _check_inputs(photos_dir: Path, masks_dir: str | os.PathLike | None, poses: str | None,
                   opts: ReconstructOptions) -> tuple[list[str], dict[str, Path] | None]:
     """Step 1: the photos, their masks, and the options that name files (checked before any work)."""
-    from damcap.reconstruct.geometry import parse_mode
-
     names = list_photos(photos_dir)
     verify_photos(photos_dir, names)  # a truncated JPEG is refused here, not dropped as unregistered
     masks = match_masks(names, masks_dir) if masks_dir is not None else None
@@ -635,8 +641,21 @@ def _apply_self_check(c: CheckedCameras, opts: ReconstructOptions, n_photos: int
                           c.check, c.features), dropped
 
 
+def _stereo_photos(reg: Registration, targets: list[Intrinsics], photos_dir: Path, log_response: np.ndarray | None,
+                   progress: StageProgress) -> list[np.ndarray]:
+    """The registered photos as linear radiance on their pinhole targets (what dense stereo
+    matches; exposure does not matter to its normalised cross-correlation)."""
+    out = []
+    for k, (p, tgt) in enumerate(zip(reg.photos, targets)):
+        progress("geometry (photos)", k, len(targets))
+        out.append(resample_to_pinhole(read_photo_radiance(photos_dir / p.name, 1.0, 1.0, log_response).radiance_lin,
+                                       p.camera, tgt))
+    return out
+
+
 def _scene(reg: Registration, targets: list[Intrinsics], mask_px: list[np.ndarray] | None, opts: ReconstructOptions,
-           work: Path, progress: StageProgress, log: Callable[[str], None], seconds: dict[str, float]) -> NormalisedScene:
+           work: Path, progress: StageProgress, log: Callable[[str], None], seconds: dict[str, float], photos_dir: Path,
+           log_response: np.ndarray | None) -> NormalisedScene:
     """Steps 3 and 5: normalise the scene, build the geometry, centre it on its bounding sphere,
     and keep the mesh in the work folder."""
     norm_from_world = normalization_transform(reg.world_from_cams, reg.points_world if len(reg.points_world) else None)
@@ -644,8 +663,14 @@ def _scene(reg: Registration, targets: list[Intrinsics], mask_px: list[np.ndarra
     points = transform_points(norm_from_world, reg.points_world) if len(reg.points_world) else np.zeros((0, 3))
     t0 = time.perf_counter()
     progress("geometry", 0, 1)
-    inputs = GeometryInputs(cams, targets, mask_px, points, reg.points_seen_from)
-    geo: GeometryResult = build_geometry(inputs, opts.geometry_options(), norm_from_world)  # its reason is in the report
+    geo: GeometryResult  # its reason is in the report
+    if parse_mode(opts.geometry)[0] == "dense":
+        inputs = GeometryInputs(cams, targets, mask_px, points, reg.points_seen_from,
+                                _stereo_photos(reg, targets, photos_dir, log_response, progress))
+        geo = dense_geometry(inputs, opts.dense_options(), progress)
+    else:
+        geo = build_geometry(GeometryInputs(cams, targets, mask_px, points, reg.points_seen_from), opts.geometry_options(),
+                             norm_from_world)
     recentre = recentre_transform(geo.mesh.vertices)
     norm_from_world = recentre @ norm_from_world
     cams = transform_world_from_cam(recentre, cams)
@@ -736,7 +761,7 @@ def _reconstruct_into(photos_dir: Path, out: Path, opts: ReconstructOptions, nam
     factors, exposures, reference, lin_note = exposure_factors([photos_dir / p.name for p in reg.photos], opts.ignore_exposure,
                                                                tone_curve)
     log(f"linearisation: {lin_note}")
-    scene = _scene(reg, targets, mask_px, opts, work, progress, log, seconds)
+    scene = _scene(reg, targets, mask_px, opts, work, progress, log, seconds, photos_dir, log_response)
 
     t0 = time.perf_counter()
     photos = [FramePhoto(p.name, photos_dir / p.name, p.camera, tgt, float(factors[k]), exposures[k].to_json() or None,

@@ -103,8 +103,11 @@ def _result() -> dict:
 def test_table_rows():
     rows = _result()["scenes"]["herz-jesus-p8"]["rows"]
     assert row_cells(rows[0]) == ["damcap", "8/8", "0.123 / 0.500", "0.100 / 0.400", "0.12 / 0.34", "1385.0 (+4.1)",
-                                  "(+7.4, +8.3)", "(-6.9, -8.1) +- (0.4, 0.5)", "30.0 (3.3)"]
-    assert row_cells(rows[1]) == ["pycolmap global", "0/8 (no model)", "- / -", "- / -", "- / -", "-", "-", "-", "12.0"]
+                                  "(+7.4, +8.3)", "(-6.9, -8.1) +- (0.4, 0.5)", "-", "30.0 (3.3)"]
+    assert row_cells(rows[1]) == ["pycolmap global", "0/8 (no model)", "- / -", "- / -", "- / -", "-", "-", "-", "-", "12.0"]
+    checked = {**rows[0], "method": "damcap reconstruct", "intrinsics": {}, "principal_point": None,
+               "self_check": {"verdict": "photos flagged", "flagged": ["a.jpg"], "recall_min": 0.8531}}
+    assert row_cells(checked)[5:9] == ["-", "-", "-", "photos flagged, recall min 0.853, flagged 1"]
 
 
 def test_report_names_the_command_and_every_row(tmp_path):
@@ -145,3 +148,38 @@ def test_discussion_compares_refined_with_centred_and_global_with_incremental():
             "0.05 % (median); pp (+7.4, +8.3) -> (+0.5, -2.8) px") in text
     assert ("- herz-jesus-p8: registered 8 / 8 of 8; mapping 12.0 s / 25.0 s; rotation 0.123 / 0.500 deg against "
             "0.200 / 0.300 deg; centre max 0.34 % against 0.20 %") in text
+
+
+def test_known_intrinsics_row_and_floor_line(tmp_path):
+    """The reference-intrinsics rerun is a row of its scene's table and a line of the discussion,
+    next to damcap's refined run and the centres' spread."""
+    res = _result()
+    sc = res["scenes"]["herz-jesus-p8"]
+    row = sc["rows"][0]
+    sc["rows"].append({**row, "method": "damcap refined pp"})
+    sc["known_intrinsics"] = {**row, "method": "pycolmap incremental, reference intrinsics fixed (mapping only)",
+                              "errors": {**row["errors"], "rot_sim_median_deg": 0.157, "rot_common_median_deg": 0.021}}
+    sc["known_intrinsics_command"] = ".venv/bin/python -m bench.registration_gt --known-intrinsics"
+    sc["reference"]["centre_spread"] = [1.0, 0.138, 0.018]
+    text = "\n".join(discussion_lines(res))
+    assert ("- herz-jesus-p8: reference intrinsics 0.157 / 0.500 deg sim, 0.021 / 0.400 deg common; damcap refined pp "
+            "0.123 / 0.500 sim, 0.100 / 0.400 common; centres 1.000 : 0.138 : 0.018") in text
+    write_report(res, tmp_path / "r.md")
+    report = (tmp_path / "r.md").read_text()
+    assert "| pycolmap incremental, reference intrinsics fixed (mapping only) | 8/8 | 0.157 / 0.500 |" in report
+    assert "`.venv/bin/python -m bench.registration_gt --known-intrinsics`" in report
+
+
+def test_a_rerun_of_some_methods_keeps_the_other_rows_with_their_command(tmp_path):
+    from bench.registration_gt import merged_scene
+
+    prev = _result()["scenes"]["herz-jesus-p8"]
+    new = {**prev, "command": ".venv/bin/python -m bench.registration_gt --methods 'damcap reconstruct'",
+           "rows": [{**prev["rows"][0], "method": "damcap reconstruct", "command": "x"}]}
+    new["rows"][0]["command"] = new["command"]
+    sc = merged_scene(prev, new)
+    assert [r["method"] for r in sc["rows"]] == ["damcap reconstruct", "damcap", "pycolmap global"]
+    write_report({"scenes": {"herz-jesus-p8": sc}}, tmp_path / "r.md")
+    text = (tmp_path / "r.md").read_text()
+    assert ("Rows *damcap*, *pycolmap global* measured earlier by `.venv/bin/python -m bench.registration_gt` "
+            "(2026-01-01 00:00:00 UTC).") in text

@@ -40,6 +40,17 @@ def test_codes_and_response_tables():
     assert clipped_mask(codes[..., [2, 0, 0]]).tolist() == [[True]]
 
 
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_integer_codes_give_the_values_of_their_float_encoding(dtype):
+    """8/16-bit codes go through a table of the sRGB curve: bit for bit the values of the codes
+    as floats in [0, 1]."""
+    top = np.iinfo(dtype).max
+    codes = np.random.default_rng(0).integers(0, top + 1, (7, 5, 3)).astype(dtype)
+    codes[0, 0] = [0, 1, top]
+    exp = Exposure(time_s=0.01, iso=200, f_number=4.0)
+    assert np.array_equal(linearize_photo(codes, exp, 0.003), linearize_photo(codes / float(top), exp, 0.003))
+
+
 def test_linearize_photo_errors():
     with pytest.raises(DamcapError, match="no exposure time"):
         linearize_photo(np.zeros((2, 2, 3)), Exposure(None))

@@ -13,7 +13,9 @@ from damcap.reconstruct.geometry import (
     GeometryOptions,
     align_mesh,
     build_geometry,
+    carve,
     fit_sphere_points,
+    mask_values_at,
     parse_mode,
     poisson_mesh,
     project_points,
@@ -165,7 +167,26 @@ def test_user_mesh_as_given(tmp_path, sphere_scene):
 
 def test_parse_mode():
     assert parse_mode("mesh:/a/b.obj")[0] == "mesh" and str(parse_mode("mesh:/a/b.obj")[1]) == "/a/b.obj"
-    with pytest.raises(DamcapError, match="use auto, visual-hull"):
-        parse_mode("dense")
+    assert parse_mode("dense") == ("dense", None)
+    with pytest.raises(DamcapError, match="use auto, visual-hull, poisson, sphere, dense or mesh:FILE"):
+        parse_mode("stereo")
     with pytest.raises(DamcapError, match="needs a file name"):
         parse_mode("mesh:")
+
+
+@pytest.mark.parametrize("tolerance", [0, 1, 2])
+def test_carve_is_the_order_statistic_of_the_mask_values(sphere_scene, tolerance):
+    """Carving skips points already carved to 0 by tolerance + 1 views; the result is still the
+    (tolerance + 1)-th smallest mask value over all views, computed here view by view."""
+    pts = np.random.default_rng(3).uniform(-1.2, 1.2, (4000, 3))
+    every = np.stack([mask_values_at(pts.astype(np.float32), m, c, i) for m, c, i in
+                      zip(sphere_scene.masks, sphere_scene.world_from_cams, sphere_scene.intrinsics)])
+    expected = np.sort(every, axis=0)[tolerance]
+    got = carve(sphere_scene.masks, sphere_scene.world_from_cams, sphere_scene.intrinsics, pts, tolerance)
+    assert np.array_equal(got, expected)
+    assert 0 < (got > 0).mean() < 1  # both carved and kept points are tested
+
+
+def test_dense_mode_is_built_above_this_module(sphere_scene):
+    with pytest.raises(DamcapError, match="dense_geometry, not build_geometry"):
+        build_geometry(sphere_scene, GeometryOptions(mode="dense"))

@@ -300,7 +300,7 @@ def test_output_inside_the_input_is_refused(scene):
 
 
 def test_bad_option_values_exit_2(scene, tmp_path):
-    assert main(["reconstruct", str(scene["root"] / "images"), "-o", str(tmp_path / "o"), "--geometry", "dense"]) == 2
+    assert main(["reconstruct", str(scene["root"] / "images"), "-o", str(tmp_path / "o"), "--geometry", "stereo"]) == 2
     assert main(["reconstruct", str(scene["root"] / "images"), "-o", str(tmp_path / "o"), "--pairing", "magic"]) == 2
 
 

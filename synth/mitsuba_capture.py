@@ -647,6 +647,21 @@ def _options_record(opts: SynthOptions) -> dict[str, Any]:
     return json.loads(json.dumps(asdict(opts)))
 
 
+def input_digests(opts: SynthOptions) -> dict[str, str]:
+    """SHA-256 of the input files the options name (the mesh of ``--object``, the environment map
+    of ``--light env:``): a resumed or finished capture must come from the same file contents,
+    not only the same names."""
+    from damcap.common.fingerprint import file_digest
+
+    out = {}
+    if opts.object != "sphere" and Path(opts.object).is_file():
+        out["object"] = file_digest(opts.object)
+    light = parse_light_spec(opts.light)
+    if light.kind == "env" and light.path and Path(light.path).is_file():
+        out["envmap"] = file_digest(light.path)
+    return out
+
+
 def _frames(opts: SynthOptions, cams: np.ndarray, intr: Intrinsics) -> list[Frame]:
     return [Frame(file_path=f"images/{i:04d}.exr", geometry_path=f"geometry/{i:04d}.exr", weights_path=f"weights/{i:04d}.exr",
                   world_from_cam=m, intrinsics=intr) for i, m in enumerate(cams)]
@@ -656,11 +671,13 @@ def _frame_done(root: Path, frame: Frame) -> bool:
     return all((root / p).is_file() for p in (frame.weights_path, frame.geometry_path, frame.file_path))  # type: ignore[arg-type]
 
 
-def _prepare_folder(out: Path, options: dict[str, Any]) -> bool:
-    """Check ``out`` for a previous run; True when it already holds this finished capture.
+def _prepare_folder(out: Path, options: dict[str, Any], inputs: dict[str, str]) -> bool:
+    """Check ``out`` for a previous run; True when it already holds this finished capture (same
+    options, same input file contents: :func:`input_digests`).
 
     Raises:
-        DamcapError: ``out`` holds something else (another capture, other options, other files).
+        DamcapError: ``out`` holds something else (another capture, other options or input files,
+            other files).
     """
     transforms = out / "transforms.json"
     marker = out / PARTIAL_MARKER
@@ -669,22 +686,24 @@ def _prepare_folder(out: Path, options: dict[str, Any]) -> bool:
             doc = json.loads(transforms.read_text(encoding="utf-8"))
         except (json.JSONDecodeError, UnicodeDecodeError):
             doc = {}
-        previous = doc.get("damcap_source", {}).get("options") if isinstance(doc, dict) else None
-        if previous == options:
+        src = doc.get("damcap_source", {}) if isinstance(doc, dict) else {}
+        if src.get("options") == options and src.get("input_sha256", {}) == inputs:
             return True
-        raise DamcapError(f"{out}: already holds a capture made with other options; choose an empty folder")
+        raise DamcapError(f"{out}: already holds a capture made with other options or other input files; "
+                          "choose an empty folder")
     if marker.is_file():
         try:
-            previous = json.loads(marker.read_text(encoding="utf-8")).get("options")
+            state = json.loads(marker.read_text(encoding="utf-8"))
+            previous = (state.get("options"), state.get("input_sha256", {}))
         except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
             previous = None
-        if previous != options:
-            raise DamcapError(f"{out}: holds a partial capture rendered with other options ({marker.name}); "
-                              "rerun with the same options to resume, or choose an empty folder")
+        if previous != (options, inputs):
+            raise DamcapError(f"{out}: holds a partial capture rendered with other options or other input files "
+                              f"({marker.name}); rerun with the same options and files to resume, or choose an empty folder")
         return False
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise DamcapError(f"{out}: exists and is not empty; choose an empty or new folder")
-    write_json_atomic(marker, {"options": options})
+    write_json_atomic(marker, {"options": options, "input_sha256": inputs})
     return False
 
 
@@ -715,7 +734,8 @@ def make_synthetic_capture(out: str | os.PathLike, opts: SynthOptions, *, progre
     out = Path(out)
     options = _options_record(opts)
     scene_desc = resolve_scene(opts)  # user mistakes (files, specs) surface before anything is written
-    if _prepare_folder(out, options):
+    inputs = input_digests(opts)
+    if _prepare_folder(out, options, inputs):
         return read_capture(out)
     variant = synth_render.select_variant(opts.variant)
     if threads is not None:
@@ -764,7 +784,7 @@ def make_synthetic_capture(out: str | os.PathLike, opts: SynthOptions, *, progre
         test_filenames=[f.file_path for k, f in enumerate(frames) if k not in set(train_idx)],
         materials=opts.materials,
         extra={"damcap_source": {
-            "generator": "synth", "options": options, "damcap_version": damcap_version(),
+            "generator": "synth", "options": options, "input_sha256": inputs, "damcap_version": damcap_version(),
             "renderer": {"name": "mitsuba", "version": mi.__version__, "variant": variant, "integrator": "path",
                          "max_depth": opts.max_depth, "spp": opts.spp, "sampler": synth_render.SAMPLER, "pixel_filter": "box",
                          "pass_spp": pass_spp},

@@ -13,6 +13,7 @@ from damcap.common.errors import DamcapError
 from damcap.common.exr import read_exr, write_exr
 from damcap.common.cameras import orbit_world_from_cam, pixel_rays_world
 from damcap.synth.mitsuba_capture import (
+    input_digests,
     PARTIAL_MARKER, RENDER_ALPHA_CHANNEL, SynthOptions, camera_setup, compose_frame, coverage_agreement,
     env_mean_luminance, fd_normal_cosines, make_synthetic_capture, parse_light_spec, point_light, resolve_scene,
     train_split, validate_synthetic_capture,
@@ -205,19 +206,23 @@ def test_weights_agree_with_the_mesh_part_mitsuba_hits(bunny_capture):
     assert seen == {0, 1, 2}
 
 
+class _Stop(Exception):
+    """Interrupts a render from its progress callback (:func:`_stop_after`)."""
+
+
+def _stop_after(frames: int):
+    def progress(done, total, stats):
+        if done == frames:
+            raise _Stop
+    return progress
+
+
 def test_resume_skips_finished_frames_and_matches_a_full_render(tmp_path):
     opts = SynthOptions(object="sphere", light="point:10:50", materials=1, seed=9, views=6, resolution=24, spp=4, train_views=2)
     out = tmp_path / "cap"
 
-    class Stop(Exception):
-        pass
-
-    def stop_after_two(done, total, stats):
-        if done == 2:
-            raise Stop
-
-    with pytest.raises(Stop):
-        make_synthetic_capture(out, opts, progress=stop_after_two)
+    with pytest.raises(_Stop):
+        make_synthetic_capture(out, opts, progress=_stop_after(2))
     assert not (out / "transforms.json").exists() and (out / PARTIAL_MARKER).exists()
     first = {p: (out / p).stat().st_mtime_ns for p in ("images/0000.exr", "geometry/0001.exr")}
     with pytest.raises(DamcapError, match="partial capture rendered with other options"):
@@ -235,6 +240,38 @@ def test_resume_skips_finished_frames_and_matches_a_full_render(tmp_path):
     make_synthetic_capture(out, opts)
     with pytest.raises(DamcapError, match="already holds a capture"):
         make_synthetic_capture(out, SynthOptions(**{**opts.__dict__, "seed": 10}))
+
+
+def _write_obj(path, scale: float) -> None:
+    from damcap.common.shapes import icosphere
+
+    m = icosphere(2)
+    path.write_text("".join(f"v {x * scale:.6f} {y:.6f} {z:.6f}\n" for x, y, z in m.vertices)
+                    + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in m.triangles))
+
+
+def test_a_changed_mesh_file_is_not_resumed(tmp_path):
+    """Same options, same file name, other contents: neither a partial nor a finished capture of
+    the old mesh is taken for the new one."""
+    mesh = tmp_path / "obj.obj"
+    _write_obj(mesh, 1.0)
+    opts = SynthOptions(object=str(mesh), light="point:10:50", materials=1, seed=3, views=4, resolution=16, spp=2, train_views=2)
+    before = input_digests(opts)
+    assert set(before) == {"object"} and len(before["object"]) == 64
+
+    out = tmp_path / "cap"
+    with pytest.raises(_Stop):
+        make_synthetic_capture(out, opts, progress=_stop_after(1))
+    _write_obj(mesh, 0.7)
+    assert input_digests(opts) != before
+    with pytest.raises(DamcapError, match="other options or other input files"):
+        make_synthetic_capture(out, opts)
+    done = tmp_path / "done"
+    make_synthetic_capture(done, opts)
+    assert read_capture(done).extra["damcap_source"]["input_sha256"] == input_digests(opts)
+    _write_obj(mesh, 1.0)
+    with pytest.raises(DamcapError, match="already holds a capture made with other options or other input files"):
+        make_synthetic_capture(done, opts)
 
 
 def test_validation_names_damaged_frames(sphere3_capture, tmp_path):

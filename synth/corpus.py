@@ -34,7 +34,7 @@ from damcap.common.atomic import write_json_atomic
 from damcap.common.errors import DamcapError
 from damcap.common.validate import in_range
 
-from damcap.synth.mitsuba_capture import SynthOptions, make_synthetic_capture
+from damcap.synth.mitsuba_capture import SynthOptions, finished_with, make_synthetic_capture
 
 Preset = Literal["small", "paper", "hyper", "segment", "segment-dev"]
 PRESETS = ("small", "paper", "hyper", "segment", "segment-dev")
@@ -306,6 +306,9 @@ def make_corpus(out: str | os.PathLike, preset_name: Preset, data_dir: str | os.
     todo = []
     for e, o in zip(entries, options):
         if (out / e.path / "transforms.json").is_file():
+            if not finished_with(out / e.path, o):
+                raise DamcapError(f"{out / e.path}: holds a capture made with other options or input files than the "
+                                  f"'{preset_name}' preset plans (--data {data_dir}); remove it or choose another corpus folder")
             e.status = "skipped"
         else:
             todo.append((e, o))

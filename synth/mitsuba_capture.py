@@ -671,6 +671,21 @@ def _frame_done(root: Path, frame: Frame) -> bool:
     return all((root / p).is_file() for p in (frame.weights_path, frame.geometry_path, frame.file_path))  # type: ignore[arg-type]
 
 
+def finished_with(out: str | os.PathLike, opts: SynthOptions) -> bool:
+    """Whether ``out`` holds a finished capture rendered with these options from input files of
+    the same contents (:func:`input_digests`)."""
+    return _finished_with(Path(out), _options_record(opts), input_digests(opts))
+
+
+def _finished_with(out: Path, options: dict[str, Any], inputs: dict[str, str]) -> bool:
+    try:
+        doc = json.loads((out / "transforms.json").read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        return False
+    src = doc.get("damcap_source", {}) if isinstance(doc, dict) else {}
+    return isinstance(src, dict) and src.get("options") == options and src.get("input_sha256", {}) == inputs
+
+
 def _prepare_folder(out: Path, options: dict[str, Any], inputs: dict[str, str]) -> bool:
     """Check ``out`` for a previous run; True when it already holds this finished capture (same
     options, same input file contents: :func:`input_digests`).
@@ -679,15 +694,9 @@ def _prepare_folder(out: Path, options: dict[str, Any], inputs: dict[str, str]) 
         DamcapError: ``out`` holds something else (another capture, other options or input files,
             other files).
     """
-    transforms = out / "transforms.json"
     marker = out / PARTIAL_MARKER
-    if transforms.is_file():
-        try:
-            doc = json.loads(transforms.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError):
-            doc = {}
-        src = doc.get("damcap_source", {}) if isinstance(doc, dict) else {}
-        if src.get("options") == options and src.get("input_sha256", {}) == inputs:
+    if (out / "transforms.json").is_file():
+        if _finished_with(out, options, inputs):
             return True
         raise DamcapError(f"{out}: already holds a capture made with other options or other input files; "
                           "choose an empty folder")

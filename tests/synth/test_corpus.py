@@ -75,3 +75,10 @@ def test_corpus_renders_in_parallel_and_resumes(tmp_path, monkeypatch):
         assert validate_synthetic_capture(tmp_path / "corpus" / e.path) == []
     again = make_corpus(tmp_path / "corpus", "small", tmp_path, jobs=2)
     assert [e.status for e in again] == ["skipped", "skipped"]
+    # a finished capture the plan would render otherwise is not taken for the planned one
+    tj = tmp_path / "corpus" / entries[1].path / "transforms.json"
+    doc = json.loads(tj.read_text())
+    doc["damcap_source"]["options"]["seed"] += 1
+    tj.write_text(json.dumps(doc))
+    with pytest.raises(DamcapError, match="holds a capture made with other options or input files than the 'small' preset"):
+        make_corpus(tmp_path / "corpus", "small", tmp_path, jobs=2)

@@ -562,12 +562,12 @@ def rerun_global(scene: str, data: Path, seed: int) -> dict:
     return row
 
 
-def rerun_known_intrinsics(scene: str, data: Path) -> dict:
+def rerun_known_intrinsics(scene: str, data: Path) -> tuple[dict, list[float]]:
     """Incremental mapping again on the database the scene's last ``pycolmap`` run left in the
     cache, every camera set to the reference's pinhole intrinsics and held fixed (focal length,
     principal point and distortion not refined): what the matches give with perfect intrinsics, the
-    floor of the rotation error that intrinsics cannot lower. A row like :func:`run_scene`'s,
-    ``wall_s`` the mapping alone."""
+    floor of the rotation error that intrinsics cannot lower. A row like :func:`run_scene`'s
+    (``wall_s`` the mapping alone) and the reference centres' :func:`centre_spread`."""
     import pycolmap
 
     from damcap.reconstruct.known_poses import load_known_poses
@@ -605,7 +605,7 @@ def rerun_known_intrinsics(scene: str, data: Path) -> dict:
            "registered": len(reg.photos) if reg else 0, "models": models, "wall_s": wall, "stage_wall_s": {"mapping": wall}}
     scored(row, reg, ref)
     log(f"  -> {json.dumps(row)}")
-    return row
+    return row, centre_spread(ref.world_from_cams[:, :3, 3])
 
 
 def centre_spread(centres: np.ndarray) -> list[float]:
@@ -705,13 +705,12 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.known_intrinsics:
         for scene in args.scenes:
-            row = rerun_known_intrinsics(scene, data)
+            row, spread = rerun_known_intrinsics(scene, data)
             res = json.loads(RESULT.read_text(encoding="utf-8"))
             sc = res["scenes"][scene]
             sc["known_intrinsics"] = row
             sc["known_intrinsics_command"] = command_line("registration_gt", argv)
-            sc["reference"]["centre_spread"] = centre_spread(np.stack(
-                [m[:3, 3] for m in _reference_cameras(scene, data)]))
+            sc["reference"]["centre_spread"] = spread
             RESULT.write_text(json.dumps(res, indent=1), encoding="utf-8")
             write_report(res)
         return 0
@@ -750,16 +749,6 @@ def merged_scene(prev: dict | None, new: dict) -> dict:
         if k in prev and k not in out:
             out[k] = prev[k]
     return out
-
-
-def _reference_cameras(scene: str, data: Path) -> np.ndarray:
-    """(N, 4, 4) the scene's reference world_from_cam."""
-    from damcap.reconstruct.known_poses import load_known_poses
-    from damcap.reconstruct.photos import image_size, list_photos
-
-    images, spec = scene_paths(scene, data)
-    names = list_photos(images)
-    return load_known_poses(spec, {n: image_size(images / n) for n in names}).world_from_cams
 
 
 def rewrite_report() -> None:

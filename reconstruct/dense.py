@@ -49,6 +49,7 @@ from damcap.reconstruct.geometry import (
     carve,
     grid_box,
     hull_box,
+    project_points,
     voxel_centres,
 )
 
@@ -543,22 +544,17 @@ def consistency_mask(depths: list[np.ndarray], intrinsics: list[Intrinsics], wor
         z_r = d_r[ii, jj].astype(np.float64)
         x_world = backproject(d_r, intr_r, world_from_cams[r])[ii, jj]
         agree = np.zeros(len(ii), np.int32)
+        cam_r = cam_cv_from_world(world_from_cams[r])
         for s in neighbours[r]:
             d_s, intr_s = depths[s], intrinsics[s]
-            cam_s = cam_cv_from_world(world_from_cams[s])
-            xs = x_world @ cam_s[:3, :3].T + cam_s[:3, 3]
-            front = xs[:, 2] > 1e-9
-            zs = np.where(front, xs[:, 2], 1.0)
-            u = intr_s.fl_x * xs[:, 0] / zs + intr_s.cx
-            v = intr_s.fl_y * xs[:, 1] / zs + intr_s.cy
-            js, is_ = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+            uv, front = project_points(x_world, world_from_cams[s], intr_s)
+            js, is_ = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
             inside = front & (js >= 0) & (js < intr_s.w) & (is_ >= 0) & (is_ < intr_s.h)
             js, is_ = np.clip(js, 0, intr_s.w - 1), np.clip(is_, 0, intr_s.h - 1)
             z_s = d_s[is_, js].astype(np.float64)
             inside &= z_s > 0
             # lift the neighbour's depth at the pixel centre it hit, project back into the reference
             back = backproject_points(np.stack([js + 0.5, is_ + 0.5], -1), z_s, intr_s, world_from_cams[s])
-            cam_r = cam_cv_from_world(world_from_cams[r])
             xr = back @ cam_r[:3, :3].T + cam_r[:3, 3]
             zr = np.where(xr[:, 2] > 1e-9, xr[:, 2], 1.0)
             du = intr_r.fl_x * xr[:, 0] / zr + intr_r.cx - (jj + 0.5)

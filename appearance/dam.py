@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Literal, get_args
+from typing import TYPE_CHECKING, Literal, get_args
 
 import torch
 import torch.nn.functional as F
@@ -19,6 +19,9 @@ from torch import nn
 from damcap.common.errors import DamcapError
 from damcap.common.numerics import reflect, safe_normalize
 from damcap.common.validate import MAX_DAM_DEPTH, MAX_DAM_WIDTH, bounded_int, finite_in
+
+if TYPE_CHECKING:
+    from damcap.appearance.spatial import SpatialAlbedo
 
 Encoding = Literal["vn", "nr", "vnr"]
 Activation = Literal["leaky_relu", "relu", "softplus", "shifted_softplus", "tanh"]
@@ -282,6 +285,9 @@ class DeepAppearanceMap(nn.Module):
     """A DAM: one flat weight vector plus its architecture and the radiance scale of its capture.
 
     ``forward(view_dir_world, normal_world)`` returns linear radiance in the capture's units.
+    ``spatial`` (None, or a :class:`.spatial.SpatialAlbedo`) is the optional spatial factor that
+    multiplies it per surface point; ``forward`` is the DAM alone, renderers apply the factor
+    where they know the surface point (:func:`.render.render_frame`).
     """
 
     def __init__(self, arch: DamArchitecture, radiance_scale: float = 1.0, weights_flat: torch.Tensor | None = None, generator: torch.Generator | None = None) -> None:
@@ -296,6 +302,13 @@ class DeepAppearanceMap(nn.Module):
         if w.shape != (arch.num_weights,):
             raise DamcapError(f"weight vector has shape {tuple(w.shape)}, the architecture needs ({arch.num_weights},)")
         self.weights_flat = nn.Parameter(w)
+        self.spatial: SpatialAlbedo | None = None
+
+    def with_spatial(self, spatial: "SpatialAlbedo | None") -> "DeepAppearanceMap":
+        """A copy of this DAM (same weights) carrying ``spatial`` as its spatial factor."""
+        out = DeepAppearanceMap(self.arch, self.radiance_scale, self.get_flat_weights().cpu())
+        out.spatial = spatial
+        return out
 
     def forward_normalised(self, inputs: torch.Tensor) -> torch.Tensor:
         """(N, C) encoded inputs -> (N, 3) radiance / radiance_scale."""

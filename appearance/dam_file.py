@@ -4,6 +4,12 @@ safetensors stores raw tensors and a JSON header only: opening a stranger's file
 nothing. Layout: tensor ``weights`` (P,) float32; metadata key ``damcap`` holding JSON with
 ``format_version``, ``architecture``, ``radiance_scale``, ``colorspace``, ``made_by`` and
 free-form ``provenance`` (options, loss, capture).
+
+A model with a spatial factor (:mod:`.spatial`) adds the tensors ``spatial_keys`` (M,) int64 and
+``spatial_log_albedo`` (M, 3) float32 and the metadata object ``spatial``
+(``kind: "albedo_voxels"``, ``origin_world``, ``voxel_size``), and is written as format version 2
+so that a damcap that cannot apply the factor refuses the file instead of rendering without it.
+A model without one stays version 1.
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from safetensors import SafetensorError
 from safetensors.torch import load as st_load
@@ -24,8 +31,11 @@ from damcap.common.errors import DamcapError
 from damcap.common.validate import finite_in, loads_json
 
 from damcap.appearance.dam import FLOAT32_TINY, DamArchitecture, DeepAppearanceMap, overflow_problem
+from damcap.appearance.spatial import SpatialAlbedo
 
-DAM_FORMAT_VERSION = 1
+DAM_FORMAT_VERSION = 2
+"""the newest format this damcap reads and writes (1: the DAM alone; 2: with a spatial factor)"""
+SPATIAL_KIND = "albedo_voxels"
 METADATA_KEY = "damcap"
 
 
@@ -39,15 +49,21 @@ def save_dam(path: str | os.PathLike, model: DeepAppearanceMap, *, colorspace: s
         made_by: ``fit``, ``predict`` or ``segment``.
         provenance: JSON-serialisable record of how it was made (options, seed, loss, ...).
     """
-    meta = {
-        "format_version": DAM_FORMAT_VERSION,
+    tensors = {"weights": model.get_flat_weights().float().contiguous()}
+    meta: dict[str, Any] = {
+        "format_version": 1 if model.spatial is None else 2,
         "architecture": model.arch.to_json(),
         "radiance_scale": model.radiance_scale,
         "colorspace": colorspace,
         "made_by": made_by,
         "provenance": provenance or {},
     }
-    blob = st_save({"weights": model.get_flat_weights().float().contiguous()}, metadata={METADATA_KEY: json.dumps(meta)})
+    if model.spatial is not None:
+        sa = model.spatial
+        meta["spatial"] = {"kind": SPATIAL_KIND, "origin_world": [float(x) for x in sa.origin_world], "voxel_size": float(sa.voxel_size)}
+        tensors["spatial_keys"] = torch.from_numpy(np.ascontiguousarray(sa.keys, np.int64))
+        tensors["spatial_log_albedo"] = torch.from_numpy(np.ascontiguousarray(sa.log_albedo, np.float32))
+    blob = st_save(tensors, metadata={METADATA_KEY: json.dumps(meta)})
     with atomic_path(path) as tmp:
         tmp.write_bytes(blob)
 
@@ -96,8 +112,10 @@ def load_dam(path: str | os.PathLike) -> tuple[DeepAppearanceMap, dict[str, Any]
         raise DamcapError(f"{path}: unknown architecture fields ({e})") from None
     except DamcapError as e:
         raise DamcapError(f"{path}: invalid architecture: {e}") from None
-    if set(tensors) != {"weights"}:
-        raise DamcapError(f"{path}: expected one tensor 'weights', found {sorted(tensors)}")
+    spatial_meta = meta.get("spatial")
+    expected = {"weights"} if spatial_meta is None else {"weights", "spatial_keys", "spatial_log_albedo"}
+    if set(tensors) != expected:
+        raise DamcapError(f"{path}: expected the tensors {sorted(expected)}, found {sorted(tensors)}")
     w = tensors["weights"]
     if w.dim() != 1 or w.shape[0] != arch.num_weights:
         raise DamcapError(f"{path}: weights have shape {tuple(w.shape)}, the stated architecture needs ({arch.num_weights},)")
@@ -109,7 +127,28 @@ def load_dam(path: str | os.PathLike) -> tuple[DeepAppearanceMap, dict[str, Any]
     problem = overflow_problem(model)
     if problem:
         raise DamcapError(f"{path}: {problem}")
+    if spatial_meta is not None:
+        model.spatial = _spatial_from(path, spatial_meta, tensors)
     return model, meta
+
+
+def _spatial_from(path: Path, spatial_meta: Any, tensors: dict[str, torch.Tensor]) -> SpatialAlbedo:
+    """The spatial factor stored in a .dam file, checked (DamcapError naming the file otherwise)."""
+    if not isinstance(spatial_meta, dict) or spatial_meta.get("kind") != SPATIAL_KIND:
+        raise DamcapError(f"{path}: metadata 'spatial' must be an object of kind {SPATIAL_KIND!r}, got {spatial_meta!r:.80}")
+    keys, la = tensors["spatial_keys"], tensors["spatial_log_albedo"]
+    if keys.dtype != torch.int64 or not la.dtype.is_floating_point:
+        raise DamcapError(f"{path}: spatial tensors must be int64 keys and float log albedo, got {keys.dtype} and {la.dtype}")
+    try:
+        origin = np.asarray(spatial_meta["origin_world"], np.float64)
+        voxel = float(spatial_meta["voxel_size"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise DamcapError(f"{path}: metadata 'spatial' is invalid ({e!r})") from None
+    sa = SpatialAlbedo(origin, voxel, keys.numpy().copy(), la.float().numpy().copy())
+    problem = sa.problem()
+    if problem:
+        raise DamcapError(f"{path}: spatial factor: {problem}")
+    return sa
 
 
 def read_damcap_safetensors(path: Path, noun: str, kind: str) -> tuple[dict[str, torch.Tensor], str]:

@@ -9,11 +9,13 @@ from damcap.common.capture_folder import FrameData
 
 from damcap.appearance.dam import DeepAppearanceMap
 from damcap.appearance.pixels import view_dir_world
+from damcap.appearance.spatial import albedo_at
 
 
 @torch.no_grad()
 def render_frame(model: DeepAppearanceMap, data: FrameData, camera_centre_world: np.ndarray, chunk: int = 1 << 16) -> np.ndarray:
-    """Evaluate the DAM on every covered pixel (A > 0) of a frame.
+    """Evaluate the DAM on every covered pixel (A > 0) of a frame, times the model's spatial
+    factor (``model.spatial``) at the pixel's surface point when it has one.
 
     Args:
         model: the DAM.
@@ -32,5 +34,8 @@ def render_frame(model: DeepAppearanceMap, data: FrameData, camera_centre_world:
     n = torch.from_numpy(np.ascontiguousarray(data.normal_world[covered]))
     dev = model.weights_flat.device
     parts = [model(v[s:s + chunk].to(dev), n[s:s + chunk].to(dev)).cpu() for s in range(0, v.shape[0], chunk)]
-    out[covered] = torch.cat(parts).numpy()
+    rad = torch.cat(parts).numpy()
+    if model.spatial is not None:
+        rad = rad * albedo_at(model.spatial, data.position_world[covered])
+    out[covered] = rad
     return out

@@ -11,7 +11,7 @@ import torch
 
 from damcap.common.capture_folder import Capture, FrameData, Split, read_frame
 
-from damcap.appearance.pixels import PixelSamples, gather_samples
+from damcap.appearance.pixels import FOREGROUND_COVERAGE, PixelSamples, gather_samples
 
 
 @dataclass
@@ -50,3 +50,9 @@ def load_views(capture: Capture, split: Split) -> list[ViewData]:
 def samples_of(views: list[ViewData]) -> PixelSamples:
     """Foreground pixels of the views (frame_index = position in ``views``)."""
     return gather_samples([v.data for v in views], [v.centre_world for v in views])
+
+
+def positions_of(views: list[ViewData]) -> np.ndarray:
+    """(N, 3) float32 surface points of the pixels :func:`samples_of` returns, in its order."""
+    parts = [v.data.position_world[v.data.coverage > FOREGROUND_COVERAGE] for v in views]
+    return np.concatenate(parts).astype(np.float32) if parts else np.zeros((0, 3), np.float32)

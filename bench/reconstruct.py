@@ -359,6 +359,83 @@ def by_nearest_view_angle(train, test, scores: dict) -> list[dict]:
     return out
 
 
+SPATIAL_ROW = "DAM + albedo (--spatial albedo)"
+
+
+def warp_nearest_photo(view, train_views, train_frames, tolerance: float) -> np.ndarray:
+    """Image-based reference: each covered pixel of ``view`` takes the radiance of the nearest
+    training photo (by camera direction from the object's centre) that sees its surface point,
+    projected through the capture's geometry (visibility: that photo's own surface point there
+    lies within ``tolerance``). No model: what copying photos through this geometry and these
+    cameras reaches. (H, W, 3) linear radiance, 0 where no training photo sees the point."""
+    from damcap.reconstruct.geometry import project_points, sample_bilinear
+
+    fg = view.data.coverage > 0.5
+    points = view.data.position_world[fg].astype(np.float64)
+    out, done = np.zeros((len(points), 3), np.float32), np.zeros(len(points), bool)
+    d = view.centre_world / np.linalg.norm(view.centre_world)
+    order = np.argsort([-float(np.dot(t.centre_world / np.linalg.norm(t.centre_world), d)) for t in train_views])
+    for k in order:
+        t, f = train_views[k], train_frames[k]
+        uv, z = project_points(points, f.world_from_cam, f.intrinsics)
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < f.intrinsics.w - 1) & (uv[:, 1] < f.intrinsics.h - 1)
+        there = np.stack([sample_bilinear(t.data.position_world[..., c], uv, np.nan) for c in range(3)], -1)
+        seen = inside & (sample_bilinear(t.data.coverage, uv, 0.0) > 0.5) & (np.linalg.norm(there - points, axis=1) < tolerance)
+        take = seen & ~done
+        if take.any():
+            out[take] = np.stack([sample_bilinear(t.data.radiance_lin[..., c], uv[take], 0.0) for c in range(3)], -1)
+            done |= take
+    img = np.zeros_like(view.data.radiance_lin)
+    img[fg] = out
+    return img
+
+
+def spatial_voxel_sweep(model, train, test, fit_opts, voxel_px=(0.5, 0.75, 1.0, 1.5)) -> list[dict]:
+    """The spatial factor's voxel size, measured: mean DSSIM of the fit's held-out training views
+    (texture from the other training views, as --spatial auto does) and of ``test`` (texture from
+    every training view) per voxel edge in pixel footprints."""
+    from damcap.appearance.fit import holdout_frames
+    from damcap.appearance.spatial_fit import estimate_for, mean_dssim, training_footprint
+
+    footprint = training_footprint(train)
+    held = holdout_frames(len(train), fit_opts.holdout_views)
+    rest, held_views = [v for k, v in enumerate(train) if k not in held], [train[k] for k in held]
+    out = []
+    for vp in voxel_px:
+        h = vp * footprint
+        probe = model.with_spatial(estimate_for(model, rest, h, fit_opts.spatial_prior))
+        full = model.with_spatial(estimate_for(model, train, h, fit_opts.spatial_prior))
+        out.append({"voxel_px": vp, "heldout_dssim": mean_dssim(probe, held_views), "test_dssim": mean_dssim(full, test),
+                    "test_frames": len(test)})
+    return out
+
+
+def detail_reference(train, test, cap) -> dict:
+    """How much of the novel-view DSSIM is fine detail and alignment: the test photos scored
+    against themselves blurred (Gaussian sigma in px) and shifted (px, bilinear), and against
+    the nearest training photo warped through the geometry (:func:`warp_nearest_photo`)."""
+    import cv2
+
+    from damcap.appearance.evaluate import score_view
+
+    def mean_of(make) -> float:
+        vals = [score_view(v, make(v)) for v in test]
+        return float(np.mean([x for x in vals if x is not None]))
+
+    def fg_only(v):
+        return v.data.radiance_lin * (v.data.coverage[..., None] > 0.5)
+
+    def shifted(v, dx):
+        img = fg_only(v)
+        return cv2.warpAffine(img, np.float32([[1, 0, dx], [0, 1, 0]]), img.shape[1::-1], flags=cv2.INTER_LINEAR)
+
+    frames = cap.split("train")
+    extent = float(np.ptp(np.concatenate([t.data.position_world[t.data.coverage > 0.5] for t in train]), axis=0).max())
+    return {"blur_sigma_px": {str(s): mean_of(lambda v, s=s: cv2.GaussianBlur(fg_only(v), (0, 0), s)) for s in (1, 2)},
+            "shift_px": {str(dx): mean_of(lambda v, dx=dx: shifted(v, dx)) for dx in (0.5, 1.0)},
+            "nearest_photo_warped": mean_of(lambda v: warp_nearest_photo(v, train, frames, 0.01 * extent))}
+
+
 def part_realworld(train_views: int, steps: int, fresh: bool, capture_size: int = 256, geometry: str = "auto",
                    data: Path = DATA, cache: Path = CACHE, figure: Path = FIGURE) -> dict:
     import torch
@@ -367,6 +444,7 @@ def part_realworld(train_views: int, steps: int, fresh: bool, capture_size: int 
     from damcap.appearance.evaluate import evaluate_split, score_view
     from damcap.appearance.fit import FitOptions, fit_dam
     from damcap.appearance.render import render_frame
+    from damcap.appearance.spatial_fit import choose_spatial
     from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import read_capture
     from damcap.common.exr import write_png
@@ -389,8 +467,13 @@ def part_realworld(train_views: int, steps: int, fresh: bool, capture_size: int 
     log(f"realworld: fitting a DAM on {len(train)} views ({fit_opts})")
     with Timer() as t_fit:
         fit = fit_dam(samples_of(train), fit_opts)
+    # the spatial factor, side by side: what --spatial auto decides, and the albedo either way
+    with Timer() as t_spatial:
+        auto = choose_spatial(fit.model, train, replace(fit_opts, spatial="auto"), log=log)
+        forced = auto if auto.kept else choose_spatial(fit.model, train, replace(fit_opts, spatial="albedo"), log=log)
+    models = {"DAM": fit.model, SPATIAL_ROW: forced.model}
     with Timer() as t_eval:
-        scores = {"train": evaluate_split(train, train, {"DAM": fit.model}), "test": evaluate_split(train, test, {"DAM": fit.model})}
+        scores = {"train": evaluate_split(train, train, models), "test": evaluate_split(train, test, models)}
     table = {split: {m: s.mean for m, s in res.items()} for split, res in scores.items()}
     notes = {split: {m: s.note for m, s in res.items() if s.note} for split, res in scores.items()}
     rm_sources = {split: res["RM"].per_source for split, res in scores.items() if "RM" in res}
@@ -405,15 +488,19 @@ def part_realworld(train_views: int, steps: int, fresh: bool, capture_size: int 
         fg = v.data.coverage > 0.5
         scale = float(np.percentile(v.data.radiance_lin[fg], 99)) if fg.any() else 1.0
         dam = render_frame(fit.model, v.data, v.centre_world)
-        rows.append(np.concatenate([display(x, scale) for x in (v.data.radiance_lin, dam, a, b)], axis=1))
+        dam_albedo = render_frame(forced.model, v.data, v.centre_world)
+        rows.append(np.concatenate([display(x, scale) for x in (v.data.radiance_lin, dam, dam_albedo, a, b)], axis=1))
     figure = figure.with_name(figure.stem + realworld_tag(capture_size, geometry, train_views) + ".png")
     write_png(figure, np.concatenate(rows, axis=0))
     return {"capture": {"frames": rep.frames, "train": len(train), "test": len(test), "split": "spread",
                         "capture_size": opts.capture_size, "geometry": rep.geometry_mode, "geometry_reason": rep.geometry_reason,
                         "cameras": rep.registration.get("source"), "linearisation": rep.linearisation, **t_rec.record()},
             "fit": {"options": asdict(fit_opts), "best_step": fit.best_step, "seconds": fit.seconds, **t_fit.record()},
+            "spatial": {"auto": auto.record(), "albedo": forced.record(), **t_spatial.record(),
+                        "voxel_sweep": spatial_voxel_sweep(fit.model, train, test[::4], fit_opts)},
+            "detail_reference": detail_reference(train, test, cap),
             "dssim": table, "notes": notes, "rm_per_source": rm_sources, "by_nearest_view": by_angle, "eval": t_eval.record(), "figure": _shown(figure),
-            "figure_columns": ["photo (linearised)", "DAM", "RM++", f"RM (source {chosen})"],
+            "figure_columns": ["photo (linearised)", "DAM", SPATIAL_ROW, "RM++", f"RM (source {chosen})"],
             "paper_reference": {"what": "Maximov et al. 2019, own spheres, novel view", "DAM": 0.079, "RM++": 0.090, "RM": 0.127}}
 
 
@@ -505,8 +592,11 @@ def write_report(res: dict, command: str, path: Path = REPORT, results: Path = R
               f"evaluated on the other {rw['capture']['test']} (novel view) and on the training views (same view). "
               "Mean DSSIM, lower is better. Target: DAM < RM++ < RM.", "",
               "| method | same view (train) | novel view (test) | paper, novel view (own spheres) |", "|---|---|---|---|"]
-        for meth in ("DAM", "RM++", "RM"):
-            L.append(f"| {meth} | {d['train'].get(meth, float('nan')):.4f} | {d['test'].get(meth, float('nan')):.4f} | {rw['paper_reference'][meth]} |")
+        for meth in ("DAM", SPATIAL_ROW, "RM++", "RM"):
+            if meth in d["test"]:
+                L.append(f"| {meth} | {d['train'].get(meth, float('nan')):.4f} | {d['test'][meth]:.4f} | "
+                         f"{rw['paper_reference'].get(meth, '')} |")
+        L += spatial_lines(rw)
         sp = rm_source_spread(rw.get("rm_per_source", {}).get("test", {}))
         if sp:
             worse = sum(v > d["test"]["RM++"] for v in sp["scores"])
@@ -528,6 +618,35 @@ def write_report(res: dict, command: str, path: Path = REPORT, results: Path = R
         L += ["", rw.get("verdict", ""), "", f"![novel views]({Path(rw['figure']).name})", "",
               "Columns: " + ", ".join(rw["figure_columns"]) + ".", ""]
     write_text_atomic(path, "\n".join(L) + "\n")
+
+
+def spatial_lines(rw: dict) -> list[str]:
+    """The realworld section's lines on the spatial factor and on what fine detail costs."""
+    out: list[str] = []
+    sp, d = rw.get("spatial"), rw["dssim"]
+    if sp and SPATIAL_ROW in d["test"]:
+        a, h = sp["albedo"], sp["auto"].get("heldout_dssim") or {}
+        out += ["", f"Spatial factor (`damcap fit --spatial albedo`): an albedo texture of {a['voxels']} voxel corners "
+                f"({a['voxel_size']:.3g} world units, {rw['fit']['options'].get('spatial_voxel_px', 0.75)} pixel footprints), "
+                f"estimated in {a['seconds']:.1f} s after the fit. Novel-view DSSIM {d['test']['DAM']:.4f} -> {d['test'][SPATIAL_ROW]:.4f} "
+                f"(x{d['test'][SPATIAL_ROW] / d['test']['DAM']:.2f}), {d['test'][SPATIAL_ROW] / d['test']['RM++']:.2f}x RM++. "
+                f"`--spatial auto` {'keeps' if sp['auto']['kept'] else 'does not keep'} it"
+                + (f" (held-out training views: {h['off']:.4f} without, {h['albedo']:.4f} with)." if h else ".")]
+        sweep = sp.get("voxel_sweep")
+        if sweep:
+            out += ["", f"Voxel edge (`--spatial-voxel-px`, prior {rw['fit']['options'].get('spatial_prior')}): DSSIM of the "
+                    f"held-out training views (texture from the other training views) and of every 4th novel view "
+                    f"({sweep[0]['test_frames']} frames; texture from all training views):", "",
+                    "| voxel edge, pixel footprints | held-out training views | novel views |", "|---:|---:|---:|"]
+            out += [f"| {r['voxel_px']:g} | {r['heldout_dssim']:.4f} | {r['test_dssim']:.4f} |" for r in sweep]
+    ref = rw.get("detail_reference")
+    if ref:
+        b, sh = ref["blur_sigma_px"], ref["shift_px"]
+        out += ["", "What fine detail and alignment cost on these novel views (no model): the photos against themselves "
+                f"blurred by a Gaussian of sigma 1 / 2 px score {b['1']:.4f} / {b['2']:.4f}, shifted by 0.5 / 1 px "
+                f"{sh['0.5']:.4f} / {sh['1.0']:.4f}; the nearest training photo warped through the geometry onto each novel "
+                f"view scores {ref['nearest_photo_warped']:.4f}."]
+    return out
 
 
 def measured_on(res: dict, part: str) -> str:

@@ -61,6 +61,7 @@ def fit(
     """Fit a deep appearance map to a capture (L1 or quantile data cost, optional adversarial cost)."""
     from damcap.appearance.dam_file import save_dam
     from damcap.appearance.fit import adversarial_frames, fit_dam, holdout_frames
+    from damcap.appearance.spatial_fit import choose_spatial
     from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import read_capture
     from damcap.common.version import damcap_version
@@ -76,6 +77,8 @@ def fit(
         raise DamcapError(f"--holdout-views must leave 2 of the {len(views)} training views of {capture} to fit "
                           f"(at most {held}), got {opts.holdout_views}")
     if target_dssim is not None:
+        if opts.spatial != "off":
+            raise DamcapError("--target-dssim sizes the DAM alone; leave out --spatial (or fit with --spatial and no --target-dssim)")
         _fit_to_target(capture, cap, views, split, target_dssim, opts, output, width_or_depth_given=bool({"width", "depth"} & given),
                        resume=resume)
         return
@@ -87,11 +90,12 @@ def fit(
         result = fit_dam(samples, opts, frames_for_adversarial=frames, checkpoint_path=ckpt, progress=progress_bar(opts.steps, "fit"),
                          log=lambda message: typer.echo(message, err=True), remove_checkpoint=False)
     last = result.history[-1] if result.history else {}
-    save_dam(output, result.model, colorspace=cap.colorspace, made_by="fit", provenance={
+    spatial = choose_spatial(result.model, views, opts, log=lambda message: typer.echo(message, err=True))
+    save_dam(output, spatial.model, colorspace=cap.colorspace, made_by="fit", provenance={
         "damcap_version": damcap_version(), "options": asdict(opts), "capture": str(capture.resolve()),
         "split": split, "frames": [v.name for v in views], "pixels": len(samples), "best_step": result.best_step,
         "train_l1": last.get("train_l1"), "holdout_l1": last.get("holdout_l1"), "seconds": result.seconds,
-        "history": result.history,
+        "history": result.history, "spatial": spatial.record(),
     })
     ckpt.unlink(missing_ok=True)  # only now that the model is saved
     typer.echo(f"wrote {output} ({result.model.arch.num_weights} weights, {len(samples)} pixels, "

@@ -61,6 +61,9 @@ def export(
     check_paths([*models, mesh, labels], [target])
     loaded = [load_dam(m) for m in models]
     dams = [m for m, _ in loaded]
+    if opts.format != "frames" and any(d.spatial is not None for d in dams):
+        typer.echo(f"note: --format {opts.format} carries the DAM alone; the spatial factor (the albedo texture of the "
+                   "model's capture) is left out", err=True)
     if opts.format == "onnx":
         if len(dams) != 1:
             raise DamcapError("--format onnx takes one model")
@@ -110,6 +113,28 @@ def _check_onnx(ort, dam, staged: Path, path: Path) -> float:
     return err
 
 
+def _spatial_on_shape(dams, model_paths, mesh_path):
+    """Keep each model's spatial factor only where the shape is its capture's own surface
+    (:data:`.turntable.SPATIAL_MIN_SURFACE`); say which are dropped and why."""
+    from damcap.common.mesh import bounding_sphere, load_mesh
+    from damcap.export.turntable import SPATIAL_MIN_SURFACE, spatial_surface_share
+
+    if all(d.spatial is None for d in dams):
+        return dams, {"capture_from_render": None, "record": None}
+    vertices = load_mesh(mesh_path).vertices
+    centre, radius = bounding_sphere(vertices)
+    kept, record = [], []
+    for d, path in zip(dams, model_paths):
+        share = spatial_surface_share(d, vertices)
+        applied = share is not None and share >= SPATIAL_MIN_SURFACE
+        if share is not None and not applied:
+            typer.echo(f"note: {path}: its spatial factor (the albedo texture of its capture's surface) covers {share:.0%} of "
+                       f"{mesh_path.name}, so the DAM alone is drawn; the texture applies to the capture's own mesh", err=True)
+        kept.append(d if applied or share is None else d.with_spatial(None))
+        record.append({"model": str(path), "surface_share": share, "applied": applied})
+    return kept, {"capture_from_render": (centre, radius), "record": record}
+
+
 def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, export_opts) -> None:
     from tqdm import tqdm
 
@@ -131,6 +156,7 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
         part = shape.triangle_groups.astype(np.int64)
     if part.max() >= len(dams):
         raise DamcapError(f"{labels or mesh_path}: part {int(part.max())} has no model; give {int(part.max()) + 1} .dam files (one per part)")
+    dams, spatial = _spatial_on_shape(dams, model_paths, mesh_path)
     (output / "frames").mkdir(parents=True, exist_ok=True)
     (output / "display").mkdir(parents=True, exist_ok=True)
     writer, tmp_video, scale, cams = None, None, None, []
@@ -143,7 +169,7 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
             writer = cv2.VideoWriter(str(tmp_video), cv2.VideoWriter_fourcc(*"mp4v"), fps, (resolution, resolution))
             if not writer.isOpened():
                 raise DamcapError(f"{output / 'turntable.mp4'}: OpenCV cannot write MP4 video here")
-        for k, (m, buf, rad) in enumerate(tqdm(render_orbit(dams, shape, part, opts), total=views, desc="export", leave=False, disable=None)):
+        for k, (m, buf, rad) in enumerate(tqdm(render_orbit(dams, shape, part, opts, spatial["capture_from_render"]), total=views, desc="export", leave=False, disable=None)):
             if scale is None:  # one exposure for the whole turntable, from the first frame
                 scale = exposure_scale_for(rad, buf.coverage > 0.5)
             write_exr(output / "frames" / f"{k:04d}.exr", np.concatenate([rad, buf.coverage[..., None]], -1), RADIANCE_CHANNELS + ("A",), dtype="float")
@@ -166,7 +192,7 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
         "damcap_version": damcap_version(), "models": [str(p.resolve()) for p in model_paths],
         "mesh": str(mesh_path.resolve()), "labels": str(labels.resolve()) if labels else None,
         "options": asdict(opts), "export_options": asdict(export_opts), "exposure_scale": scale, "colorspace": metas[0].get("colorspace"),
-        "world_from_cam": cams,
+        "world_from_cam": cams, "spatial": spatial["record"],
     })
 
 
@@ -194,6 +220,10 @@ def view(
     opts.validate()
     check_paths([model, mesh], [file_out(output)])
     dam, _ = load_dam(model)
+    if dam.spatial is not None:
+        typer.echo("note: the viewer draws the DAM alone; the spatial factor (the albedo texture of the model's capture) is "
+                   "left out", err=True)
+        dam = dam.with_spatial(None)
     shape = _load_mesh(mesh)
     _, buf, rad = next(render_orbit([dam], shape, np.zeros(len(shape.triangles), np.int64), opts))
     html = viewer_html(dam, shape, exposure_scale_for(rad, buf.coverage > 0.5), cam, title=f"{model.name} on {mesh.name if mesh else 'a sphere'}")

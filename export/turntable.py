@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from damcap.appearance.dam import DeepAppearanceMap
+from damcap.appearance.spatial import log_albedo_at, albedo_at
 from damcap.common.errors import DamcapError
 from damcap.common.validate import AZIMUTH_DEG, CAMERA_DISTANCE, ELEVATION_DEG, FOV_DEG, MAX_IMAGE_SIDE, check_ranges, in_range, require_resolution
 from damcap.common.cameras import focal_px_from_fov, orbit_world_from_cam
@@ -71,7 +72,8 @@ def parts_from_vertex_labels(triangles: np.ndarray, vertex_labels: np.ndarray) -
     return np.where(b == c, b, a).astype(np.int64)
 
 
-def shade_buffers(models: list[DeepAppearanceMap], buffers: SurfaceBuffers, camera_centre_world: np.ndarray, triangle_part: np.ndarray) -> np.ndarray:
+def shade_buffers(models: list[DeepAppearanceMap], buffers: SurfaceBuffers, camera_centre_world: np.ndarray, triangle_part: np.ndarray,
+                  capture_from_render: tuple[np.ndarray, float] | None = None) -> np.ndarray:
     """Evaluate each pixel's DAM: (H, W, 3) float32 linear radiance, 0 on background.
 
     Args:
@@ -79,6 +81,9 @@ def shade_buffers(models: list[DeepAppearanceMap], buffers: SurfaceBuffers, came
         buffers: ray-cast surface buffers.
         camera_centre_world: (3,).
         triangle_part: (T,) part index per triangle.
+        capture_from_render: (centre (3,), radius): a rendered point p lies at
+            p * radius + centre in the capture's world, where a model's spatial factor
+            (``model.spatial``) is looked up. None: spatial factors are not applied.
     """
     covered = buffers.triangle_id >= 0
     out = np.zeros(covered.shape + (3,), np.float32)
@@ -95,12 +100,30 @@ def shade_buffers(models: list[DeepAppearanceMap], buffers: SurfaceBuffers, came
             sel = part == k
             if sel.any():
                 rad[sel] = model(torch.from_numpy(v[sel]), torch.from_numpy(n[sel])).numpy()
+                if model.spatial is not None and capture_from_render is not None:
+                    centre, radius = capture_from_render
+                    rad[sel] *= albedo_at(model.spatial, pos[sel].astype(np.float64) * radius + centre)
     out[covered] = rad
     return out
 
 
-def render_orbit(models: list[DeepAppearanceMap], mesh: Mesh, triangle_part: np.ndarray, opts: OrbitOptions) -> Iterator[tuple[np.ndarray, SurfaceBuffers, np.ndarray]]:
-    """Yield (world_from_cam, buffers, radiance_lin) per orbit frame."""
+SPATIAL_MIN_SURFACE = 0.9
+"""a model's spatial factor is applied to a shape only when it has texture at this share of the
+shape's vertices (it is the capture's own surface); on any other shape the DAM alone is drawn"""
+
+
+def spatial_surface_share(model: DeepAppearanceMap, vertices_capture: np.ndarray) -> float | None:
+    """Share of the vertices (capture world) at which ``model``'s spatial factor has texture
+    (None: the model has none)."""
+    if model.spatial is None or len(vertices_capture) == 0:
+        return None
+    return float(log_albedo_at(model.spatial, np.asarray(vertices_capture, np.float64))[1].mean())
+
+
+def render_orbit(models: list[DeepAppearanceMap], mesh: Mesh, triangle_part: np.ndarray, opts: OrbitOptions,
+                 capture_from_render: tuple[np.ndarray, float] | None = None) -> Iterator[tuple[np.ndarray, SurfaceBuffers, np.ndarray]]:
+    """Yield (world_from_cam, buffers, radiance_lin) per orbit frame (``capture_from_render``:
+    see :func:`shade_buffers`)."""
     opts.validate()
     if triangle_part.shape != (len(mesh.triangles),):
         raise ValueError("one part index per triangle expected")
@@ -111,4 +134,4 @@ def render_orbit(models: list[DeepAppearanceMap], mesh: Mesh, triangle_part: np.
     c = opts.resolution / 2
     for m in orbit_world_from_cam(opts.views, opts.distance, opts.elevation_deg, opts.azimuth0_deg):
         b = caster.buffers(m, f, f, c, c, opts.resolution, opts.resolution, supersample=opts.supersample)
-        yield m, b, shade_buffers(models, b, m[:3, 3], triangle_part)
+        yield m, b, shade_buffers(models, b, m[:3, 3], triangle_part, capture_from_render)

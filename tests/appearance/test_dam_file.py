@@ -131,3 +131,54 @@ class TestHostileMetadata:
     def test_model_constructor_checks_the_scale_in_float32(self):
         with pytest.raises(DamcapError, match="float32"):
             DeepAppearanceMap(DamArchitecture(), 1e39)
+
+
+def _with_spatial(model: DeepAppearanceMap, keys=(3, 5), log_albedo=((0.1, -0.2, 0.3), (0.0, 0.5, -1.0))) -> DeepAppearanceMap:
+    import numpy as np
+
+    from damcap.appearance.spatial import SpatialAlbedo
+
+    return model.with_spatial(SpatialAlbedo(np.array([0.5, -1.0, 2.0]), 0.01, np.array(keys, np.int64),
+                                            np.array(log_albedo, np.float32)))
+
+
+def test_round_trip_with_a_spatial_factor_is_format_2(tmp_path):
+    import numpy as np
+
+    m = _with_spatial(DeepAppearanceMap(DamArchitecture(width=8, depth=2), radiance_scale=1.5))
+    save_dam(tmp_path / "s.dam", m, colorspace="lin_rec709", made_by="fit")
+    back, meta = load_dam(tmp_path / "s.dam")
+    assert meta["format_version"] == 2 and meta["spatial"]["kind"] == "albedo_voxels"
+    sa, want = back.spatial, m.spatial
+    assert sa is not None and sa.voxel_size == want.voxel_size
+    np.testing.assert_array_equal(sa.keys, want.keys)
+    np.testing.assert_array_equal(sa.log_albedo, want.log_albedo)
+    np.testing.assert_array_equal(sa.origin_world, want.origin_world)
+    torch.testing.assert_close(back.get_flat_weights(), m.get_flat_weights())
+    save_dam(tmp_path / "plain.dam", back.with_spatial(None), colorspace="lin_rec709", made_by="fit")
+    assert load_dam(tmp_path / "plain.dam")[1]["format_version"] == 1 and load_dam(tmp_path / "plain.dam")[0].spatial is None
+
+
+def test_refuses_a_damaged_spatial_factor(tmp_path):
+    base = DeepAppearanceMap(DamArchitecture(width=8, depth=2))
+    cases = {
+        "unsorted": (_with_spatial(base, keys=(5, 3)), "sorted"),
+        "huge": (_with_spatial(base, log_albedo=((0, 0, 0), (80, 0, 0))), "outside"),
+    }
+    for name, (model, needle) in cases.items():
+        save_dam(tmp_path / f"{name}.dam", model, colorspace="lin_rec709", made_by="fit")
+        with pytest.raises(DamcapError, match=f"{name}.dam: spatial factor: .*{needle}"):
+            load_dam(tmp_path / f"{name}.dam")
+    # a file that names a spatial factor but lacks its tensors, and tensors without the metadata
+    good = _with_spatial(base)
+    meta = {"format_version": 2, "architecture": base.arch.to_json(), "radiance_scale": 1.0, "colorspace": "lin_rec709",
+            "made_by": "fit", "spatial": {"kind": "albedo_voxels", "origin_world": [0, 0, 0], "voxel_size": 0.01}}
+    (tmp_path / "missing.dam").write_bytes(st_save({"weights": base.get_flat_weights()}, metadata={"damcap": json.dumps(meta)}))
+    with pytest.raises(DamcapError, match="missing.dam: expected the tensors"):
+        load_dam(tmp_path / "missing.dam")
+    del meta["spatial"]
+    extra = {"weights": base.get_flat_weights(), "spatial_keys": torch.from_numpy(good.spatial.keys),
+             "spatial_log_albedo": torch.from_numpy(good.spatial.log_albedo)}
+    (tmp_path / "extra.dam").write_bytes(st_save(extra, metadata={"damcap": json.dumps(meta)}))
+    with pytest.raises(DamcapError, match="extra.dam: expected the tensors \\['weights'\\]"):
+        load_dam(tmp_path / "extra.dam")

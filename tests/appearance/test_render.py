@@ -55,3 +55,25 @@ def test_a_frame_without_coverage_renders_black():
     empty = FrameData(data.radiance_lin, data.normal_world, data.position_world, np.zeros_like(data.coverage))
     out = render_frame(model, empty, np.zeros(3))
     assert out.shape == (6, 5, 3) and not out.any()
+
+
+def test_spatial_factor_multiplies_the_render_at_each_surface_point():
+    """Albedo 2 in red at the voxel corners around all covered points but one: red doubles
+    wherever a point has a stored corner, and nothing changes where it has none."""
+    from damcap.appearance.spatial import SpatialAlbedo, trilinear_corners
+
+    model = DeepAppearanceMap(DamArchitecture(width=8, depth=2), radiance_scale=1.0, generator=torch.Generator().manual_seed(1))
+    data = _frame(seed=2)
+    centre = np.array([0.0, 0.0, 5.0])
+    plain = render_frame(model, data, centre)
+    covered = data.coverage > 0
+    origin, h = np.full(3, -10.0), 0.5
+    corners = lambda p: trilinear_corners(np.asarray(p, np.float64).reshape(-1, 3), origin, h)[0]  # noqa: E731
+    keys = np.setdiff1d(np.unique(corners(data.position_world[covered])), corners(data.position_world[1, 1]))
+    sa = SpatialAlbedo(origin, h, keys, np.tile(np.array([[np.log(2.0), 0.0, 0.0]], np.float32), (keys.size, 1)))
+    textured = render_frame(model.with_spatial(sa), data, centre)
+    found = np.array([[np.isin(corners(data.position_world[i, j]), keys).any() for j in range(5)] for i in range(6)])
+    assert not found[1, 1] and found[covered].sum() >= covered.sum() - 3
+    np.testing.assert_allclose(textured[..., 0], np.where(found & covered, 2.0, 1.0) * plain[..., 0], rtol=1e-5)
+    np.testing.assert_allclose(textured[..., 1:], plain[..., 1:], rtol=1e-6)
+    assert np.all(textured[~covered] == 0)

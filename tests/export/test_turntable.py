@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
-from damcap.appearance.dam_file import save_dam
+from damcap.appearance.dam_file import DAM_FORMAT_VERSION, save_dam
 from damcap.cli.main import main
 from damcap.common.colour import display_srgb8
 from damcap.common.exr import read_exr, read_image_u8
@@ -56,7 +56,7 @@ def test_bad_meshes_and_models(model_file, tmp_path, capsys):
     assert main(["export", str(model_file), "--mesh", str(tmp_path / "tet.obj"), "-o", str(tmp_path / "o"), "--views", "1", "--resolution", "32"]) == 0
     # a model from a newer format version
     from safetensors.torch import save as st_save
-    meta = {"format_version": 2, "architecture": DamArchitecture().to_json(), "radiance_scale": 1.0}
+    meta = {"format_version": DAM_FORMAT_VERSION + 1, "architecture": DamArchitecture().to_json(), "radiance_scale": 1.0}
     (tmp_path / "new.dam").write_bytes(st_save({"weights": torch.zeros(3360)}, metadata={"damcap": json.dumps(meta)}))
     assert main(["export", str(tmp_path / "new.dam"), "--mesh", str(tmp_path / "tet.obj"), "-o", str(tmp_path / "o2")]) == 2
     assert "newer than this damcap reads" in capsys.readouterr().err
@@ -90,3 +90,37 @@ def test_several_dams_by_vertex_labels(model_file, bunny, tmp_path):
     np.save(tmp_path / "bad.npy", labels + 5)
     args[args.index(str(tmp_path / "labels.npy"))] = str(tmp_path / "bad.npy")
     assert main(args) == 2
+
+
+def test_spatial_factor_is_drawn_on_its_own_surface_only(model_file, bunny, tmp_path, capsys):
+    """A texture on the bunny's own surface (albedo 2 in red) doubles the red of every export
+    pixel; the same texture moved away from it is left out, with a note; GLSL says it carries the
+    DAM alone."""
+    from damcap.appearance.dam_file import load_dam
+    from damcap.appearance.spatial import SpatialAlbedo, trilinear_corners
+    from damcap.common.mesh import load_mesh
+
+    dam, _ = load_dam(model_file)
+    verts = load_mesh(bunny).vertices.astype(np.float64)
+    h = 0.05 * float(np.ptp(verts, axis=0).max())
+    origin = verts.min(0) - 2 * h
+    keys = np.unique(trilinear_corners(verts, origin, h)[0])
+    la = np.tile(np.array([[np.log(2.0), 0.0, 0.0]], np.float32), (keys.size, 1))
+    frames = {}
+    for name, o in (("own", origin), ("elsewhere", origin + 100.0)):
+        save_dam(tmp_path / f"{name}.dam", dam.with_spatial(SpatialAlbedo(o, h, keys, la)), colorspace="lin_rec709", made_by="fit")
+    for name in ("plain", "own", "elsewhere"):
+        model = model_file if name == "plain" else tmp_path / f"{name}.dam"
+        capsys.readouterr()
+        assert main(["export", str(model), "--mesh", str(bunny), "-o", str(tmp_path / name), "--views", "2", "--resolution", "48"]) == 0
+        frames[name] = (read_exr(tmp_path / name / "frames" / "0001.exr")[0], capsys.readouterr().err,
+                        json.loads((tmp_path / name / "export.json").read_text())["spatial"])
+    plain, own, away = frames["plain"][0], frames["own"][0], frames["elsewhere"][0]
+    fg = plain[..., 3] > 0
+    np.testing.assert_allclose(own[fg, 0], 2 * plain[fg, 0], rtol=1e-4)
+    np.testing.assert_allclose(own[..., 1:], plain[..., 1:], rtol=1e-5)
+    assert frames["own"][2][0]["applied"] and frames["own"][2][0]["surface_share"] > 0.99 and frames["plain"][2] is None
+    np.testing.assert_array_equal(away, plain)
+    assert not frames["elsewhere"][2][0]["applied"] and "covers 0% of stanford-bunny.obj" in frames["elsewhere"][1]
+    assert main(["export", str(tmp_path / "own.dam"), "--format", "glsl", "-o", str(tmp_path / "dam.glsl")]) == 0
+    assert "carries the DAM alone" in capsys.readouterr().err

@@ -5,6 +5,7 @@ from __future__ import annotations
 import shlex
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Optional
 
@@ -13,11 +14,10 @@ import typer
 from damcap.common.errors import DamcapError
 
 from damcap.cli.app import command, progress_bar
-from damcap.cli.options import parse_int
-from damcap.common.validate import MAX_COUNT
 from damcap.cli.paths import beside, check_paths, file_out, on_interrupt
 
 if TYPE_CHECKING:
+    from damcap.appearance.hyper.predict import PredictOptions
     from damcap.appearance.hyper.train import HyperTrainOptions
 
 
@@ -57,8 +57,6 @@ def train_hyper_cmd(
         result = train_hyper(paths, opts, checkpoint_path=state, progress=progress_bar(opts.steps, "train-hyper"), log=log)
     if rank != 0:
         return
-    from dataclasses import asdict
-
     training = {
         "damcap_version": damcap_version(),
         "command": "damcap " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
@@ -80,26 +78,29 @@ def train_hyper_cmd(
                f"validation L1 {last.get('val_l1', float('nan')):.4f}, {result.seconds:.0f} s, {result.world_size} process(es))")
 
 
-@command()
+@command(opts="damcap.appearance.hyper.predict:PredictOptions")
 def predict(
     capture: Path = typer.Argument(..., help="capture folder"),
     output: Path = typer.Option(..., "-o", "--output", help="model file to write (.dam)"),
     view: Optional[str] = typer.Option(None, "--view", help="input frame (a train-split file_path or its stem); default: the best covered lit one"),
-    refine_steps: int = typer.Option(0, "--refine-steps", parser=parse_int("--refine-steps", (0, MAX_COUNT)), metavar="INTEGER",
-                                     help="K steps of the fit cost on all train views after predicting"),
     predictor: Optional[Path] = typer.Option(None, "--predictor", help="predictor file (default: the one shipped with damcap)"),
     device: str = typer.Option("cpu", help="cpu | cuda | auto"),
+    *,
+    opts: PredictOptions,
 ) -> None:
-    """Predict a deep appearance map from one view in milliseconds (optionally refine it)."""
+    """Predict a deep appearance map from one view in milliseconds, say how well it re-synthesises
+    the train views (and whether to refine), optionally refine it."""
     from damcap.appearance.dam_file import save_dam
     from damcap.appearance.fit import refine_dam
     from damcap.appearance.hyper.model import predict_dam, predictor_input
     from damcap.appearance.hyper.file import load_predictor, shipped_predictor_path
+    from damcap.appearance.hyper.predict import AUTO, refine_auto, refinement_needed, resynthesis_error, resynthesis_line
     from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import read_capture
     from damcap.common.device import resolve_device
     from damcap.common.version import damcap_version
 
+    opts.validate()
     pred_path = predictor or shipped_predictor_path()
     check_paths([capture, pred_path], [file_out(output)])
     net, meta = load_predictor(pred_path)
@@ -114,14 +115,34 @@ def predict(
     t0 = time.perf_counter()
     model = predict_dam(net, crop, capture_scale)
     predict_s = time.perf_counter() - t0
+    samples = samples_of(train_views)
+    err = resynthesis_error(model, train_views, samples)
+    typer.echo(resynthesis_line(err, opts.refine_threshold))
     record = {"damcap_version": damcap_version(), "capture": str(capture.resolve()), "predictor": str(Path(pred_path).resolve()),
               "predictor_command": meta.get("training", {}).get("command"), "view": frame.file_path,
-              "predict_seconds": predict_s, "refine_steps": refine_steps}
-    if refine_steps:
-        samples = samples_of(train_views)
+              "predict_seconds": predict_s, "options": asdict(opts), "refine_steps": opts.refine_steps,
+              "train_views": err.views, "train_dssim_predicted": err.dssim, "train_l1_predicted": err.l1,
+              "refine_threshold": opts.refine_threshold, "refinement_needed": refinement_needed(err.dssim, opts.refine_threshold)}
+    extra = ""
+    if opts.refine_steps == AUTO:
         t1 = time.perf_counter()
-        model, before, after = refine_dam(model, samples, refine_steps, progress=progress_bar(refine_steps, "refine"))
-        record.update(refine_seconds=time.perf_counter() - t1, train_l1_predicted=before, train_l1_refined=after)
+        model, auto = refine_auto(model, samples, max_steps=opts.refine_max_steps, patience_steps=opts.refine_patience,
+                                  choose_progress=progress_bar(opts.refine_max_steps, "choose refine steps"),
+                                  refine_progress=lambda n: progress_bar(n, "refine"))
+        record.update(refine_seconds=time.perf_counter() - t1, refine_steps_used=auto.steps_used, refine_steps_run=auto.steps_run,
+                      refine_stopped_by=auto.stopped_by, refine_held_out_views=[train_views[i].name for i in auto.held_out],
+                      refine_holdout_curve=auto.curve)
+        why = ("held-out views stopped improving" if auto.stopped_by == "patience"
+               else f"held-out views still improving at --refine-max-steps {opts.refine_max_steps}")
+        extra = f", refined {auto.steps_used} steps (auto: {why}; {auto.steps_run} tried)"
+    elif opts.refine_steps:
+        t1 = time.perf_counter()
+        model, _, _ = refine_dam(model, samples, opts.refine_steps, progress=progress_bar(opts.refine_steps, "refine"))
+        record.update(refine_seconds=time.perf_counter() - t1, refine_steps_used=opts.refine_steps)
+        extra = f", refined {opts.refine_steps} steps"
+    if opts.refine_steps:
+        after = resynthesis_error(model, train_views, samples)
+        record.update(train_dssim_refined=after.dssim, train_l1_refined=after.l1)
+        extra += f": train DSSIM {err.dssim:.4f} -> {after.dssim:.4f}, L1 {err.l1:.4f} -> {after.l1:.4f}"
     save_dam(output, model, colorspace=cap.colorspace, made_by="predict", provenance=record)
-    extra = f", refined {refine_steps} steps: train L1 {record['train_l1_predicted']:.4f} -> {record['train_l1_refined']:.4f}" if refine_steps else ""
     typer.echo(f"wrote {output} (predicted from {frame.file_path} in {1000 * predict_s:.0f} ms{extra})")

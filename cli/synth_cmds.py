@@ -63,35 +63,44 @@ def synth_set(
     *,
     opts: CorpusOptions,
 ) -> None:
-    """Render the synthetic corpus: resumable, parallel, with a held-out part listed in corpus.json."""
+    """Render the synthetic corpus: resumable, parallel, with a held-out part listed in corpus.json.
+    With --shard I/N, only shard I of N (for N processes or a job array sharing OUT); corpus.json
+    is then written by one final run without --shard after every shard has finished."""
     from tqdm import tqdm
 
     from damcap.synth.corpus import make_corpus
+
+    opts.validate()
 
     data_dir = shared_data_dir(data)
     if not (data_dir / "meshes").is_dir() or not (data_dir / "envmaps").is_dir():
         raise DamcapError(f"{data_dir}: no meshes/ and envmaps/ here; pass --data-dir (or set {DATA_ENV}) with the shared data folder")
     check_paths([data_dir], [folder_out(out)])
     preset = opts.preset
+    shard = opts.shard
+    label = f"synth-set {preset}" + (f" shard {shard[0]}/{shard[1]}" if shard else "")
     bar = None
 
     def on_capture(entry, finished: int, total: int) -> None:
         nonlocal bar
         if bar is None:
-            bar = tqdm(total=total, desc=f"synth-set {preset}", unit="capture", dynamic_ncols=True, disable=None)
+            bar = tqdm(total=total, desc=label, unit="capture", dynamic_ncols=True, disable=None)
         bar.n = finished
         bar.set_postfix_str(f"{entry.name}: {entry.status}", refresh=True)
 
     try:
         with on_interrupt(lambda: f"the captures finished in {out} are kept; rerun the same command to resume"):
-            entries = make_corpus(out, preset, data_dir, jobs=opts.jobs, dry_run=opts.dry_run, on_capture=on_capture)
+            entries = make_corpus(out, preset, data_dir, jobs=opts.jobs, dry_run=opts.dry_run, on_capture=on_capture, shard=shard)
     finally:
         if bar is not None:
             bar.close()
     counts = {s: sum(e.status == s for e in entries) for s in ("done", "skipped", "pending")}
-    typer.echo(f"{out}/corpus.json: {len(entries)} captures ({sum(e.split == 'train' for e in entries)} train, "
+    what = (f"{out}/corpus.json: {len(entries)} captures" if shard is None
+            else f"{out} shard {shard[0]}/{shard[1]}: {len(entries)} captures")
+    tail = "" if shard is None else "; once every shard has finished, run the same command without --shard: it writes corpus.json"
+    typer.echo(f"{what} ({sum(e.split == 'train' for e in entries)} train, "
                f"{sum(e.split == 'heldout' for e in entries)} held out); rendered {counts['done']}, "
-               f"already there {counts['skipped']}, not rendered {counts['pending']}")
+               f"already there {counts['skipped']}, not rendered {counts['pending']}{tail}")
 
 
 @command("synth-photos", opts="damcap.synth.photos:PhotoSetOptions")

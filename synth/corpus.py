@@ -16,6 +16,15 @@ pick the strictest subset (both novel).
 ``OUT/corpus.json`` lists every capture (split, object, light, materials, seed, status) and is
 rewritten atomically after each capture; finished captures (``transforms.json`` present) are
 skipped on a rerun, and an interrupted capture resumes at its next unfinished frame.
+
+Sharding (``--shard I/N``, :func:`shard_indices`): shard I of N renders only the captures at
+positions I-1, I-1+N, I-1+2N, ... of the plan (a deterministic split: the plan's order is fixed by
+the preset), so N processes, machines or the tasks of a job array build one corpus together, each
+into the same folder. A shard writes only its own capture folders, never ``corpus.json``: the
+index is written by one final run without ``--shard`` after every shard has finished. That run
+finds the shards' captures finished (``skipped``), renders whatever a failed or missing shard
+left, and writes the index once, so no two processes ever write it. The corpus is the same as one
+un-sharded run's: every capture is rendered from its own seed whichever process renders it.
 """
 
 from __future__ import annotations
@@ -32,7 +41,7 @@ from typing import Any, Callable, Literal
 
 from damcap.common.atomic import write_json_atomic
 from damcap.common.errors import DamcapError
-from damcap.common.validate import in_range
+from damcap.common.validate import check_ranges, in_range
 
 from damcap.synth.mitsuba_capture import SynthOptions, finished_with, make_synthetic_capture
 
@@ -53,6 +62,42 @@ N_POINT_LIGHTS = 20
 HELDOUT_POINT_LIGHTS = (16, 17, 18, 19)
 
 
+MAX_SHARDS = 100_000
+"""most shards a corpus may be split into"""
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """``--shard I/N`` -> (I, N), with 1 <= I <= N <= :data:`MAX_SHARDS`.
+
+    >>> parse_shard("2/3")
+    (2, 3)
+
+    Raises:
+        DamcapError: anything else, in one line naming the option and the value as typed.
+    """
+    parts = text.strip().split("/")
+    try:
+        i, n = (int(p) for p in parts) if len(parts) == 2 else (0, 0)
+    except ValueError:
+        i, n = 0, 0
+    if not 1 <= i <= n <= MAX_SHARDS:
+        raise DamcapError(f"--shard must be I/N with 1 <= I <= N <= {MAX_SHARDS} (shard I of N), got {text!r}")
+    return i, n
+
+
+def shard_indices(count: int, shard: tuple[int, int] | None) -> list[int]:
+    """Positions in a plan of ``count`` captures that shard (I, N) renders: I-1, I-1+N, ...
+    (round robin, so shards differ by at most one capture; None = all of them).
+
+    >>> shard_indices(5, (1, 2)), shard_indices(5, (2, 2)), shard_indices(2, (3, 3)), shard_indices(3, None)
+    ([0, 2, 4], [1, 3], [], [0, 1, 2])
+    """
+    if shard is None:
+        return list(range(count))
+    i, n = shard
+    return list(range(i - 1, count, n))
+
+
 @dataclass(frozen=True)
 class CorpusOptions:
     """Options of ``damcap synth-set`` (the corpus folder and the shared data folder are arguments)."""
@@ -65,7 +110,18 @@ class CorpusOptions:
     jobs: int = field(default=1, metadata=in_range(1, 256))
     """parallel processes (each gets cores / jobs render threads)"""
     dry_run: bool = False
-    """write corpus.json (the plan) and render nothing"""
+    """write corpus.json (the plan) and render nothing (with --shard: only list the shard's share)"""
+    shard: tuple[int, int] | None = field(default=None, metadata=in_range(1, MAX_SHARDS, cli_parse=parse_shard))
+    """'I/N': render only shard I of N of the plan (captures I, I+N, I+2N, ... in plan order), for
+    N processes or a job array sharing one corpus folder; a shard never writes corpus.json, so
+    after all shards have finished run the same command once without --shard: it renders what
+    is missing and writes the index"""
+
+    def validate(self) -> None:
+        """Raise DamcapError naming the first bad value."""
+        check_ranges(self)
+        if self.shard is not None:
+            parse_shard("/".join(map(str, self.shard)))  # I <= N
 
 
 @dataclass(frozen=True)
@@ -279,28 +335,41 @@ def _write_corpus(out: Path, p: CorpusPreset, entries: list[CorpusEntry], data_d
 
 
 def make_corpus(out: str | os.PathLike, preset_name: Preset, data_dir: str | os.PathLike, *, jobs: int = 1,
-                dry_run: bool = False, on_capture: Callable[[CorpusEntry, int, int], None] | None = None) -> list[CorpusEntry]:
+                dry_run: bool = False, on_capture: Callable[[CorpusEntry, int, int], None] | None = None,
+                shard: tuple[int, int] | None = None) -> list[CorpusEntry]:
     """Render (or resume) every capture of a preset into ``out/captures/``, ``jobs`` at a time.
 
     Args:
         out: corpus folder.
-        preset_name: 'small' or 'paper'.
+        preset_name: a preset (:func:`preset`).
         data_dir: the shared data folder (``meshes/``, ``envmaps/``).
         jobs: parallel worker processes; each renders with ``cpu_count // jobs`` threads.
-        dry_run: only write ``corpus.json`` (the plan), render nothing.
+        dry_run: only write ``corpus.json`` (the plan), render nothing; with ``shard``, write nothing.
         on_capture: called as on_capture(entry, finished, total) as captures finish (or are skipped).
+        shard: (I, N): render only shard I of N of the plan (:func:`shard_indices`) and write no
+            ``corpus.json`` (see the module docstring: the index is written by a final run with
+            ``shard=None`` once every shard has finished, so shards running at the same time never
+            write the same file); None = the whole plan, index included.
 
     Returns:
-        the entries with their status ('done', 'skipped' = finished before, 'failed', 'pending').
+        the entries (of the shard only, with ``shard``) with their status ('done', 'skipped' =
+        finished before, 'failed', 'pending').
 
     Raises:
-        DamcapError: bad preset or jobs, missing data, or captures that failed (after all others ran).
+        DamcapError: bad preset, jobs or shard, missing data, or captures that failed (after all
+            others ran).
     """
     if jobs < 1:
         raise DamcapError(f"--jobs must be >= 1, got {jobs}")
+    if shard is not None:
+        shard = parse_shard("/".join(map(str, shard)))
     out, data_dir = Path(out), Path(data_dir)
     p = preset(preset_name)
     entries, options = plan_corpus(p, data_dir)
+    mine = shard_indices(len(entries), shard)
+    entries, options = [entries[k] for k in mine], [options[k] for k in mine]
+    if shard is not None and dry_run:
+        return entries
     out.mkdir(parents=True, exist_ok=True)
     started = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
     todo = []
@@ -312,7 +381,9 @@ def make_corpus(out: str | os.PathLike, preset_name: Preset, data_dir: str | os.
             e.status = "skipped"
         else:
             todo.append((e, o))
-    _write_corpus(out, p, entries, data_dir, started)
+    write_index = shard is None  # a shard writes only its captures: the final un-sharded run writes the index
+    if write_index:
+        _write_corpus(out, p, entries, data_dir, started)
     finished = len(entries) - len(todo)
     if on_capture:
         for e in entries:
@@ -331,12 +402,13 @@ def make_corpus(out: str | os.PathLike, preset_name: Preset, data_dir: str | os.
             e = futures[fut]
             e.status, e.seconds, e.message = fut.result()
             finished += 1
-            _write_corpus(out, p, entries, data_dir, started)
+            if write_index:
+                _write_corpus(out, p, entries, data_dir, started)
             if on_capture:
                 on_capture(e, finished, len(entries))
     failed = [e for e in entries if e.status == "failed"]
     if failed:
-        raise DamcapError(f"{out}: {len(failed)} capture(s) failed (see corpus.json): "
+        where = f"shard {shard[0]}/{shard[1]}" if shard else "see corpus.json"
+        raise DamcapError(f"{out}: {len(failed)} capture(s) failed ({where}): "
                           + "; ".join(f"{e.name}: {e.message}" for e in failed[:3]))
     return entries
-

@@ -96,3 +96,21 @@ def test_synth_photos_turntable_room_and_principal_point_flags(tmp_path, capsys)
     code, _, err = run(["synth-photos", tmp_path / "y", "--motion", "spin"], capsys)
     assert_one_line_error(code, err, "--motion", "spin")
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+def test_synth_set_shard_values_are_checked(tmp_path, capsys):
+    for bad in ("0/2", "3/2", "x", "1/0", "2", "1/2/3"):
+        code, _, err = run(["synth-set", tmp_path / "e", "--shard", bad, "--dry-run", "--data-dir", tmp_path], capsys)
+        assert_one_line_error(code, err, "--shard must be I/N with 1 <= I <= N", repr(bad))
+    assert not (tmp_path / "e").exists()
+
+
+def test_synth_set_shard_dry_run_lists_its_share_and_writes_nothing(tmp_path, capsys, shared_data):
+    counts = []
+    for i in (1, 2, 3):
+        code, stdout, err = run(["synth-set", tmp_path / "corpus", "--preset", "paper", "--data", shared_data, "--dry-run",
+                                 "--shard", f"{i}/3"], capsys)
+        assert code == 0, err
+        assert f"shard {i}/3: 240 captures" in stdout and "run the same command without --shard: it writes corpus.json" in stdout
+        counts.append(int(stdout.split("not rendered ")[1].split(";")[0]))
+    assert counts == [240, 240, 240] and not (tmp_path / "corpus").exists()

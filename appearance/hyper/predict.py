@@ -1,0 +1,253 @@
+"""After the forward pass of ``damcap predict``: how far the capture lies from what the predictor
+learned, whether to refine, and refinement until held-out training views stop improving.
+
+Distance from the training set: the predictor is trained to re-synthesise *every* view of a
+capture from one of them (the L1 cost of :mod:`.train`). Its own re-synthesis error on the
+capture's train views (the views it was given, whose radiance is known) is therefore the one
+measure of fit that needs no ground truth: where the capture is like the training set, the
+predicted DAM reproduces them; where it is not, it does not (:func:`resynthesis_error`).
+
+``--refine-steps auto`` (:func:`refine_auto`) chooses the number of steps K, then takes them:
+:func:`refine_until_holdout_stops` holds out the training views that the fit's stopping rule holds
+out (:func:`.fit.holdout_frames`), refines the predicted DAM on the others and finds the step K of
+the lowest held-out L1, stopping once it has not improved for ``patience_steps`` (or at
+``max_steps``); then :func:`.fit.refine_dam` refines the prediction for K steps on *all* train
+views, so ``--refine-steps auto`` gives what ``--refine-steps K`` gives. (Keeping the held-out
+choice's own weights instead, trained without the held-out views, was worse on novel views on 7
+of 13 measured captures and better on 4: mean DSSIM 0.129 against 0.122, docs/learning-to-learn.md.)
+Pure: tensors and views in, a model out.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import torch
+
+from damcap.common.errors import DamcapError
+from damcap.common.validate import COUNT, MAX_COUNT, check_ranges, in_range
+
+from damcap.appearance.dam import DeepAppearanceMap, dam_forward, encode_inputs
+from damcap.appearance.evaluate import score_view
+from damcap.appearance.fit import FitOptions, holdout_frames, refine_dam, training_l1, weighted_quantile_cost
+from damcap.appearance.pixels import PixelSamples
+from damcap.appearance.render import render_frame
+from damcap.appearance.views import ViewData
+
+AUTO = "auto"
+RefineSteps = int | Literal["auto"]
+#: Adam learning rate of refinement (:func:`.fit.refine_dam`'s default)
+REFINE_LEARNING_RATE = 3e-3
+
+
+def parse_refine_steps(text: str) -> RefineSteps:
+    """``--refine-steps``: a count in [0, MAX_COUNT] or 'auto'.
+
+    >>> parse_refine_steps("auto"), parse_refine_steps(" 30 ")
+    ('auto', 30)
+
+    Raises:
+        DamcapError: anything else, in one line naming the option and the value as typed.
+    """
+    t = text.strip()
+    if t.lower() == AUTO:
+        return AUTO
+    try:
+        value = int(t)
+    except ValueError:
+        value = None
+    if value is None or not 0 <= value <= MAX_COUNT:
+        raise DamcapError(f"--refine-steps must be an integer in [0, {MAX_COUNT}] or 'auto', got {text!r}")
+    return value
+
+
+@dataclass(frozen=True)
+class PredictOptions:
+    """Options of ``damcap predict`` after the forward pass (the capture, the predictor, the input
+    view and the device are the command's own)."""
+
+    refine_steps: RefineSteps = field(default=0, metadata={"cli_parse": parse_refine_steps})
+    """refinement after predicting: K = K steps of the fit's cost on all train views (0 = none),
+    or 'auto' = choose K as the step where the views the fit's stopping rule holds out stop
+    improving (refining on the other train views, at most --refine-max-steps), then take K steps
+    on all train views"""
+    refine_max_steps: int = field(default=1000, metadata=COUNT)
+    """--refine-steps auto: most steps it may choose (it runs at most twice this many: choosing, then
+    refining)"""
+    refine_patience: int = field(default=100, metadata=COUNT)
+    """--refine-steps auto: stop after this many steps without a lower held-out L1 (evaluated every
+    25 steps)"""
+    refine_threshold: float = field(default=0.10, metadata=in_range(0, 1))
+    """the predicted DAM's mean DSSIM on the train views above which predict says refinement is
+    needed (the capture lies outside what the predictor learned). Measured with the shipped
+    predictor on 13 captures (docs/learning-to-learn.md): the one where refining lowered the
+    novel-view DSSIM by under 5% had train DSSIM 0.084; the 12 where it lowered it by 18% or more
+    had 0.105 to 0.324. One capture on the 'not needed' side: a first calibration"""
+
+    def validate(self) -> None:
+        """Raise DamcapError naming the first bad value."""
+        check_ranges(self)
+        if self.refine_steps != AUTO:
+            if isinstance(self.refine_steps, bool) or not isinstance(self.refine_steps, int):
+                raise DamcapError(f"--refine-steps must be an integer or 'auto', got {self.refine_steps!r}")
+            parse_refine_steps(str(self.refine_steps))
+
+
+@dataclass(frozen=True)
+class Resynthesis:
+    """How well a DAM re-synthesises the views it came from."""
+
+    dssim: float
+    """mean DSSIM over the views (frames without foreground skipped; NaN if none has one)"""
+    l1: float
+    """the fit's data cost (:func:`.fit.training_l1`): weighted mean L1 of radiance divided by the
+    model's radiance scale"""
+    views: int
+    """views scored"""
+
+
+def resynthesis_error(model: DeepAppearanceMap, views: list[ViewData], samples: PixelSamples) -> Resynthesis:
+    """The DAM's error on views whose radiance is known (for a predicted DAM: its train views).
+
+    Args:
+        model: the DAM.
+        views: the views (each rendered with :func:`.render.render_frame`, scored with
+            :func:`.metrics.dssim`).
+        samples: their covered pixels (:func:`.views.samples_of`), for the L1.
+    """
+    scores = [s for v in views if (s := score_view(v, render_frame(model, v.data, v.centre_world))) is not None]
+    return Resynthesis(float(np.mean(scores)) if scores else math.nan, training_l1(model, samples), len(views))
+
+
+def refinement_needed(train_dssim: float, threshold: float) -> bool:
+    """Refine when the predicted DAM's train-view DSSIM is above ``threshold`` (NaN: cannot tell,
+    refine).
+
+    >>> refinement_needed(0.12, 0.05), refinement_needed(0.03, 0.05), refinement_needed(float("nan"), 0.05)
+    (True, False, True)
+    """
+    return not train_dssim <= threshold
+
+
+def resynthesis_line(err: Resynthesis, threshold: float) -> str:
+    """The one line predict prints about its re-synthesis error and what it means.
+
+    >>> resynthesis_line(Resynthesis(0.0312, 0.0456, 10), 0.05)
+    're-synthesis of the 10 train views: DSSIM 0.0312, L1 0.0456; within --refine-threshold 0.05: the prediction can be used as it is'
+    """
+    head = f"re-synthesis of the {err.views} train views: DSSIM {err.dssim:.4f}, L1 {err.l1:.4f}; "
+    if refinement_needed(err.dssim, threshold):
+        return head + (f"above --refine-threshold {threshold:g}: this capture is unlike the predictor's training set, "
+                       f"refinement needed (--refine-steps auto)")
+    return head + f"within --refine-threshold {threshold:g}: the prediction can be used as it is"
+
+
+@dataclass
+class AutoRefineResult:
+    """What :func:`refine_until_holdout_stops` did."""
+
+    model: DeepAppearanceMap
+    """the weights with the lowest held-out L1 (the start when no step improved it), trained
+    without the held-out views"""
+    steps_used: int
+    """the chosen number of steps K: the step of those weights (0 = the prediction as it was)"""
+    steps_run: int
+    """steps taken before stopping"""
+    held_out: list[int]
+    """the held-out views (positions in the train split)"""
+    curve: list[dict[str, float]]
+    """held-out L1 at step 0 and every evaluation: {"step", "holdout_l1"}"""
+    stopped_by: Literal["patience", "max_steps"] = "patience"
+    """why it stopped: the held-out L1 stopped falling, or the step cap came first"""
+
+
+def refine_until_holdout_stops(model: DeepAppearanceMap, samples: PixelSamples, *, max_steps: int, patience_steps: int,
+                               eval_every: int = 25, holdout_views: int = FitOptions.holdout_views,
+                               learning_rate: float = REFINE_LEARNING_RATE, batch_size: int = FitOptions.batch_size,
+                               seed: int = 0, progress: Callable[[int, int, dict[str, float]], None] | None = None) -> AutoRefineResult:
+    """Refine a (predicted) DAM until its held-out training views stop improving.
+
+    The views :func:`.fit.holdout_frames` holds out for the fit's stopping rule are scored, every
+    ``eval_every`` steps, by the fit's data cost (L1, :func:`.fit.training_l1`); the others train
+    (Adam at a constant ``learning_rate``, ``batch_size`` random pixels a step, seeded). Training
+    stops at ``max_steps`` or once ``patience_steps`` have passed since the held-out L1 last fell;
+    the weights of its lowest value are kept.
+
+    Args:
+        model: the starting DAM (not modified); its radiance scale is kept.
+        samples: covered pixels of the train views (frame_index = position in the split).
+        max_steps: most steps; patience_steps: steps without improvement before stopping.
+
+    Raises:
+        DamcapError: fewer than 3 train views (nothing can be held out: use a fixed step count).
+    """
+    if max_steps < 1 or patience_steps < 1 or eval_every < 1:
+        raise DamcapError(f"max_steps, patience_steps and eval_every must be >= 1, got {max_steps}, {patience_steps}, {eval_every}")
+    n_frames = int(samples.frame_index.max()) + 1 if len(samples) else 0
+    held = holdout_frames(n_frames, holdout_views)
+    if not held:
+        raise DamcapError(f"--refine-steps auto holds training views out to know when to stop, and {n_frames} train view(s) "
+                          f"leave none to hold out (it needs 3); give a number of steps instead")
+    is_held = torch.isin(samples.frame_index, torch.tensor(held))
+    fit_part, held_part = samples.subset(~is_held), samples.subset(is_held)
+    if len(fit_part) == 0 or len(held_part) == 0:
+        raise DamcapError("--refine-steps auto: the held-out or the remaining train views have no covered pixels; give a number of steps")
+    arch = model.arch
+    work = DeepAppearanceMap(arch, model.radiance_scale, model.get_flat_weights().cpu())
+    x = encode_inputs(fit_part.view_dir_world, fit_part.normal_world, arch.encoding)
+    y = fit_part.radiance_lin.float() / work.radiance_scale
+    w = fit_part.weight
+    gen = torch.Generator().manual_seed(seed)
+    optim = torch.optim.Adam(work.parameters(), lr=learning_rate)
+    best_l1 = training_l1(work, held_part)
+    best_step, best_weights = 0, work.get_flat_weights()
+    curve = [{"step": 0, "holdout_l1": best_l1}]
+    step = 0
+    n = x.shape[0]
+    while step < max_steps and step - best_step < patience_steps:
+        idx = torch.randint(0, n, (min(batch_size, n),), generator=gen)
+        loss = weighted_quantile_cost(dam_forward(work.weights_flat, x[idx], arch), y[idx], w[idx])
+        optim.zero_grad()
+        loss.backward()
+        optim.step()
+        step += 1
+        stats = {"loss": float(loss.detach())}
+        if step % eval_every == 0 or step == max_steps:
+            ho = training_l1(work, held_part)
+            curve.append({"step": step, "holdout_l1": ho})
+            stats["holdout"] = ho
+            if ho < best_l1:
+                best_l1, best_step, best_weights = ho, step, work.get_flat_weights()
+        if progress:
+            progress(step, max_steps, stats)
+    if progress and step < max_steps:
+        progress(step, step, {"holdout": best_l1})  # stopped early: the bar is complete
+    out = DeepAppearanceMap(arch, model.radiance_scale, best_weights)
+    stopped_by = "patience" if step - best_step >= patience_steps else "max_steps"
+    return AutoRefineResult(out, best_step, step, held, curve, stopped_by)
+
+
+def refine_auto(model: DeepAppearanceMap, samples: PixelSamples, *, max_steps: int, patience_steps: int,
+                choose_progress: Callable[[int, int, dict[str, float]], None] | None = None,
+                refine_progress: Callable[[int, int], Callable[[int, int, dict[str, float]], None]] | None = None,
+                ) -> tuple[DeepAppearanceMap, AutoRefineResult]:
+    """``--refine-steps auto``: choose K with :func:`refine_until_holdout_stops`, then refine the
+    start for K steps on all samples with :func:`.fit.refine_dam` (nothing when K = 0).
+
+    Args:
+        choose_progress: progress of the choice; refine_progress: ``refine_progress(K)`` makes
+            the progress callback of the K refinement steps.
+
+    Returns:
+        (the refined model, the choice: K = ``steps_used``).
+    """
+    chosen = refine_until_holdout_stops(model, samples, max_steps=max_steps, patience_steps=patience_steps, progress=choose_progress)
+    if chosen.steps_used == 0:
+        return model, chosen
+    refined, _, _ = refine_dam(model, samples, chosen.steps_used,
+                               progress=refine_progress(chosen.steps_used) if refine_progress else None)
+    return refined, chosen

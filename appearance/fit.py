@@ -228,9 +228,10 @@ being resumed or deleted"""
 def fit_fingerprint(samples: PixelSamples, opts: FitOptions, frames_for_adversarial: list[TrainingFrame] | None = None,
                     init_model: DeepAppearanceMap | None = None) -> str:
     """What a fit's result depends on: the training pixels (every tensor of ``samples``, bit for
-    bit), the adversarial cost's whole frames, the initial model, the resolved options and the
-    damcap version. A checkpoint is resumed only by a fit with the same fingerprint."""
-    parts: list[Any] = ["fit", damcap_version(), asdict(opts), samples.view_dir_world, samples.normal_world,
+    bit), the adversarial cost's whole frames, the initial model, the resolved options (but the
+    spatial factor's, which act after the fit) and the damcap version. A checkpoint is resumed only by a fit with the same fingerprint."""
+    dam_opts = {k: v for k, v in asdict(opts).items() if not k.startswith("spatial")}  # applied after fit_dam
+    parts: list[Any] = ["fit", damcap_version(), dam_opts, samples.view_dir_world, samples.normal_world,
                         samples.radiance_lin, samples.weight, samples.frame_index]
     for f in frames_for_adversarial or []:
         parts += [f.radiance_norm, f.inputs, f.foreground]

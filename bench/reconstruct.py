@@ -257,7 +257,7 @@ def normal_errors(capture_dir: Path, gt_mesh, gt_cams: np.ndarray, photo_index: 
             "pixels": int(len(e)), "coverage_ratio_est_over_gt": covered_est / max(covered_gt, 1)}
 
 
-GEOMETRY_MODES = ("visual-hull", "poisson", "sphere", "mesh (align none)", "mesh (align icp)")
+GEOMETRY_MODES = ("visual-hull", "poisson", "sphere", "dense", "mesh (align none)", "mesh (align icp)")
 """the geometry part's modes run with the true cameras (after ``auto``, which registers the photos)"""
 
 
@@ -296,11 +296,11 @@ def part_geometry(fresh: bool, cache: Path = CACHE, objects: tuple[str, ...] = (
             with Timer() as t:
                 _, rep = reconstruct_capture(photos / "images", first, base, masks_dir=photos / "masks", log=log)
             res["auto"] = {"picked": rep.geometry_mode, "reason": rep.geometry_reason, "registered": f"{rep.registered}/{rep.photos}",
-                           **normal_errors(first, mesh, cams, index), **t.record()}
+                           "geometry_check": rep.geometry_check, **normal_errors(first, mesh, cams, index), **t.record()}
             log(f"  {obj}/auto: {res['auto']}")
         # every mode with the true cameras (geometry error alone; Poisson triangulates with them held fixed)
-        for mode, align in (("visual-hull", "auto"), ("poisson", "auto"), ("sphere", "auto"), (f"mesh:{gt_path}", "none"),
-                            (f"mesh:{gt_path}", "icp")):
+        for mode, align in (("visual-hull", "auto"), ("poisson", "auto"), ("sphere", "auto"), ("dense", "auto"),
+                            (f"mesh:{gt_path}", "none"), (f"mesh:{gt_path}", "icp")):
             key = mode.split(":")[0] + (f" (align {align})" if mode.startswith("mesh") else "")
             if key not in modes:
                 continue
@@ -578,6 +578,17 @@ def write_report(res: dict, command: str, path: Path = REPORT, results: Path = R
                 else:
                     L.append(f"| {obj} | {mode} | {r['median_deg']:.2f} | {r['mean_deg']:.2f} | {r['p90_deg']:.2f} | "
                              f"{r['coverage_ratio_est_over_gt']:.3f} | {r.get('reason', '')} |")
+        L.append("")
+        for obj, modes in geo.items():
+            check = (modes.get("auto") or {}).get("geometry_check") or {}
+            pc = check.get("photo_consistency")
+            if pc:
+                truth = ", ".join(f"{m} {modes[m]['median_deg']:.2f}" for m in pc if "median_deg" in modes.get(m, {}))
+                L.append(f"- {obj}: auto scored the photos' consistency through each surface (NCC of neighbouring photos "
+                         "warped through it, over the object's pixels) as " + ", ".join(
+                             f"{m} {v['ncc'] * v['compared_fraction']:.3f} (NCC {v['ncc']:.3f} on {v['compared_fraction']:.0%})"
+                             for m, v in pc.items())
+                         + f" and kept the {check['chosen']}; with the true cameras their median normal errors are {truth} deg.")
         L.append("")
     L += train_views_table(res)
     for key in sorted(k for k in res if k.startswith("realworld")):
@@ -911,8 +922,10 @@ def main(argv: list[str] | None = None) -> int:
         if part == "registration":
             res["registration"] = keep_timed_runs(part_registration(args.fresh, data, args.cache), res.get("registration"))
         elif part == "geometry":
-            res["geometry"] = part_geometry(args.fresh, args.cache, tuple(args.geometry_objects), args.geometry_photos,
-                                            args.geometry_photo_size, args.geometry_capture_size, tuple(args.geometry_modes))
+            new = part_geometry(args.fresh, args.cache, tuple(args.geometry_objects), args.geometry_photos,
+                                args.geometry_photo_size, args.geometry_capture_size, tuple(args.geometry_modes))
+            old = res.get("geometry") or {}  # modes and objects not rerun keep their earlier results
+            res["geometry"] = {**old, **{obj: {**old.get(obj, {}), **modes} for obj, modes in new.items()}}
         else:
             key = "realworld" + realworld_tag(args.capture_size, args.geometry, args.train_views)
             res[key] = part_realworld(args.train_views, args.steps, args.fresh, args.capture_size, args.geometry, data, args.cache, figure)

@@ -271,7 +271,7 @@ def inverse_depth_planes(near: float, far: float, n: int) -> np.ndarray:
 # Plane sweep
 # --------------------------------------------------------------------------------------------
 
-def _box_mean(x, window: int):
+def box_mean(x, window: int):
     """Mean over a ``window`` x ``window`` box of a (..., H, W) torch tensor, zeros beyond the
     borders (the divisor stays window^2), by running sums (four times faster than ``avg_pool2d``
     on a CPU)."""
@@ -316,7 +316,7 @@ def _ncc_costs(ref_t, mu_i, var_i, sources: list, inv_depth, window: int, best_k
             warped = F.grid_sample(src_t.expand(dc, -1, -1, -1), grid, mode="bilinear", padding_mode="zeros",
                                    align_corners=False)  # (Dc, 2, hc, wc)
             j_img = warped[:, :1]
-            moments = _box_mean(torch.cat([j_img, j_img * j_img, j_img * ref_t], 1), window)  # (Dc, 3, hc, wc)
+            moments = box_mean(torch.cat([j_img, j_img * j_img, j_img * ref_t], 1), window)  # (Dc, 3, hc, wc)
             mu_j = moments[:, :1]
             var_j = (moments[:, 1:2] - mu_j * mu_j).clamp_min(0)
             ncc = (moments[:, 2:3] - mu_j * mu_i) / torch.sqrt(var_j * var_i + ncc_eps)
@@ -424,8 +424,8 @@ def plane_sweep_depth(ref_gray: np.ndarray, ref_intr: Intrinsics, ref_world_from
     hc, wc = i1 - i0, j1 - j0
     g = gray_normalised(ref_gray, ref_mask)  # NCC is affine-invariant; this makes ncc_eps scale-free
     ref_t = torch.from_numpy(np.ascontiguousarray(g[i0:i1, j0:j1])).to(dev)[None, None]
-    mu_i = _box_mean(ref_t, window)
-    var_i = (_box_mean(ref_t * ref_t, window) - mu_i * mu_i).clamp_min(0)
+    mu_i = box_mean(ref_t, window)
+    var_i = (box_mean(ref_t * ref_t, window) - mu_i * mu_i).clamp_min(0)
     textured = (var_i[0, 0] > min_texture ** 2).cpu().numpy()
 
     # homogeneous reference pixel coordinates of the crop, (3, hc*wc)

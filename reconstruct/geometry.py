@@ -17,6 +17,9 @@ COLMAP's dense stereo needs CUDA (not in the pycolmap wheel), so ``--geometry`` 
   silhouettes or points by scaled ICP when it does not fit them as given.
 - ``auto``: with masks, the sphere when the silhouettes fit one within ``sphere_max_rms`` of its
   radius, else the visual hull; without masks, the sphere test on the points, else Poisson.
+  Past the sphere test the pipeline also builds the dense geometry and keeps whichever surface
+  the photos agree with better (:mod:`damcap.reconstruct.photo_consistency`; ``--no-auto-dense``
+  skips it).
 
 Everything here works in the normalised frame (:mod:`normalize`) on arrays; cameras are OpenGL
 camera-to-world with pinhole :class:`~damcap.common.capture_folder.Intrinsics`.

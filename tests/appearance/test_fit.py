@@ -457,3 +457,26 @@ def test_refinement_never_makes_the_training_cost_worse(small_capture):
     fitted = fit_dam(samples, FitOptions(steps=400, holdout_views=0, checkpoint_every=0)).model
     again, b2, a2 = refine_dam(fitted, samples, 20, learning_rate=0.5)
     assert a2 <= b2 and training_l1(again, samples) <= training_l1(fitted, samples) + 1e-9
+
+
+def test_fingerprint_ignores_the_spatial_factor_options_only():
+    """The spatial factor acts after fit_dam: a checkpoint stays resumable when only --spatial
+    options change, and not when a DAM option does."""
+    from dataclasses import replace
+
+    from damcap.appearance.fit import fit_fingerprint
+
+    s = _samples_for_fingerprint()
+    base = FitOptions(steps=10)
+    fp = fit_fingerprint(s, base)
+    assert fit_fingerprint(s, replace(base, spatial="auto", spatial_voxel_px=1.0, spatial_prior=0.5)) == fp
+    assert fit_fingerprint(s, replace(base, steps=11)) != fp
+
+
+def _samples_for_fingerprint():
+    from damcap.appearance.pixels import PixelSamples
+
+    g = torch.Generator().manual_seed(0)
+    n = 64
+    v = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
+    return PixelSamples(v, v.flip(1), torch.rand(n, 3, generator=g), torch.ones(n), torch.arange(n) % 4)

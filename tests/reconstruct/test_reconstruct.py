@@ -315,3 +315,24 @@ def test_cli_mirrors_the_options_one_to_one():
     assert set(params) - set(fields) == {"photos", "output", "masks", "poses"}
     for name, default in fields.items():
         assert params[name].default.default == default, name  # typer.Option(default, ...)
+
+
+def test_auto_builds_the_dense_surface_too_and_keeps_the_one_the_photos_agree_with(scene, tmp_path):
+    """``--geometry auto`` past the sphere test: the visual hull and the dense surface are both
+    scored by photo consistency, the report says which was kept and why, and the rule's choice
+    is the one ``prefer_dense`` makes from the recorded scores. Without it, the hull alone."""
+    from damcap.reconstruct.photo_consistency import Consistency, prefer_dense
+
+    common = dict(masks_dir=scene["root"] / "masks", poses=str(scene["root"] / "transforms.json"))
+    cap, report = reconstruct_capture(scene["root"] / "images", tmp_path / "auto",
+                                      ReconstructOptions(dense_size=96, **FAST), **common)  # type: ignore[arg-type]
+    check = report.geometry_check
+    assert check is not None and check["built"] and set(check["photo_consistency"]) == {"visual-hull", "dense"}
+    scores = {k: Consistency(**v) for k, v in check["photo_consistency"].items()}
+    assert all(s.pairs > 0 and 0 < s.ncc <= 1 for s in scores.values())
+    want = "dense" if prefer_dense(scores["visual-hull"], scores["dense"], check["margin"]) else "visual-hull"
+    assert report.geometry_mode == check["chosen"] == want and "photo consistency" in report.geometry_reason
+    assert inspect_capture(tmp_path / "auto").problems == []
+    _, plain = reconstruct_capture(scene["root"] / "images", tmp_path / "hull",
+                                   ReconstructOptions(auto_dense=False, **FAST), **common)  # type: ignore[arg-type]
+    assert plain.geometry_mode == "visual-hull" and plain.geometry_check is None

@@ -114,7 +114,7 @@ class FitOptions:
     normal only), 'albedo' (an RGB albedo texture on the surface multiplies the DAM: print,
     tarnish, fine relief) or 'auto' (the albedo only when it lowers the DSSIM of the held-out
     training views by at least ``spatial_min_gain``). On the real cape (8 train views, 256 px,
-    dense geometry) the albedo lowered novel-view DSSIM from 0.411 to 0.263 (bench/reconstruct.md)"""
+    dense geometry) the albedo lowered novel-view DSSIM from 0.411 to 0.266 (bench/reconstruct.md)"""
     spatial_voxel_px: float = field(default=0.75, metadata=in_range(0.05, 64))
     """spatial factor: voxel edge of the albedo texture, in pixels' footprints on the surface
     (smaller: sharper texture, fewer training pixels per voxel)"""

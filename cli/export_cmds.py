@@ -113,15 +113,15 @@ def _check_onnx(ort, dam, staged: Path, path: Path) -> float:
     return err
 
 
-def _spatial_on_shape(dams, model_paths, mesh_path):
+def _spatial_on_shape(dams, model_paths, mesh_path, vertices):
     """Keep each model's spatial factor only where the shape is its capture's own surface
-    (:data:`.turntable.SPATIAL_MIN_SURFACE`); say which are dropped and why."""
-    from damcap.common.mesh import bounding_sphere, load_mesh
+    (:data:`.turntable.SPATIAL_MIN_SURFACE`); say which are dropped and why. ``vertices``: the
+    mesh file's own (before the export's centring and scaling)."""
+    from damcap.common.mesh import bounding_sphere
     from damcap.export.turntable import SPATIAL_MIN_SURFACE, spatial_surface_share
 
     if all(d.spatial is None for d in dams):
         return dams, {"capture_from_render": None, "record": None}
-    vertices = load_mesh(mesh_path).vertices
     centre, radius = bounding_sphere(vertices)
     kept, record = [], []
     for d, path in zip(dams, model_paths):
@@ -147,7 +147,10 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
 
     opts.validate()
     views, resolution, video, fps = opts.views, opts.resolution, export_opts.video, export_opts.fps
-    shape = _load_mesh(mesh_path)
+    from damcap.common.mesh import load_mesh, normalise_to_unit_sphere
+
+    raw = load_mesh(mesh_path)  # read once: rendered centred and scaled, textured in its own frame
+    shape = normalise_to_unit_sphere(raw)
     if labels is not None:
         part = parts_from_vertex_labels(shape.triangles, _vertex_labels(labels, len(shape.vertices), len(dams)))
     elif len(dams) == 1:
@@ -156,7 +159,7 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
         part = shape.triangle_groups.astype(np.int64)
     if part.max() >= len(dams):
         raise DamcapError(f"{labels or mesh_path}: part {int(part.max())} has no model; give {int(part.max()) + 1} .dam files (one per part)")
-    dams, spatial = _spatial_on_shape(dams, model_paths, mesh_path)
+    dams, spatial = _spatial_on_shape(dams, model_paths, mesh_path, raw.vertices)
     (output / "frames").mkdir(parents=True, exist_ok=True)
     (output / "display").mkdir(parents=True, exist_ok=True)
     writer, tmp_video, scale, cams = None, None, None, []

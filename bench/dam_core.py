@@ -23,7 +23,7 @@ steps, input encoding, hold-out stopping, width and the adversarial cost, and st
 * a separable DAM, softplus(f(N) + g(R)) (``sep44x4``: 3168 weights, ``sep32x4``: 1728;
   ``FitOptions.separable``; the default is the joint 32x4 network);
 * the shipped learning-to-learn predictor plus K refinement steps (``predict_k0`` ...
-  ``predict_k1000``), as ``damcap predict --refine-steps K`` does it (``predictor_input``,
+  ``predict_k1000``), as ``damcap predict --refine-steps K`` does it (``predictor_inputs``,
   ``predict_dam``, ``refine_dam``); its time includes the prediction (not loading the file).
 
 Outputs: ``bench/results/dam_core.json``, ``bench/results/dam_core_pareto.png`` and
@@ -80,7 +80,7 @@ from bench.common import BENCH, CACHE, NCPU, REPO, RESULTS, CpuMeter, command_li
 from damcap.appearance.views import ViewData
 from damcap.appearance.evaluate import evaluate_split
 from damcap.appearance.fit import FitOptions, fit_dam, refine_dam
-from damcap.appearance.hyper.model import predict_dam, predictor_input
+from damcap.appearance.hyper.model import predict_dam, predictor_inputs
 from damcap.appearance.hyper.file import load_predictor, shipped_predictor_path
 from damcap.appearance.render import render_frame
 from damcap.appearance.fit import adversarial_frames
@@ -421,7 +421,8 @@ def predict_once(data: dict, predictor, refine_steps: int, seed: int, *, max_abo
     the prediction and the refinement."""
     def run(tl: Timeline) -> dict:
         t0 = time.perf_counter()
-        k, crop, scale = predictor_input(data["train"])
+        ks, crop, scale = predictor_inputs(data["train"], predictor.arch.input_views)
+        k = ks[0]
         model = predict_dam(predictor, crop, scale)
         t1 = time.perf_counter()
         refined, before, after = refine_dam(model, data["samples"], refine_steps, seed=seed, progress=tl)
@@ -756,7 +757,7 @@ def load_shipped_predictor(data: dict[str, dict]) -> dict:
     net, meta = load_predictor(path)
     load_s = time.perf_counter() - t
     for d in data.values():
-        _, crop, scale = predictor_input(d["train"])
+        _, crop, scale = predictor_inputs(d["train"], net.arch.input_views)
         refine_dam(predict_dam(net, crop, scale), d["samples"], 5)
     log(f"predictor {path.name}: loaded in {load_s:.2f} s")
     return {"net": net, "name": path.name, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), "load_seconds": load_s,

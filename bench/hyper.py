@@ -39,7 +39,7 @@ from bench.common import BENCH, CACHE, RESULTS, CpuMeter, command_line, log, mac
 from damcap.appearance.evaluate import evaluate_split
 from damcap.appearance.fit import FitOptions, fit_dam, refine_dam
 from damcap.appearance.hyper.file import load_predictor, shipped_predictor_path
-from damcap.appearance.hyper.model import predict_dam, predictor_input
+from damcap.appearance.hyper.model import predict_dam, predictor_inputs
 from damcap.appearance.views import load_views, samples_of
 from damcap.common.capture_folder import read_capture
 from damcap.paper.tables import TableOptions, heldout_entries, learning_to_learn_rows
@@ -64,7 +64,8 @@ def bench_capture(path: Path, net, refine_steps: list[int], fit_seeds: list[int]
     train, test = load_views(cap, "train"), load_views(cap, "test")
     samples = samples_of(train)
     base = evaluate_split(train, test, {}, baselines=True)
-    k, crop, scale = predictor_input(train)
+    ks, crop, scale = predictor_inputs(train, net.arch.input_views)
+    k = ks[0]
     view = cap.split("train")[k].file_path
     times = []
     for _ in range(timing_runs):

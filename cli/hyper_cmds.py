@@ -19,17 +19,21 @@ from damcap.cli.paths import beside, check_paths, file_out, on_interrupt
 if TYPE_CHECKING:
     from damcap.appearance.hyper.predict import PredictOptions
     from damcap.appearance.hyper.train import HyperTrainOptions
+    from damcap.synth.procedural import ProceduralOptions
 
 
-@command("train-hyper", opts="damcap.appearance.hyper.train:HyperTrainOptions")
+@command("train-hyper", opts="damcap.appearance.hyper.train:HyperTrainOptions", scene="damcap.synth.procedural:ProceduralOptions")
 def train_hyper_cmd(
-    dataset: Path = typer.Argument(..., help="corpus folder written by `damcap synth-set` (its train split is used)"),
+    dataset: Optional[Path] = typer.Argument(None, help="corpus folder written by `damcap synth-set` (its train split is used); "
+                                             "not needed with --procedural 1"),
     output: Path = typer.Option(..., "-o", "--output", help="predictor file to write (safetensors); its recipe goes to the .json beside it"),
     resume: bool = typer.Option(True, "--resume/--no-resume", help="continue from OUTPUT.state if a run was interrupted"),
     *,
     opts: HyperTrainOptions,
+    scene: ProceduralOptions,
 ) -> None:
-    """Train the predictor network (learning-to-learn). Data-parallel under
+    """Train the predictor network (learning-to-learn) on a corpus, on random closed-form scenes
+    rendered on the fly (--procedural), or both. Data-parallel under
     `torchrun --nproc-per-node N -m damcap.cli.main train-hyper ...`."""
     import os
 
@@ -37,16 +41,22 @@ def train_hyper_cmd(
     import json
 
     from damcap.appearance.hyper.file import save_predictor
+    from functools import partial
+
     from damcap.appearance.hyper.train import corpus_training_captures, train_hyper
     from damcap.common.atomic import write_json_atomic
     from damcap.common.version import damcap_version
+    from damcap.synth.procedural import render_scenes
 
     opts.validate()
+    scene.validate()
     opts.architecture  # validates channels against the input size
+    if dataset is None and opts.procedural < 1:
+        raise DamcapError("train-hyper needs a corpus folder (DATASET), or --procedural 1 to train on random scenes alone")
     state = beside(output, ".state")  # refuses an empty output path first
     sidecar = output.with_name(output.stem + ".json")
-    check_paths([dataset], [file_out(output), file_out(state), file_out(sidecar)])
-    paths = corpus_training_captures(dataset)
+    check_paths([dataset] if dataset is not None else [], [file_out(output), file_out(state), file_out(sidecar)])
+    paths = corpus_training_captures(dataset) if dataset is not None and opts.procedural < 1 else []
     rank = int(os.environ.get("RANK", "0"))
     if not resume and state.exists() and rank == 0:
         state.unlink()
@@ -54,19 +64,25 @@ def train_hyper_cmd(
     kept = lambda: (f"the training state {state} is kept; rerun the same command to resume" if state.is_file()  # noqa: E731
                     else "no training state was written yet; nothing was kept")
     with on_interrupt(kept):
-        result = train_hyper(paths, opts, checkpoint_path=state, progress=progress_bar(opts.steps, "train-hyper"), log=log)
+        def snapshot(step: int, net) -> None:
+            save_predictor(output.with_name(f"{output.stem}.step{step}{output.suffix}"), net,
+                           {"command": "damcap " + " ".join(shlex.quote(a) for a in sys.argv[1:]), "snapshot_step": step})
+
+        result = train_hyper(paths, opts, checkpoint_path=state, scenes=partial(render_scenes, opts=scene), snapshot=snapshot,
+                             progress=progress_bar(opts.steps, "train-hyper"), log=log)
     if rank != 0:
         return
     training = {
         "damcap_version": damcap_version(),
         "command": "damcap " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
-        "launcher": {"world_size": result.world_size, "torchrun": result.world_size > 1},
-        "corpus": str(dataset.resolve()), "train_captures": result.train_captures, "val_captures": result.val_captures,
-        "options": {**asdict(opts), "channels": list(opts.channels)}, "curve": result.curve, "best_step": result.best_step,
+        "launcher": {"world_size": result.world_size, "torchrun": result.world_size > 1, "device": result.device},
+        "corpus": str(dataset.resolve()) if dataset is not None else None, "train_captures": result.train_captures,
+        "val_captures": result.val_captures, "options": {**asdict(opts), "channels": list(opts.channels)},
+        "scenes": asdict(scene) if opts.procedural > 0 else None, "curve": result.curve, "best_step": result.best_step,
         "seconds": result.seconds, "resumed_from": result.resumed_from, "rank_weight_sha256": result.rank_weight_sha256,
     }
     try:
-        preset = json.loads((dataset / "corpus.json").read_text()).get("preset", {}).get("name")
+        preset = json.loads((dataset / "corpus.json").read_text()).get("preset", {}).get("name") if dataset is not None else None
     except (OSError, ValueError, AttributeError):
         preset = None
     if preset:
@@ -74,7 +90,8 @@ def train_hyper_cmd(
     save_predictor(output, result.net, training)
     write_json_atomic(sidecar, {"predictor": output.name, "sha256": hashlib.sha256(output.read_bytes()).hexdigest(), **training})
     last = result.curve[-1] if result.curve else {}
-    typer.echo(f"wrote {output} ({len(result.train_captures)} training captures, best step {result.best_step}, "
+    source = f"{len(result.train_captures)} training captures" + (f", {opts.procedural:.0%} of each batch random scenes" if opts.procedural else "")
+    typer.echo(f"wrote {output} ({source}, best step {result.best_step}, "
                f"validation L1 {last.get('val_l1', float('nan')):.4f}, {result.seconds:.0f} s, {result.world_size} process(es))")
 
 
@@ -82,18 +99,22 @@ def train_hyper_cmd(
 def predict(
     capture: Path = typer.Argument(..., help="capture folder"),
     output: Path = typer.Option(..., "-o", "--output", help="model file to write (.dam)"),
-    view: Optional[str] = typer.Option(None, "--view", help="input frame (a train-split file_path or its stem); default: the best covered lit one"),
-    predictor: Optional[Path] = typer.Option(None, "--predictor", help="predictor file (default: the one shipped with damcap)"),
+    view: Optional[str] = typer.Option(None, "--view", help="(first) input frame (a train-split file_path or its stem); default: the best "
+                                       "covered lit one; a predictor reading several views adds the lit views that spread the cameras most"),
+    predictor: Optional[str] = typer.Option(None, "--predictor", help="predictor file, or a shipped one by name: v1 (one view, "
+                                            "trained on Mitsuba captures) or v2 (up to 4 views, random closed-form scenes); "
+                                            "default: the shipped default (docs/learning-to-learn.md)"),
     device: str = typer.Option("cpu", help="cpu | cuda | auto"),
     *,
     opts: PredictOptions,
 ) -> None:
-    """Predict a deep appearance map from one view in milliseconds, say how well it re-synthesises
-    the train views (and whether to refine), optionally refine it."""
+    """Predict a deep appearance map from one view (a set of views with predictor v2) in
+    milliseconds, say how well it re-synthesises the train views (and whether to refine),
+    optionally refine it."""
     from damcap.appearance.dam_file import save_dam
     from damcap.appearance.fit import refine_dam
-    from damcap.appearance.hyper.model import predict_dam, predictor_input
-    from damcap.appearance.hyper.file import load_predictor, shipped_predictor_path
+    from damcap.appearance.hyper.model import predict_dam, predictor_inputs
+    from damcap.appearance.hyper.file import load_predictor, predictor_path
     from damcap.appearance.hyper.predict import AUTO, refine_auto, refinement_needed, resynthesis_error, resynthesis_line
     from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import read_capture
@@ -101,25 +122,27 @@ def predict(
     from damcap.common.version import damcap_version
 
     opts.validate()
-    pred_path = predictor or shipped_predictor_path()
+    pred_path = predictor_path(predictor)
     check_paths([capture, pred_path], [file_out(output)])
     net, meta = load_predictor(pred_path)
     net.to(resolve_device(device))
     cap = read_capture(capture)
     train_views = load_views(cap, "train")
     try:
-        k, crop, capture_scale = predictor_input(train_views, None if view is None else Path(view).stem)
+        ks, crops, capture_scale = predictor_inputs(train_views, net.arch.input_views, None if view is None else Path(view).stem)
     except DamcapError as e:
         raise DamcapError(f"{capture}: {e}") from None
-    frame = cap.split("train")[k]
+    frames = [cap.split("train")[k] for k in ks]
+    frame = frames[0]
     t0 = time.perf_counter()
-    model = predict_dam(net, crop, capture_scale)
+    model = predict_dam(net, crops, capture_scale)
     predict_s = time.perf_counter() - t0
     samples = samples_of(train_views)
     err = resynthesis_error(model, train_views, samples)
     typer.echo(resynthesis_line(err, opts.refine_threshold))
     record = {"damcap_version": damcap_version(), "capture": str(capture.resolve()), "predictor": str(Path(pred_path).resolve()),
               "predictor_command": meta.get("training", {}).get("command"), "view": frame.file_path,
+              "input_views": [f.file_path for f in frames],
               "predict_seconds": predict_s, "options": asdict(opts), "refine_steps": opts.refine_steps,
               "train_views": err.views, "train_dssim_predicted": err.dssim, "train_l1_predicted": err.l1,
               "refine_threshold": opts.refine_threshold, "refinement_needed": refinement_needed(err.dssim, opts.refine_threshold)}
@@ -145,4 +168,5 @@ def predict(
         record.update(train_dssim_refined=after.dssim, train_l1_refined=after.l1)
         extra += f": train DSSIM {err.dssim:.4f} -> {after.dssim:.4f}, L1 {err.l1:.4f} -> {after.l1:.4f}"
     save_dam(output, model, colorspace=cap.colorspace, made_by="predict", provenance=record)
-    typer.echo(f"wrote {output} (predicted from {frame.file_path} in {1000 * predict_s:.0f} ms{extra})")
+    source = frame.file_path if len(frames) == 1 else f"{len(frames)} views ({', '.join(f.name for f in frames)})"
+    typer.echo(f"wrote {output} (predicted from {source} in {1000 * predict_s:.0f} ms{extra})")

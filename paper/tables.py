@@ -107,9 +107,10 @@ def learning_to_learn_rows(train: list[ViewData], test: list[ViewData], net, fit
 
     Returns (scores, extra: the input view, seconds of the prediction and of each refinement, and
     each refinement's training L1 before and after, ``{"refine K": [before, after]}``)."""
-    from damcap.appearance.hyper.model import predict_dam, predictor_input
+    from damcap.appearance.hyper.model import predict_dam, predictor_inputs
 
-    k, crop, scale = predictor_input(train)
+    ks, crop, scale = predictor_inputs(train, net.arch.input_views)
+    k = ks[0]
     t = time.perf_counter()
     predicted = predict_dam(net, crop, scale)
     predict_s = time.perf_counter() - t

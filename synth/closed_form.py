@@ -57,9 +57,28 @@ def brdf_lambert_ggx(n: torch.Tensor, v: torch.Tensor, l: torch.Tensor, m: Mater
     Returns:
         (..., 3) BRDF value, 1/sr, >= 0 (0 where n.l <= 0 or n.v <= 0).
     """
-    albedo = n.new_tensor(m.albedo)
-    f0 = n.new_tensor(m.specular)
-    a2 = m.roughness**2
+    return brdf_lambert_ggx_t(n, v, l, n.new_tensor(m.albedo), n.new_tensor(m.roughness), n.new_tensor(m.specular), eps)
+
+
+def brdf_lambert_ggx_t(n: torch.Tensor, v: torch.Tensor, l: torch.Tensor, albedo: torch.Tensor, alpha: torch.Tensor,
+                       f0: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """:func:`brdf_lambert_ggx` with the material as tensors that broadcast against the directions
+    (one material per scene of a batch).
+
+    Args:
+        n, v, l: (..., 3) unit normal, direction to the viewer, direction to the light.
+        albedo: (..., 3) diffuse reflectance in [0, 1].
+        alpha: (..., 1) or () GGX alpha in (0, 1].
+        f0: (..., 3) Fresnel reflectance at normal incidence.
+
+    Returns:
+        (..., 3) BRDF value, 1/sr, >= 0 (0 where n.l <= 0 or n.v <= 0).
+
+    >>> z = torch.tensor([0.0, 0.0, 1.0])
+    >>> round(float(brdf_lambert_ggx_t(z, z, z, torch.ones(3), torch.tensor(1.0), torch.ones(3))[0]), 5)  # 1/pi + D G F / 4 = 1/pi + 1/(4 pi)
+    0.39789
+    """
+    a2 = alpha**2
     nl = dot(n, l)
     nv = dot(n, v)
     h = safe_normalize(v + l)
@@ -223,6 +242,109 @@ def intersect_torus(origin: np.ndarray, dirs: np.ndarray, major: float = 0.9, mi
     return hit, p, normal
 
 
+def _u(gen: torch.Generator, *shape: int, lo: float = 0.0, hi: float = 1.0) -> torch.Tensor:
+    return lo + (hi - lo) * torch.rand(shape, generator=gen, device=gen.device)
+
+
+def random_unit(gen: torch.Generator, *shape: int) -> torch.Tensor:
+    """(*shape, 3) directions uniform on the sphere."""
+    return safe_normalize(torch.randn((*shape, 3), generator=gen, device=gen.device))
+
+
+@dataclass
+class Blobs:
+    centres: torch.Tensor
+    """(B, M, 3) ball centres (inactive balls coincide with ball 0)"""
+    radii: torch.Tensor
+    """(B, M) ball radii (inactive balls: 0)"""
+    smooth: torch.Tensor
+    """(B, 1) smooth-union width, scene units"""
+
+
+def random_blobs(gen: torch.Generator, b: int, max_balls: int, min_balls: int = 1) -> Blobs:
+    """b blobs of ``min_balls`` to ``max_balls`` balls (with min_balls 1, a third of them single
+    spheres), scaled to fit the unit sphere."""
+    dev = gen.device
+    n = torch.randint(min_balls, max_balls + 1, (b, 1), generator=gen, device=dev)
+    if min_balls == 1:
+        n = torch.where(_u(gen, b, 1) < 1 / 3, torch.ones_like(n), n)
+    active = torch.arange(max_balls, device=dev)[None] < n
+    centres = random_unit(gen, b, max_balls) * _u(gen, b, max_balls, 1, lo=0.2, hi=0.6)
+    centres = torch.where(active[..., None], centres, centres[:, :1])
+    centres = torch.where((n == 1)[..., None], torch.zeros_like(centres), centres)
+    radii = _u(gen, b, max_balls, lo=0.35, hi=0.7) * active
+    smooth = _u(gen, b, 1, lo=0.05, hi=0.3)
+    extent = ((centres.norm(dim=-1) + radii).amax(1, keepdim=True) + smooth / 4).clamp_min(1e-6)  # (B, 1)
+    return Blobs(centres / extent[..., None], radii / extent, smooth / extent)
+
+
+def blob_sdf(p: torch.Tensor, blobs: Blobs) -> torch.Tensor:
+    """Smooth-union (polynomial smooth minimum) distance of points to each scene's blob.
+
+    Args:
+        p: (B, R, 3) points.
+
+    Returns:
+        (B, R) signed distance (negative inside; a bound, not exact, within the blends).
+
+    >>> bl = Blobs(torch.zeros(1, 1, 3), torch.ones(1, 1), torch.full((1, 1), 0.1))
+    >>> blob_sdf(torch.tensor([[[2.0, 0, 0]]]), bl).tolist()
+    [[1.0]]
+    """
+    d = (p[:, :, None] - blobs.centres[:, None]).norm(dim=-1) - blobs.radii[:, None]  # (B, R, M)
+    d = torch.where(blobs.radii[:, None] > 0, d, torch.full_like(d, 1e3))
+    k = blobs.smooth  # (B, 1)
+    out = d[..., 0]
+    for j in range(1, d.shape[-1]):
+        h = (k - (out - d[..., j]).abs()).clamp_min(0) / k
+        out = torch.minimum(out, d[..., j]) - h * h * k / 4
+    return out
+
+
+def trace_blobs(origin: torch.Tensor, dirs: torch.Tensor, blobs: Blobs, iterations: int = 80, tol: float = 1e-3
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """First hits of rays with each scene's blob by sphere tracing (from the unit sphere's entry).
+
+    Args:
+        origin: (B, R, 3) ray origins outside the unit sphere.
+        dirs: (B, R, 3) unit directions.
+
+    Returns:
+        hit: (B, R) bool; position: (B, R, 3); normal: (B, R, 3) unit outward normals (the SDF's
+        central-difference gradient).
+    """
+    b_ = dot(origin, dirs)[..., 0]
+    c = dot(origin, origin)[..., 0] - 1.0
+    disc = b_ * b_ - c
+    t = (-b_ - disc.clamp_min(0).sqrt()).clamp_min(0)
+    t_far = -b_ + disc.clamp_min(0).sqrt()
+    alive = disc > 0
+    for _ in range(iterations):
+        d = blob_sdf(origin + t[..., None] * dirs, blobs)
+        t = torch.where(alive, t + 0.9 * d, t)
+        alive = alive & (t < t_far)
+    p = origin + t[..., None] * dirs
+    hit = (disc > 0) & (t < t_far) & (blob_sdf(p, blobs).abs() < tol)
+    e = 1e-3
+    grad = torch.stack([blob_sdf(p + e * ax, blobs) - blob_sdf(p - e * ax, blobs)
+                        for ax in torch.eye(3, device=p.device)], -1)
+    return hit, p, safe_normalize(grad)
+
+
+def intersect_blob(origin: np.ndarray, dirs: np.ndarray, blobs: Blobs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`trace_blobs` for one blob and one camera, in numpy (the interface of
+    :func:`intersect_sphere`).
+
+    Returns:
+        hit: (...) bool; position: (..., 3); normal: (..., 3) outward unit normal.
+    """
+    flat = torch.from_numpy(dirs.reshape(1, -1, 3)).float()
+    o = torch.from_numpy(np.asarray(origin, np.float32)).expand_as(flat)
+    hit, p, n = trace_blobs(o, flat, blobs)
+    shape = dirs.shape[:-1]
+    return hit[0].numpy().reshape(shape), p[0].double().numpy().reshape(shape + (3,)), n[0].double().numpy().reshape(shape + (3,))
+
+
 def two_material_weights(position_world: np.ndarray) -> np.ndarray:
     """Ground-truth weights of two materials laid out by a smooth function of position.
 
@@ -269,8 +391,9 @@ def silhouette_coverage(hit_centre: np.ndarray, hit_fn, offsets: np.ndarray) -> 
 class ClosedFormOptions:
     """Options of ``damcap closed-form``."""
 
-    shape: Literal["sphere", "torus"] = "sphere"
-    """analytic shape: 'sphere' (radius 1) or 'torus' (non-convex; radii 0.9 and 0.4)"""
+    shape: Literal["sphere", "torus", "blob"] = "sphere"
+    """analytic shape: 'sphere' (radius 1), 'torus' (non-convex; radii 0.9 and 0.4) or 'blob' (the
+    smooth union of 2 to 4 spheres drawn from --seed, within the unit sphere; concave blends)"""
     light: Literal["directional", "env"] = "directional"
     """'directional' (one distant light) or 'env' (analytic HDR sky, numerically integrated)"""
     materials: int = field(default=1, metadata=in_range(1, 2))
@@ -331,7 +454,12 @@ def render_closed_form(opts: ClosedFormOptions) -> tuple[list[np.ndarray], Intri
     materials = random_materials(opts.seed, opts.materials)
     ss = opts.supersample
     sub = (np.stack(np.meshgrid(np.arange(ss), np.arange(ss)), -1).reshape(-1, 2) + 0.5) / ss - 0.5
-    intersect = intersect_sphere if opts.shape == "sphere" else intersect_torus
+    if opts.shape == "blob":
+        gen = torch.Generator().manual_seed(opts.seed + 2000)
+        blob = random_blobs(gen, 1, 4, min_balls=2)
+        intersect = lambda o, d: intersect_blob(o, d, blob)  # noqa: E731
+    else:
+        intersect = intersect_sphere if opts.shape == "sphere" else intersect_torus
     frames = []
     for m in cams:
         origin, d = pixel_rays_world(m, intr.fl_x, intr.fl_y, intr.cx, intr.cy, res, res)

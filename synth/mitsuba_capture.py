@@ -59,7 +59,7 @@ from damcap.synth.geometry import GeometryBuffers, RayCaster, SceneGeometry, fra
 from damcap.common.mesh import Mesh, face_normals_area, normalise_to_unit_sphere, read_mesh, vertex_normals_area_weighted
 from damcap.common.shapes import icosphere
 from damcap.synth.regions import SYNTH_ISOLATED_NORMAL, SYNTH_NORMAL_EPS, material_labels, submesh
-from damcap.synth.mitsuba_render import EnvLight, LayeredMaterial, SphereLight, Variant
+from damcap.synth.mitsuba_render import VARIANTS, EnvLight, LayeredMaterial, SphereLight, Variant
 
 #: channel of images/*.exr holding the renderer's alpha (fraction of samples hitting the object)
 RENDER_ALPHA_CHANNEL = "render.A"
@@ -117,7 +117,8 @@ class SynthOptions:
     supersample: int = field(default=4, metadata=in_range(1, 16))
     """k: coverage A and weights use a k x k grid of sub-pixel rays"""
     variant: Variant = "auto"
-    """Mitsuba variant: 'auto' (llvm_ad_rgb, else scalar_rgb with a warning), 'llvm_ad_rgb', 'scalar_rgb'"""
+    """Mitsuba variant: 'auto' (cuda_ad_rgb on a CUDA GPU, else llvm_ad_rgb, else scalar_rgb with a
+    warning), 'cuda_ad_rgb', 'llvm_ad_rgb', 'scalar_rgb'"""
     dtype: Literal["half", "float"] = "half"
     """radiance storage in images/ (a frame exceeding the half-float range is stored as float)"""
 
@@ -128,8 +129,8 @@ class SynthOptions:
             raise DamcapError(f"--train-views must lie in [2, views - 1], got {self.train_views} of {self.views} views")
         if self.dtype not in ("half", "float"):
             raise DamcapError(f"--dtype must be half or float, got {self.dtype!r}")
-        if self.variant not in ("auto", "llvm_ad_rgb", "scalar_rgb"):
-            raise DamcapError(f"--variant must be auto, llvm_ad_rgb or scalar_rgb, got {self.variant!r}")
+        if self.variant not in VARIANTS:
+            raise DamcapError(f"--variant must be one of {', '.join(VARIANTS)}, got {self.variant!r}")
 
 
 # --------------------------------------------------------------------------------------------

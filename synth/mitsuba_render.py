@@ -25,7 +25,8 @@ from damcap.common.errors import DamcapError
 
 from damcap.common.mesh import Mesh
 
-Variant = Literal["auto", "llvm_ad_rgb", "scalar_rgb"]
+Variant = Literal["auto", "cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb"]
+VARIANTS = ("auto", "cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb")
 #: most camera samples (pixels x samples) traced per Mitsuba call; more passes above it
 MAX_LANES_PER_PASS = 1 << 22
 #: Mitsuba sampler: correlated multi-jittered (stratified) samples. Measured on the bunny under an
@@ -40,26 +41,32 @@ def select_variant(requested: Variant = "auto") -> str:
     """Set Mitsuba's variant for this process and return it.
 
     Args:
-        requested: 'auto' (llvm_ad_rgb when libLLVM loads, else scalar_rgb with a warning),
-            'llvm_ad_rgb' or 'scalar_rgb'.
+        requested: 'auto' (cuda_ad_rgb where Dr.Jit finds a CUDA GPU, else llvm_ad_rgb when
+            libLLVM loads, else scalar_rgb with a warning), 'cuda_ad_rgb', 'llvm_ad_rgb' or
+            'scalar_rgb'.
 
     Raises:
-        DamcapError: an unknown variant, or 'llvm_ad_rgb' asked for without libLLVM.
+        DamcapError: an unknown variant, 'cuda_ad_rgb' asked for without a CUDA GPU, or
+            'llvm_ad_rgb' without libLLVM.
     """
     from damcap.common.optional import require
 
     mi = require("mitsuba", "Mitsuba renders (damcap synth, synth-set)")
     dr = require("drjit", "Mitsuba renders (damcap synth, synth-set)")
 
-    if requested not in ("auto", "llvm_ad_rgb", "scalar_rgb"):
-        raise DamcapError(f"unknown Mitsuba variant {requested!r}: use auto, llvm_ad_rgb or scalar_rgb")
-    if requested in ("auto", "llvm_ad_rgb"):
-        if dr.has_backend(dr.JitBackend.LLVM):
-            if mi.variant() != "llvm_ad_rgb":
-                mi.set_variant("llvm_ad_rgb")
-            return "llvm_ad_rgb"
-        if requested == "llvm_ad_rgb":
-            raise DamcapError("Mitsuba variant llvm_ad_rgb needs libLLVM (apt-get install libllvm19), which did not load")
+    if requested not in VARIANTS:
+        raise DamcapError(f"unknown Mitsuba variant {requested!r}: use {', '.join(VARIANTS)}")
+    needs = (("cuda_ad_rgb", dr.JitBackend.CUDA, "a CUDA GPU and driver, which Dr.Jit did not find; use auto or llvm_ad_rgb"),
+             ("llvm_ad_rgb", dr.JitBackend.LLVM, "libLLVM (apt-get install libllvm19), which did not load"))
+    for variant, backend, need in needs:
+        if requested in ("auto", variant):
+            if dr.has_backend(backend):
+                if mi.variant() != variant:
+                    mi.set_variant(variant)
+                return variant
+            if requested == variant:
+                raise DamcapError(f"Mitsuba variant {variant} needs {need}")
+    if requested == "auto":
         warnings.warn("libLLVM not found: rendering with Mitsuba's scalar_rgb variant (much slower); "
                       "install libllvm19 for llvm_ad_rgb", RuntimeWarning, stacklevel=2)
     if mi.variant() != "scalar_rgb":

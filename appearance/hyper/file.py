@@ -26,13 +26,42 @@ from damcap.appearance.hyper.model import HyperArchitecture, HyperNet
 
 PREDICTOR_FORMAT_VERSION = 1
 KIND = "dam-predictor"
-SHIPPED_NAME = "dam-predictor-v1.safetensors"
-"""the trained predictor shipped in ``damcap.appearance.hyper/predictors/`` (its recipe: the .json beside it)"""
+SHIPPED = {
+    "v1": "dam-predictor-v1.safetensors",
+    "v2": "dam-predictor-v2.safetensors",
+}
+"""the trained predictors shipped in ``damcap.appearance.hyper/predictors/`` by name (each one's
+recipe: the .json beside it; docs/learning-to-learn.md compares them): v1 read one view and was
+trained on 202 Mitsuba captures; v2 reads up to 4 views and was trained on random closed-form
+scenes rendered on a GPU"""
+DEFAULT_SHIPPED = "v1"
+"""the predictor ``damcap predict`` uses when none is named"""
+SHIPPED_NAME = SHIPPED[DEFAULT_SHIPPED]
 
 
-def shipped_predictor_path() -> Path:
-    """Where the shipped predictor lives in the installed package."""
-    return Path(str(resources.files("damcap.appearance.hyper") / "predictors" / SHIPPED_NAME))
+def shipped_predictor_path(name: str = DEFAULT_SHIPPED) -> Path:
+    """Where a shipped predictor lives in the installed package.
+
+    Raises:
+        DamcapError: no shipped predictor has that name.
+    """
+    if name not in SHIPPED:
+        raise DamcapError(f"no shipped predictor is called {name!r}; the shipped ones are {', '.join(SHIPPED)}")
+    return Path(str(resources.files("damcap.appearance.hyper") / "predictors" / SHIPPED[name]))
+
+
+def predictor_path(choice: str | os.PathLike | None) -> Path:
+    """The predictor a ``--predictor`` value names: None = the default shipped one, a shipped
+    name (``v1``, ``v2``), or a file path.
+
+    >>> predictor_path("v2").name, predictor_path("my.safetensors").name
+    ('dam-predictor-v2.safetensors', 'my.safetensors')
+    """
+    if choice is None:
+        return shipped_predictor_path()
+    if str(choice) in SHIPPED:
+        return shipped_predictor_path(str(choice))
+    return Path(choice)
 
 
 def save_predictor(path: str | os.PathLike, net: HyperNet, training: dict[str, Any]) -> None:

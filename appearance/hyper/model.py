@@ -5,6 +5,10 @@ normal, world-space view direction; covered pixels only, 0 elsewhere) and output
 vector of a deep appearance map (:mod:`.dam`). Eight stride-2 convolutions halve the resolution
 from 256 to 1, a fully-connected layer maps the last features to a *correction* of a learned mean
 weight vector (so an untrained predictor already outputs a valid DAM: the mean appearance).
+A predictor with ``input_views`` above 1 is a set encoder: it runs the convolutions on each of up
+to that many views and averages their features before the output layer, so the prediction does
+not depend on the views' order and works with any number of them (:func:`predictor_inputs`
+chooses views that spread the cameras).
 
 Units: the RGB channels are the view's linear radiance divided by the *capture's* radiance
 scale (95th percentile of the train views' foreground, :func:`.fit.radiance_scale_of`, the same
@@ -47,6 +51,9 @@ class HyperArchitecture:
     """output channels of the stride-2 4x4 convolutions (8 layers: 256 -> 1 pixel)"""
     dam: DamArchitecture = field(default_factory=DamArchitecture)
     """the DAM whose weights it predicts"""
+    input_views: int = 1
+    """views it reads at once: each view's features are averaged before the output layer (a set
+    encoder: the prediction does not depend on the order of the views); 1 = the paper's one view"""
 
     def __post_init__(self) -> None:
         # bounded before any layer is built from them (a predictor file's metadata, an option)
@@ -54,6 +61,7 @@ class HyperArchitecture:
         for c in self.channels:
             bounded_int(c, 1, MAX_CHANNELS, "predictor channels")
         bounded_int(self.input_size, 1, MAX_IMAGE_SIDE, "predictor --input-size")
+        bounded_int(self.input_views, 1, 64, "predictor --input-views")
         if not isinstance(self.dam, DamArchitecture):
             raise DamcapError(f"predictor dam must be a DamArchitecture, got {type(self.dam).__name__}")
         dims = (IN_CHANNELS,) + tuple(self.channels)
@@ -78,11 +86,11 @@ class HyperArchitecture:
         """
         d = dict(d)
         return HyperArchitecture(input_size=int(d["input_size"]), channels=tuple(int(c) for c in d["channels"]),
-                                 dam=DamArchitecture(**d["dam"]))
+                                 dam=DamArchitecture(**d["dam"]), input_views=int(d.get("input_views", 1)))
 
 
 class HyperNet(nn.Module):
-    """Theta: (B, 9, S, S) predictor images -> (B, P) flat DAM weights."""
+    """Theta: (B, 9, S, S) predictor images, or (B, V, 9, S, S) sets of views -> (B, P) flat DAM weights."""
 
     def __init__(self, arch: HyperArchitecture, generator: torch.Generator | None = None) -> None:
         super().__init__()
@@ -99,9 +107,17 @@ class HyperNet(nn.Module):
             self.head.weight.mul_(0.1)
             self.head.bias.zero_()
 
-    def forward(self, images: torch.Tensor) -> torch.Tensor:
-        f = self.features(images)
-        f = F.adaptive_avg_pool2d(f, 1).flatten(1)
+    def forward(self, images: torch.Tensor, view_mask: torch.Tensor | None = None) -> torch.Tensor:
+        """Args:
+            images: (B, 9, S, S), or (B, V, 9, S, S) with any V.
+            view_mask: (B, V) bool, the views present (default all); each set needs one.
+        """
+        if images.dim() == 4:
+            images = images[:, None]
+        b, v = images.shape[:2]
+        f = F.adaptive_avg_pool2d(self.features(images.flatten(0, 1)), 1).reshape(b, v, -1)
+        w = torch.ones(b, v, 1, device=f.device, dtype=f.dtype) if view_mask is None else view_mask[..., None].to(f.dtype)
+        f = (f * w).sum(1) / w.sum(1).clamp_min(1.0)
         return self.base[None] + self.head(f)
 
 
@@ -165,33 +181,74 @@ def choose_input_view(covered_px: list[int], scales: list[float], min_brightness
     return max(lit, key=lambda k: covered_px[k])
 
 
-def predictor_input(train: list[ViewData], name: str | None = None) -> tuple[int, torch.Tensor, float]:
+def spread_views(first: int, centres_world: np.ndarray, candidates: list[int], count: int) -> list[int]:
+    """``first``, then up to ``count - 1`` more of ``candidates`` chosen greedily to spread the
+    cameras' directions from the object (farthest-point: each next view maximises its smallest
+    angle to those chosen).
+
+    Args:
+        first: the first view.
+        centres_world: (N, 3) camera centres relative to the object's centre.
+        candidates: the views that may be added.
+        count: views wanted.
+
+    >>> spread_views(0, np.array([[1.0, 0, 0], [0.9, 0.1, 0], [-1, 0, 0], [0, 1, 0]]), [1, 2, 3], 3)
+    [0, 2, 3]
+    """
+    d = centres_world / np.maximum(np.linalg.norm(centres_world, axis=1, keepdims=True), 1e-12)
+    chosen = [first]
+    rest = [c for c in candidates if c != first]
+    while rest and len(chosen) < count:
+        nxt = min(rest, key=lambda c: (float(np.max(d[chosen] @ d[c])), c))
+        chosen.append(nxt)
+        rest.remove(nxt)
+    return chosen
+
+
+def predictor_inputs(train: list[ViewData], count: int = 1, name: str | None = None) -> tuple[list[int], list[torch.Tensor], float]:
     """What ``damcap predict`` feeds the network, from a capture's train views.
 
     Args:
         train: the train split's views.
-        name: the input view's name (file stem); None = :func:`choose_input_view`.
+        count: views wanted (the predictor's ``input_views``): the first as below, the others the
+            lit views that spread the cameras most (:func:`spread_views`).
+        name: the first input view's name (file stem); None = :func:`choose_input_view`.
 
     Returns:
-        (index of the input view, its :func:`view_crop`, the capture's radiance scale over all
-        train views' foreground, the fit's).
+        (indices of the input views, their :func:`view_crop` s, the capture's radiance scale over
+        all train views' foreground, the fit's).
 
     Raises:
         DamcapError: ``name`` is not a train view.
     """
     fgs = [v.data.coverage > FOREGROUND_COVERAGE for v in train]
     pixels = [torch.from_numpy(v.data.radiance_lin[fg]) for v, fg in zip(train, fgs, strict=True)]
+    scales = [radiance_scale_of(p) for p in pixels]
+    covered = [int(fg.sum()) for fg in fgs]
+    lit = [k for k, sc in enumerate(scales) if sc >= 0.1 * max(scales) and covered[k] > 0]
     if name is None:
-        k = choose_input_view([int(fg.sum()) for fg in fgs], [radiance_scale_of(p) for p in pixels])
+        k = choose_input_view(covered, scales)
     else:
         names = [v.name for v in train]
         if name not in names:
             raise DamcapError(f"--view {name!r} is not a train-split frame; choose one of "
                               f"{', '.join(names[:12])}{' ...' if len(names) > 12 else ''}")
         k = names.index(name)
-    d = train[k].data
-    crop = view_crop(d.radiance_lin, d.normal_world, view_dir_world(d.position_world, train[k].centre_world), d.coverage)
-    return k, crop, radiance_scale_of(torch.cat(pixels))
+    pos = [v.data.position_world[fg] for v, fg in zip(train, fgs, strict=True) if fg.any()]
+    centre = np.concatenate(pos).mean(0) if pos else np.zeros(3)
+    centres = np.stack([np.asarray(v.centre_world, np.float64) - centre for v in train])
+    ks = spread_views(k, centres, lit, count)
+    crops = []
+    for j in ks:
+        d = train[j].data
+        crops.append(view_crop(d.radiance_lin, d.normal_world, view_dir_world(d.position_world, train[j].centre_world), d.coverage))
+    return ks, crops, radiance_scale_of(torch.cat(pixels))
+
+
+def predictor_input(train: list[ViewData], name: str | None = None) -> tuple[int, torch.Tensor, float]:
+    """:func:`predictor_inputs` with one view: (its index, its crop, the capture's radiance scale)."""
+    ks, crops, scale = predictor_inputs(train, 1, name)
+    return ks[0], crops[0], scale
 
 
 def rotation_y(angle_rad: float) -> torch.Tensor:
@@ -236,15 +293,58 @@ def predictor_image(crop: torch.Tensor, size: int, rotation: torch.Tensor | None
     if rotation is not None:
         n = torch.einsum("ij,jhw->ihw", rotation, n)
         v = torch.einsum("ij,jhw->ihw", rotation, v)
-    n = F.normalize(n, dim=0) * fg
-    v = F.normalize(v, dim=0) * fg
     scale = radiance_scale if radiance_scale is not None else radiance_scale_of(rgb.permute(1, 2, 0)[fg[0]])
-    rgb = torch.log1p(rgb.clamp_min(0) / scale) * fg
-    return torch.cat([rgb, n, v]).float(), scale
+    image = _normalised_image(torch.cat([rgb, n, v, fg.float()])[None], torch.tensor([scale], dtype=torch.float32))
+    return image[0], scale
+
+
+def predictor_images(stacks: torch.Tensor, size: int, radiance_scale: torch.Tensor, margin: float = 0.05) -> torch.Tensor:
+    """:func:`view_crop` and :func:`predictor_image` (no augmentation) for a batch of whole views at
+    once, on any device: each view is cropped to its foreground's square box (``margin`` of its side
+    on each edge) and resampled to ``size`` bilinearly (meant for views rendered near ``size``, so
+    no anti-aliasing is needed).
+
+    Args:
+        stacks: (N, 10, H, W) linear radiance, normal_world, view_dir_world, coverage.
+        size: output side, pixels.
+        radiance_scale: (N,) what each view's radiance is divided by (its capture's scale).
+
+    Returns:
+        (N, 9, size, size) images; a view without foreground gives zeros.
+    """
+    n, _, h, w = stacks.shape
+    fg = stacks[:, 9] > FOREGROUND_COVERAGE
+    rows, cols = fg.any(2), fg.any(1)
+    ar_h, ar_w = torch.arange(h, device=stacks.device), torch.arange(w, device=stacks.device)
+    y0 = torch.where(rows, ar_h, h).amin(1).float()
+    y1 = torch.where(rows, ar_h + 1, 0).amax(1).float()
+    x0 = torch.where(cols, ar_w, w).amin(1).float()
+    x1 = torch.where(cols, ar_w + 1, 0).amax(1).float()
+    side = torch.maximum(y1 - y0, x1 - x0).clamp_min(1.0) * (1 + 2 * margin)
+    cy, cx = (y0 + y1) / 2, (x0 + x1) / 2
+    theta = torch.zeros(n, 2, 3, device=stacks.device)
+    theta[:, 0, 0], theta[:, 0, 2] = side / w, 2 * cx / w - 1
+    theta[:, 1, 1], theta[:, 1, 2] = side / h, 2 * cy / h - 1
+    grid = F.affine_grid(theta, [n, 10, size, size], align_corners=False)
+    x = F.grid_sample(torch.where(fg[:, None], stacks, torch.zeros(())), grid, mode="bilinear", padding_mode="zeros",
+                      align_corners=False)
+    return _normalised_image(x, radiance_scale)
+
+
+def _normalised_image(x: torch.Tensor, radiance_scale: torch.Tensor) -> torch.Tensor:
+    """(N, 10, S, S) resampled premultiplied stacks -> (N, 9, S, S) predictor images (un-premultiplied
+    at the silhouette, unit vectors, log1p(radiance / scale), 0 off the foreground)."""
+    mask = x[:, 9:10]
+    fg = mask > 0.5
+    vec = torch.where(fg, x[:, :9] / mask.clamp_min(1e-6), torch.zeros(()))
+    rgb = torch.log1p(vec[:, 0:3].clamp_min(0) / radiance_scale[:, None, None, None]) * fg
+    n = F.normalize(vec[:, 3:6], dim=1) * fg
+    v = F.normalize(vec[:, 6:9], dim=1) * fg
+    return torch.cat([rgb, n, v], 1).float()
 
 
 def predicted_loss(weights: torch.Tensor, view_dir_world: torch.Tensor, normal_world: torch.Tensor, radiance_norm: torch.Tensor,
-                   arch: DamArchitecture) -> torch.Tensor:
+                   arch: DamArchitecture, sample_mask: torch.Tensor | None = None) -> torch.Tensor:
     """The training cost: mean L1 between the predicted DAMs' radiance and the capture's.
 
     Args:
@@ -252,26 +352,36 @@ def predicted_loss(weights: torch.Tensor, view_dir_world: torch.Tensor, normal_w
         view_dir_world, normal_world: (B, K, 3) pixel samples of each capture.
         radiance_norm: (B, K, 3) their radiance divided by each capture's radiance scale.
         arch: the DAM architecture.
+        sample_mask: optional (B, K) bool, the samples that count (default all).
 
     Returns:
         scalar loss.
     """
     pred = dam_forward(weights, encode_inputs(view_dir_world, normal_world, arch.encoding), arch)
-    return (pred - radiance_norm).abs().mean()
+    err = (pred - radiance_norm).abs()
+    if sample_mask is None:
+        return err.mean()
+    m = sample_mask[..., None].to(err.dtype)
+    return (err * m).sum() / (3 * m.sum()).clamp_min(1.0)
 
 
 @torch.no_grad()
-def predict_dam(net: HyperNet, crop: torch.Tensor, radiance_scale: float | None = None) -> DeepAppearanceMap:
-    """Predict a DAM from one view's :func:`view_crop`.
+def predict_dam(net: HyperNet, crops: torch.Tensor | list[torch.Tensor], radiance_scale: float | None = None) -> DeepAppearanceMap:
+    """Predict a DAM from one view's :func:`view_crop`, or from several views' (a set).
 
     Args:
+        crops: a (10, s, s) crop or a list of them (any sizes).
         radiance_scale: the capture's radiance scale (:func:`.fit.radiance_scale_of` over the train
-            views' foreground); None = the input view's own.
+            views' foreground); None = the (first) input view's own.
     """
     net.eval()
-    image, scale = predictor_image(crop, net.arch.input_size, radiance_scale=radiance_scale)
+    crops = [crops] if isinstance(crops, torch.Tensor) else list(crops)
+    if not crops:
+        raise DamcapError("predict needs at least one input view")
+    first, scale = predictor_image(crops[0], net.arch.input_size, radiance_scale=radiance_scale)
+    images = [first] + [predictor_image(c, net.arch.input_size, radiance_scale=scale)[0] for c in crops[1:]]
     device = next(net.parameters()).device
-    weights = net(image[None].to(device))[0].float().cpu()
+    weights = net(torch.stack(images)[None].to(device))[0].float().cpu()
     if not torch.isfinite(weights).all():
         raise DamcapError("the predictor produced non-finite weights for this view (is its radiance finite and positive?)")
     return DeepAppearanceMap(net.arch.dam, scale, weights)

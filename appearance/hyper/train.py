@@ -1,9 +1,13 @@
 """Training the predictor (``damcap train-hyper``): data, the loop, checkpoints, data-parallel.
 
 Cost (the paper's, Sec. 3.3): the L1 re-synthesis error of the predicted DAM over the capture's
-pixels. Each step draws ``batch_size`` (capture, input view) pairs, augments them exactly
-(:func:`.hyper.predictor_image`: rotation about +y, mirror, tinted light), predicts the weights
-from the view and scores them on ``pixels`` random covered pixels of *all* the capture's views.
+pixels. Each step draws ``batch_size`` examples: a set of 1 to ``input_views`` input views of one
+scene and ``pixels`` target samples from all of its views. Examples come from two sources:
+- corpus captures (``damcap synth-set``), augmented exactly (:func:`.model.predictor_image`:
+  rotation about +y, mirror, tinted light), drawn by DataLoader worker processes
+  (``loader_workers``) ahead of the step, in step order;
+- random closed-form scenes (``procedural``, a :data:`SceneSource`: ``damcap train-hyper`` passes
+  :func:`damcap.synth.procedural.render_scenes`), rendered on the training device itself, batched.
 
 Data-parallel: launched with ``torchrun --nproc-per-node N``, every process (rank) draws its own
 share of the batch and PyTorch's DistributedDataParallel averages the gradients (gloo on CPU,
@@ -38,7 +42,7 @@ from damcap.common.version import damcap_version
 
 from damcap.appearance.fit import load_checkpoint, save_checkpoint, set_aside_stale
 from damcap.appearance.views import radiance_scale_of
-from damcap.appearance.hyper.model import HyperArchitecture, HyperNet, predicted_loss, predictor_image, rotation_y, view_crop
+from damcap.appearance.hyper.model import HyperArchitecture, HyperNet, predicted_loss, predictor_image, predictor_images, rotation_y, view_crop
 from damcap.appearance.pixels import FOREGROUND_COVERAGE, view_dir_world
 
 
@@ -49,7 +53,7 @@ class HyperTrainOptions:
     steps: int = field(default=3000, metadata=COUNT)
     """optimiser steps (Adam)"""
     batch_size: int = field(default=8, metadata=in_range(1, 65536))
-    """(capture, view) pairs per step, over all ranks together"""
+    """training examples per step, over all ranks together (a multiple of the number of processes)"""
     pixels: int = field(default=4096, metadata=in_range(1, MAX_BATCH_PIXELS))
     """pixels per capture and step scored by the L1 cost"""
     learning_rate: float = field(default=5e-4, metadata=in_range(0, 10, lo_open=True))
@@ -74,8 +78,23 @@ class HyperTrainOptions:
     """seeds initialisation and every random draw"""
     device: str = "cpu"
     """'cpu', 'cuda' or 'auto' (under torchrun each rank uses its LOCAL_RANK GPU)"""
+    snapshot_every: int = field(default=0, metadata=COUNT_OR_ZERO)
+    """also write the predictor as it stands every this many steps (OUTPUT.stepN.safetensors; 0 =
+    never): how error falls with training compute, measured afterwards on any captures"""
     checkpoint_every: int = field(default=100, metadata=COUNT_OR_ZERO)
     """steps between checkpoints (0 = never)"""
+    input_views: int = field(default=1, metadata=in_range(1, 64))
+    """views the predictor reads at once (a set encoder; 1 = the paper's single view); each
+    training example gets 1 to this many, so the predictor works with any number up to it"""
+    procedural: float = field(default=0.0, metadata=in_range(0, 1))
+    """share of each batch drawn from random closed-form scenes rendered on the training device
+    (``--procedural 1`` needs no corpus); the rest comes from the corpus's captures"""
+    loader_workers: int = field(default=0, metadata=in_range(0, 256))
+    """DataLoader worker processes that draw and augment the corpus's examples ahead of the
+    training step (0 = on the main thread)"""
+    val_scenes: int = field(default=64, metadata=in_range(0, 100_000))
+    """random closed-form scenes (fixed, never trained on) scored by the validation curve when
+    ``--procedural`` is above 0"""
     grad_clip: float = field(default=1.0, metadata=in_range(0, 1e6))
     """largest gradient norm of a step (0 = no clipping): a hypernetwork's output weights
     multiply through the DAM's layers, so one bad batch can otherwise throw it far off"""
@@ -87,7 +106,7 @@ class HyperTrainOptions:
 
     @property
     def architecture(self) -> HyperArchitecture:
-        return HyperArchitecture(self.input_size, tuple(self.channels), DamArchitecture(encoding=self.encoding))
+        return HyperArchitecture(self.input_size, tuple(self.channels), DamArchitecture(encoding=self.encoding), self.input_views)
 
 
 @dataclass
@@ -123,6 +142,8 @@ class HyperTrainResult:
     rank_weight_sha256: list[str] = field(default_factory=list)
     train_captures: list[str] = field(default_factory=list)
     val_captures: list[str] = field(default_factory=list)
+    device: str = "cpu"
+    """what trained it: 'cpu', or the GPU's name"""
 
 
 MIN_INPUT_BRIGHTNESS = 0.1
@@ -186,28 +207,60 @@ def split_validation(paths: list[Path], fraction: float) -> tuple[list[Path], li
     return [p for p in paths if p not in val], val
 
 
-def _step_generator(seed: int, rank: int, step: int) -> torch.Generator:
-    return torch.Generator().manual_seed((seed * 1_000_003 + rank * 7_919 + step) % (2**63))
+def _step_seed(seed: int, rank: int, step: int) -> int:
+    return (seed * 1_000_003 + rank * 7_919 + step) % (2**63)
 
 
-def draw_batch(captures: list[HyperCapture], n: int, opts: HyperTrainOptions, gen: torch.Generator
-               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """n augmented (image, view_dir, normal, radiance / scale) training examples.
+def _step_generator(seed: int, rank: int, step: int, device: torch.device | str = "cpu") -> torch.Generator:
+    return torch.Generator(device=device).manual_seed(_step_seed(seed, rank, step))
 
-    Returns:
-        (n, 9, S, S) images; (n, K, 3) view directions, normals and normalised radiance.
-    """
-    imgs, vs, ns, ys = [], [], [], []
-    for _ in range(n):
+
+@dataclass
+class Batch:
+    """A training batch: sets of input views and each example's target samples."""
+
+    images: torch.Tensor
+    """(B, V, 9, S, S) predictor images"""
+    view_mask: torch.Tensor
+    """(B, V) bool"""
+    view_dir_world: torch.Tensor
+    """(B, K, 3)"""
+    normal_world: torch.Tensor
+    """(B, K, 3)"""
+    radiance_norm: torch.Tensor
+    """(B, K, 3) radiance / the example's radiance scale"""
+    sample_mask: torch.Tensor
+    """(B, K) bool"""
+
+    def to(self, device: torch.device) -> Batch:
+        return Batch(*(getattr(self, f).to(device, non_blocking=True) for f in self.__dataclass_fields__))
+
+    @staticmethod
+    def cat(parts: list[Batch]) -> Batch:
+        parts = [p for p in parts if p.images.shape[0]]
+        return Batch(*(torch.cat([getattr(p, f) for p in parts]) for f in Batch.__dataclass_fields__))
+
+
+def draw_batch(captures: list[HyperCapture], n: int, opts: HyperTrainOptions, gen: torch.Generator) -> Batch:
+    """n augmented training examples from corpus captures: a capture, 1 to ``opts.input_views`` of
+    its lit views (all under one augmentation), and ``opts.pixels`` of its pixels."""
+    vmax = opts.input_views
+    imgs = torch.zeros(n, vmax, 9, opts.input_size, opts.input_size)
+    vmask = torch.zeros(n, vmax, dtype=torch.bool)
+    vs, ns, ys = [], [], []
+    for i in range(n):
         c = captures[int(torch.randint(len(captures), (1,), generator=gen))]
-        crop = c.crops[int(torch.randint(len(c.crops), (1,), generator=gen))].float()
+        n_views = min(int(torch.randint(1, vmax + 1, (1,), generator=gen)), len(c.crops))
+        picks = torch.randperm(len(c.crops), generator=gen)[:n_views].tolist()
         rot, mirror, gain = None, False, None
         if opts.augment:
             rot = rotation_y(float(torch.rand((), generator=gen)) * 2 * math.pi)
             mirror = bool(torch.rand((), generator=gen) < 0.5)
             gain = torch.exp((torch.rand(3, generator=gen) - 0.5))
         scale = c.radiance_scale * (float(gain.mean()) if gain is not None else 1.0)
-        img, scale = predictor_image(crop, opts.input_size, rot, mirror, gain, radiance_scale=scale)
+        for j, k in enumerate(picks):
+            imgs[i, j] = predictor_image(c.crops[k].float(), opts.input_size, rot, mirror, gain, radiance_scale=scale)[0]
+            vmask[i, j] = True
         idx = torch.randint(c.radiance_lin.shape[0], (opts.pixels,), generator=gen)
         v, nn_, y = c.view_dir_world[idx], c.normal_world[idx], c.radiance_lin[idx]
         if mirror:
@@ -217,17 +270,83 @@ def draw_batch(captures: list[HyperCapture], n: int, opts: HyperTrainOptions, ge
             v, nn_ = v @ rot.T, nn_ @ rot.T
         if gain is not None:
             y = y * gain
-        imgs.append(img)
         vs.append(v)
         ns.append(nn_)
         ys.append(y / scale)
-    return torch.stack(imgs), torch.stack(vs), torch.stack(ns), torch.stack(ys)
+    return Batch(imgs, vmask, torch.stack(vs), torch.stack(ns), torch.stack(ys), torch.ones(n, opts.pixels, dtype=torch.bool))
+
+
+SceneSource = Callable[[torch.Generator, int, int, int], Any]
+"""Random closed-form scenes: (generator, scenes, most input views, target samples) -> an object
+with the fields of :class:`damcap.synth.procedural.SceneBatch` (views, view_mask, view_dir_world,
+normal_world, radiance_lin, sample_mask) on the generator's device. ``damcap train-hyper`` passes
+:func:`damcap.synth.procedural.render_scenes`; appearance does not import synth."""
+
+
+def scene_batch(scenes: Any, input_size: int) -> Batch:
+    """A :data:`SceneSource` batch as a training :class:`Batch`: each scene's radiance scale is the
+    95th percentile of its target samples (as a capture's is of its train views' pixels), its views
+    are cropped and normalised by :func:`.model.predictor_images`. A scene whose samples all miss
+    or are black keeps no sample."""
+    b, v = scenes.view_mask.shape
+    rad = torch.where(scenes.sample_mask[..., None], scenes.radiance_lin, torch.full_like(scenes.radiance_lin, math.nan))
+    scale = torch.nanquantile(rad.reshape(b, -1), 0.95, dim=1)
+    ok = torch.isfinite(scale) & (scale > 0)
+    scale = torch.where(ok, scale, torch.ones_like(scale))
+    has_fg = (scenes.views[:, :, 9] > FOREGROUND_COVERAGE).flatten(2).any(2)
+    images = predictor_images(scenes.views.flatten(0, 1), input_size, scale.repeat_interleave(v)).reshape(b, v, 9, input_size, input_size)
+    vmask = scenes.view_mask & has_fg
+    smask = scenes.sample_mask & ok[:, None] & vmask.any(1, keepdim=True)
+    vmask = vmask | ~vmask.any(1, keepdim=True)  # a set needs a view; such an example keeps no sample
+    return Batch(images, vmask, scenes.view_dir_world, scenes.normal_world, scenes.radiance_lin / scale[:, None, None], smask)
+
+
+class CorpusDraws(torch.utils.data.IterableDataset):
+    """The corpus part of steps ``start .. steps - 1``, in step order, for a DataLoader: with W
+    workers, worker w draws steps w, w + W, ... and the loader returns them in order, so a run with
+    workers draws exactly what one without draws (and resumes exactly)."""
+
+    def __init__(self, captures: list[HyperCapture], n: int, opts: HyperTrainOptions, rank: int, start: int) -> None:
+        self.captures, self.n, self.opts, self.rank, self.start = captures, n, opts, rank, start
+
+    def __iter__(self):
+        info = torch.utils.data.get_worker_info()
+        w, nw = (info.id, info.num_workers) if info else (0, 1)
+        torch.set_num_threads(1) if info else None
+        for step in range(self.start + w, self.opts.steps, nw):
+            yield draw_batch(self.captures, self.n, self.opts, _step_generator(self.opts.seed, self.rank, step))
+
+
+def corpus_loader(captures: list[HyperCapture], n: int, opts: HyperTrainOptions, rank: int, start: int, pin: bool):
+    """An iterator over the corpus part of each step (``n`` examples; empty batches when n is 0)."""
+    if n == 0 or not captures:
+        empty = Batch(torch.zeros(0, opts.input_views, 9, opts.input_size, opts.input_size), torch.zeros(0, opts.input_views, dtype=torch.bool),
+                      torch.zeros(0, opts.pixels, 3), torch.zeros(0, opts.pixels, 3), torch.zeros(0, opts.pixels, 3),
+                      torch.zeros(0, opts.pixels, dtype=torch.bool))
+        return iter(lambda: empty, None)
+    ds = CorpusDraws(captures, n, opts, rank, start)
+    if opts.loader_workers == 0:
+        return iter(ds)
+    return iter(torch.utils.data.DataLoader(ds, batch_size=None, num_workers=opts.loader_workers, pin_memory=pin,
+                                            prefetch_factor=4, persistent_workers=False))
+
+
+def batch_loss(model: torch.nn.Module, batch: Batch, arch: DamArchitecture) -> torch.Tensor:
+    return predicted_loss(model(batch.images, batch.view_mask), batch.view_dir_world, batch.normal_world, batch.radiance_norm,
+                          arch, batch.sample_mask)
+
+
+def validation_inputs(c: HyperCapture, views: int) -> list[int]:
+    """The validation input views of a corpus capture: its ``views`` best-covered lit views."""
+    cov = [float(x[9].float().sum()) for x in c.crops]
+    return sorted(range(len(cov)), key=lambda k: -cov[k])[:views]
 
 
 @torch.no_grad()
 def validation_l1(net: HyperNet, captures: list[HyperCapture], pixels: int = 8192) -> float:
-    """Mean L1 (radiance / capture scale) of predictions from each capture's best-covered view, without
-    augmentation, over its first ``pixels`` kept pixels."""
+    """Mean L1 (radiance / capture scale) of predictions from each capture's best-covered views
+    (:func:`validation_inputs`, up to the predictor's ``input_views``), without augmentation, over
+    its first ``pixels`` kept pixels."""
     if not captures:
         return float("nan")
     was_training = net.training
@@ -235,14 +354,28 @@ def validation_l1(net: HyperNet, captures: list[HyperCapture], pixels: int = 819
     device = next(net.parameters()).device
     total = 0.0
     for c in captures:
-        img, scale = predictor_image(c.crops[c.best_view].float(), net.arch.input_size, radiance_scale=c.radiance_scale)
-        w = net(img[None].to(device))
+        imgs = [predictor_image(c.crops[k].float(), net.arch.input_size, radiance_scale=c.radiance_scale)[0]
+                for k in validation_inputs(c, net.arch.input_views)]
+        w = net(torch.stack(imgs)[None].to(device))
         k = slice(0, pixels)
         loss = predicted_loss(w, c.view_dir_world[None, k].to(device), c.normal_world[None, k].to(device),
-                              (c.radiance_lin[None, k] / scale).to(device), net.arch.dam)
+                              (c.radiance_lin[None, k] / c.radiance_scale).to(device), net.arch.dam)
         total += float(loss)
     net.train(was_training)
     return total / len(captures)
+
+
+@torch.no_grad()
+def validation_scenes_l1(net: HyperNet, batches: list[Batch]) -> float:
+    """Mean L1 over fixed validation scene batches."""
+    if not batches:
+        return float("nan")
+    was_training = net.training
+    net.eval()
+    device = next(net.parameters()).device
+    total = sum(float(batch_loss(net, b.to(device), net.arch.dam)) for b in batches) / len(batches)
+    net.train(was_training)
+    return total
 
 
 def weights_sha256(net: torch.nn.Module) -> str:
@@ -286,6 +419,8 @@ def train_hyper(
     opts: HyperTrainOptions,
     *,
     checkpoint_path: str | os.PathLike | None = None,
+    scenes: SceneSource | None = None,
+    snapshot: Callable[[int, HyperNet], None] | None = None,
     progress: Callable[[int, int, dict[str, float]], None] | None = None,
     log: Callable[[str], None] | None = None,
 ) -> HyperTrainResult:
@@ -294,6 +429,9 @@ def train_hyper(
     Args:
         capture_paths: training capture folders (:func:`corpus_training_captures`).
         opts: options.
+        scenes: the random closed-form scenes that ``opts.procedural`` of each batch is drawn from
+            (and the validation scenes), rendered on the training device.
+        snapshot: rank 0 only: snapshot(step, net) every ``opts.snapshot_every`` steps.
         checkpoint_path: checkpoint file; one with this run's :func:`hyper_fingerprint` (options,
             the captures' loaded content, damcap version) is resumed exactly; any other (other
             captures or content, options, version, or an old one without a fingerprint) is never
@@ -309,21 +447,34 @@ def train_hyper(
         meant to be written.
     """
     opts.validate()
+    if opts.procedural > 0 and scenes is None:
+        raise DamcapError("--procedural above 0 needs a scene source (damcap train-hyper passes one)")
+    if opts.procedural < 1 and not capture_paths:
+        raise DamcapError("no training captures: give a corpus, or train on random scenes alone with --procedural 1")
     arch = opts.architecture
     device = resolve_device(opts.device)
     rank, world, local_rank = _distributed(device.type)
+    if opts.batch_size % world:
+        raise DamcapError(f"--batch-size {opts.batch_size} does not split evenly over {world} processes: the effective batch "
+                          f"would not be the one asked for; use a multiple of {world}")
+    if device.type == "cuda":
+        torch.backends.cuda.matmul.allow_tf32 = True  # the DAM's small matrix products; convolutions use TF32 already
+        torch.backends.cudnn.benchmark = True
     if device.type == "cuda" and world > 1:
         device = torch.device("cuda", local_rank)
         torch.cuda.set_device(device)
     say = (lambda m: log(m)) if (log and rank == 0) else (lambda m: None)
     paths = list(capture_paths)[: opts.max_captures or None]
-    train_paths, val_paths = split_validation(paths, opts.val_fraction)
-    if not train_paths:
-        raise DamcapError("no training captures")
+    train_paths, val_paths = split_validation(paths, opts.val_fraction) if opts.procedural < 1 else ([], [])
     t_load = time.perf_counter()
     train = [load_hyper_capture(p, opts.pixels_per_capture, seed=k) for k, p in enumerate(train_paths)]
     val = [load_hyper_capture(p, opts.pixels_per_capture, seed=k) for k, p in enumerate(val_paths)] if rank == 0 else []
     say(f"loaded {len(train)} training and {len(val_paths)} validation captures in {time.perf_counter() - t_load:.1f} s")
+    val_scenes: list[Batch] = []
+    if rank == 0 and opts.procedural > 0 and opts.val_scenes:
+        vgen = _step_generator(opts.seed + 1, 1_000_003, 0, device)  # a stream no training step draws
+        for k in range(0, opts.val_scenes, 16):
+            val_scenes.append(scene_batch(scenes(vgen, min(16, opts.val_scenes - k), opts.input_views, opts.pixels), opts.input_size))
 
     with torch.random.fork_rng(devices=[]):  # conv/linear default init, seeded without touching the global RNG
         torch.manual_seed(opts.seed)
@@ -344,6 +495,8 @@ def train_hyper(
     fp = ""
     if ckpt:
         fp = hyper_fingerprint(state_key, train, val)  # rank 0 alone holds the validation captures
+        if val_scenes:
+            fp = fingerprint(fp, *[x for b in val_scenes for x in (b.images, b.radiance_norm)])
         if world > 1:
             shared = [fp]
             dist.broadcast_object_list(shared, src=0)
@@ -362,15 +515,19 @@ def train_hyper(
             set_aside_stale(ckpt, "other inputs (captures, options or damcap version differ)" if state else "nothing readable", say)
     resumed_from = start
 
-    per_rank = max(1, math.ceil(opts.batch_size / world))
+    per_rank = opts.batch_size // world
+    n_scenes = round(per_rank * opts.procedural) if train else per_rank
+    corpus_part = corpus_loader(train, per_rank - n_scenes, opts, rank, start, pin=device.type == "cuda")
     t0 = time.perf_counter()
     running = None
     for step in range(start, opts.steps):
         for g in optim.param_groups:
             g["lr"] = lr_at(step)
-        gen = _step_generator(opts.seed, rank, step)
-        img, v, n, y = draw_batch(train, per_rank, opts, gen)
-        loss = predicted_loss(model(img.to(device)), v.to(device), n.to(device), y.to(device), arch.dam)
+        parts = [next(corpus_part).to(device)]
+        if n_scenes:
+            gen = _step_generator(opts.seed, rank + 65_537, step, device)
+            parts.append(scene_batch(scenes(gen, n_scenes, opts.input_views, opts.pixels), opts.input_size))
+        loss = batch_loss(model, Batch.cat(parts), arch.dam)
         optim.zero_grad()
         loss.backward()
         if opts.grad_clip > 0:
@@ -381,15 +538,20 @@ def train_hyper(
         running = lv if running is None else 0.95 * running + 0.05 * lv
         stats = {"loss": running}
         if rank == 0 and (done % opts.eval_every == 0 or done == opts.steps):
-            vl = validation_l1(net, val)
-            curve.append({"step": done, "train_l1": running, "val_l1": vl, "seconds": elapsed_before + time.perf_counter() - t0})
-            if not val or vl < best_val:
-                best_val, best_step = (vl if val else math.inf), done
+            v_corpus, v_scenes = validation_l1(net, val), validation_scenes_l1(net, val_scenes)
+            held = [x for x in (v_corpus, v_scenes) if math.isfinite(x)]
+            vl = float(np.mean(held)) if held else math.nan
+            curve.append({"step": done, "train_l1": running, "val_l1": vl, "val_corpus_l1": v_corpus, "val_scenes_l1": v_scenes,
+                          "seconds": elapsed_before + time.perf_counter() - t0})
+            if not held or vl < best_val:
+                best_val, best_step = (vl if held else math.inf), done
                 best_state = {k: t.detach().cpu().clone() for k, t in net.state_dict().items()}
             stats["val"] = vl
             say(f"step {done}/{opts.steps}: train L1 {running:.4f}, validation L1 {vl:.4f}")
         if rank == 0 and progress:
             progress(done, opts.steps, stats)
+        if rank == 0 and snapshot and opts.snapshot_every and done % opts.snapshot_every == 0:
+            snapshot(done, net)
         if rank == 0 and ckpt and opts.checkpoint_every and done % opts.checkpoint_every == 0 and done < opts.steps:
             save_checkpoint(ckpt, {FINGERPRINT_KEY: fp, "damcap_version": damcap_version(), "key": state_key, "step": done, "net": net.state_dict(), "optim": optim.state_dict(),
                                "best_val": best_val, "best_step": best_step, "best_net": best_state,
@@ -403,11 +565,13 @@ def train_hyper(
         digests = [str(d) for d in gathered]
         dist.barrier()
     final = HyperNet(arch)
-    final.load_state_dict(best_state if val else {k: t.detach().cpu() for k, t in net.state_dict().items()})
+    validated = bool(val or val_scenes)  # only rank 0 validates; the other ranks return their last weights
+    final.load_state_dict(best_state if validated else {k: t.detach().cpu() for k, t in net.state_dict().items()})
     final.eval()
     if rank == 0 and ckpt and ckpt.is_file():
         ckpt.unlink()
     if world > 1:
         dist.destroy_process_group()
-    return HyperTrainResult(final, curve, best_step if val else opts.steps, seconds, resumed_from, world, digests,
-                            [p.name for p in train_paths], [p.name for p in val_paths])
+    device_name = torch.cuda.get_device_name(device) if device.type == "cuda" else device.type
+    return HyperTrainResult(final, curve, best_step if validated else opts.steps, seconds, resumed_from, world, digests,
+                            [p.name for p in train_paths], [p.name for p in val_paths], device_name)

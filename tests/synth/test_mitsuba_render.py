@@ -8,6 +8,7 @@ import math
 
 import pytest
 
+from damcap.common.errors import DamcapError
 from damcap.synth.mitsuba_render import MAX_LANES_PER_PASS, pass_sample_counts, sampler_count_ok
 
 
@@ -31,3 +32,17 @@ def test_pass_counts_closed_form():
     assert pass_sample_counts(10, 8, 8, max_lanes=64) == [1] * 10  # one sample per pixel per pass
     with pytest.raises(ValueError, match="spp must be >= 1, got 0"):
         pass_sample_counts(0, 8, 8)
+
+
+def test_the_cuda_variant_is_refused_clearly_without_a_gpu():
+    import drjit as dr
+
+    from damcap.synth.mitsuba_render import select_variant
+
+    if dr.has_backend(dr.JitBackend.CUDA):
+        pytest.skip("a CUDA GPU is present: auto picks cuda_ad_rgb there")
+    with pytest.raises(DamcapError, match="cuda_ad_rgb needs a CUDA GPU"):
+        select_variant("cuda_ad_rgb")
+    with pytest.raises(DamcapError, match="use auto, cuda_ad_rgb, llvm_ad_rgb, scalar_rgb"):
+        select_variant("optix")
+    assert select_variant("auto") in ("llvm_ad_rgb", "scalar_rgb")

@@ -6,10 +6,11 @@ import json
 import math
 
 import torch
+import torch.nn.functional as F
 
 from damcap.appearance.dam_file import load_dam
 from damcap.appearance.hyper.file import save_predictor
-from damcap.appearance.hyper.model import HyperArchitecture, HyperNet, predictor_image, rotation_y
+from damcap.appearance.hyper.model import HyperArchitecture, HyperNet, predict_dam, predictor_image, predictor_images, rotation_y
 from damcap.cli.main import main
 
 from tests.appearance.conftest import _crop_of
@@ -65,3 +66,49 @@ def test_predict_and_evaluate_cli(tmp_path, small_capture):
     assert set(res["models"]) == {"predict: pred", "fit: fit"}
     r = res["ratios"]["predict: pred / fit: fit"]["test"]
     assert math.isclose(r, res["results"]["test"]["predict: pred"]["mean"] / res["results"]["test"]["fit: fit"]["mean"], rel_tol=1e-9)
+
+
+def test_a_set_of_views_is_pooled_in_any_order_and_masked_views_do_not_count():
+    torch.manual_seed(0)
+    net = HyperNet(HyperArchitecture(input_size=32, channels=(4, 8, 8, 8, 8), input_views=3))
+    x = torch.randn(2, 3, 9, 32, 32)
+    out = net(x)
+    assert torch.allclose(net(x[:, [2, 0, 1]]), out, atol=1e-5)  # a set: the order of the views does not matter
+    mask = torch.tensor([[True, True, False], [True, False, False]])
+    masked = net(x, mask)
+    assert torch.allclose(masked[0], net(x[:1, :2])[0], atol=1e-5) and torch.allclose(masked[1], net(x[1:, 0])[0], atol=1e-5)
+    assert torch.equal(net(x[:, 0]), net(x[:, :1]))  # one view = the paper's single-image predictor
+    assert HyperArchitecture.from_json(net.arch.to_json()).input_views == 3
+    old = net.arch.to_json()
+    del old["input_views"]  # a version-1 predictor file: one view
+    assert HyperArchitecture.from_json(old).input_views == 1
+
+
+def test_batched_predictor_images_crop_to_the_foreground():
+    s = 16
+    stack = torch.zeros(1, 10, s, s)
+    stack[0, 0:3] = torch.linspace(1, 2, s)[None, None, :]  # radiance ramps left to right
+    stack[0, 3:6] = torch.tensor([0.0, 0.0, 1.0])[:, None, None]
+    stack[0, 6:9] = torch.tensor([0.0, 1.0, 0.0])[:, None, None]
+    stack[0, 9] = 1.0
+    full = predictor_images(stack, s, torch.tensor([2.0]), margin=0.0)
+    assert torch.allclose(full[0, 0], torch.log1p(stack[0, 0] / 2), atol=1e-5)  # the whole view: an identity resampling
+    assert torch.allclose(full[0, 5], torch.ones(()), atol=1e-6) and torch.allclose(full[0, 7], torch.ones(()), atol=1e-6)
+    quarter = torch.zeros_like(stack)
+    quarter[..., :8, 8:] = stack[..., :8, 8:]  # the foreground is the top-right quadrant
+    out = predictor_images(quarter, s, torch.tensor([2.0]), margin=0.0)
+    ref = torch.log1p(F.interpolate(quarter[:, 0:1, :8, 8:], size=(s, s), mode="bilinear", align_corners=False) / 2)
+    assert torch.allclose(out[0, 0, 2:-2, 2:-2], ref[0, 0, 2:-2, 2:-2], atol=1e-5)  # cropped and magnified x2
+    assert (predictor_images(torch.zeros(1, 10, s, s), s, torch.ones(1)) == 0).all()  # no foreground: zeros
+
+
+def test_prediction_does_not_depend_on_exposure(small_capture):
+    torch.manual_seed(1)
+    net = HyperNet(HyperArchitecture(input_size=32, channels=(4, 8, 8, 8, 8), input_views=2))
+    crops = [_crop_of(small_capture, 0), _crop_of(small_capture, 1)]
+    brighter = [c.clone() for c in crops]
+    for c in brighter:
+        c[:3] *= 1000.0
+    a, b = predict_dam(net, crops, 0.5), predict_dam(net, brighter, 500.0)
+    assert torch.allclose(a.get_flat_weights(), b.get_flat_weights(), atol=1e-5)
+    assert math.isclose(b.radiance_scale, 1000 * a.radiance_scale, rel_tol=1e-9)

@@ -1,0 +1,190 @@
+"""Benchmark: the predictor on captures unlike its training set (issue 28).
+
+Novel-view DSSIM, side by side in one run, on held-out captures of kinds the predictors never
+saw: closed-form spheres and blobs (``damcap closed-form``) under a directional light and under
+the analytic sky, the held-out Mitsuba captures of a ``damcap synth-set`` corpus (shadows,
+interreflection, measured environment maps), and the real cape (the realworld bench's cached
+capture). Per capture: RM++, ``damcap fit`` (default options, timed), each predictor alone and
+the newest one refined 100 / 300 steps (timed, as ``damcap predict --refine-steps K``). With
+``--snapshots``: predict alone for each snapshot of one training run (how out-of-distribution
+error falls with training compute).
+
+Targets (issue 28): predict alone at most 1.15x the fit's DSSIM on every kind and never worse
+than RM++; predict + refinement within 2 s at most 1.0x the fit; prediction under 100 ms on CPU.
+
+Run (from the repository root)::
+
+    .venv/bin/python -m bench.hyper_ood --predictors appearance/hyper/predictors/dam-predictor-v1.safetensors \\
+        appearance/hyper/predictors/dam-predictor-v2.safetensors
+
+It writes bench/results/hyper_ood.json and bench/hyper_ood.md (``--out DIR`` elsewhere).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from bench.common import BENCH, CACHE, RESULTS, command_line, log, machine_info
+
+from damcap.appearance.evaluate import evaluate_split
+from damcap.appearance.fit import FitOptions, fit_dam, refine_dam
+from damcap.appearance.hyper.file import load_predictor
+from damcap.appearance.hyper.model import predict_dam, predictor_inputs
+from damcap.appearance.views import load_views, samples_of
+from damcap.common.capture_folder import read_capture
+from damcap.paper.tables import heldout_entries
+from damcap.synth.closed_form import ClosedFormOptions, make_closed_form_capture
+
+CLOSED_FORM = [("sphere", "directional", 3), ("sphere", "env", 3), ("blob", "directional", 5), ("blob", "env", 5),
+               ("blob", "directional", 11), ("sphere", "env", 12)]
+"""(shape, light, seed) of the closed-form captures: 10 train / 22 test views at 128 px, the issue's setting"""
+
+
+def closed_form_captures(cache: Path, count: int = len(CLOSED_FORM), resolution: int = 128) -> list[tuple[str, Path]]:
+    """(kind, folder) of the first ``count`` closed-form captures, rendered once into ``cache``."""
+    out = []
+    for shape, light, seed in CLOSED_FORM[:count]:
+        path = cache / f"{shape}-{light}-s{seed}" if resolution == 128 else cache / f"{shape}-{light}-s{seed}-{resolution}px"
+        if not (path / "transforms.json").exists():
+            make_closed_form_capture(path, ClosedFormOptions(shape=shape, light=light, views=32, train_views=10,
+                                                             resolution=resolution, seed=seed))
+        out.append((f"closed-form {shape}, {'distant light' if light == 'directional' else 'environment'}", path))
+    return out
+
+
+def bench_capture(kind: str, path: Path, nets: dict[str, torch.nn.Module], refine_steps: list[int], snapshots: dict,
+                  fit: FitOptions = FitOptions(checkpoint_every=0)) -> dict:
+    cap = read_capture(path)
+    train, test = load_views(cap, "train"), load_views(cap, "test")
+    samples = samples_of(train)
+    t = time.perf_counter()
+    fitted = fit_dam(samples, fit).model
+    fit_s = time.perf_counter() - t
+    models, rec = {"fit": fitted}, {"kind": kind, "capture": str(path), "fit_seconds": fit_s, "predict_ms": {}, "refine_seconds": {}}
+    for name, net in {**nets, **snapshots}.items():
+        ks, crops, scale = predictor_inputs(train, net.arch.input_views)
+        times = []
+        for _ in range(5):
+            t = time.perf_counter()
+            model = predict_dam(net, crops, scale)
+            times.append(time.perf_counter() - t)
+        models[name] = model
+        rec["predict_ms"][name] = 1000 * statistics.median(times)
+        if name in nets:
+            for k in refine_steps:
+                t = time.perf_counter()
+                models[f"{name} + {k}"] = refine_dam(model, samples, k)[0]
+                rec["refine_seconds"][f"{name} + {k}"] = time.perf_counter() - t + times[0]
+    scores = evaluate_split(train, test, models)
+    rec["novel"] = {k: v.mean for k, v in scores.items()}
+    log(f"{kind} {path.name}: " + ", ".join(f"{k} {v:.4f}" for k, v in rec["novel"].items()))
+    return rec
+
+
+def summarise(per_capture: list[dict]) -> dict:
+    kinds = list(dict.fromkeys(r["kind"] for r in per_capture))
+    out = {}
+    for kind in kinds:
+        rows = [r for r in per_capture if r["kind"] == kind]
+        methods = rows[0]["novel"].keys()
+        out[kind] = {"captures": len(rows), "novel": {m: statistics.mean(r["novel"][m] for r in rows) for m in methods}}
+    return out
+
+
+def write_markdown(res: dict, path: Path) -> None:
+    nets, ks = res["predictors"], res["refine_steps"]
+    newest = nets[-1]
+    refined = [f"{n} + {k}" for n in nets for k in ks]
+    cols = ["RM++", "fit"] + nets + refined
+    lines = ["# The predictor on captures unlike its training set (issue 28)", "",
+             f"Command (from the repository root): `{res['command']}`", "",
+             f"Machine: {res['machine']['cpu_model']} ({res['machine']['nproc']} cores), torch {res['machine']['torch']} with {torch.get_num_threads()} threads; "
+             f"{res['date']}. Predictors: " + "; ".join(f"`{n}` ({res['predictor_info'][n]})" for n in nets) + ".", "",
+             "Novel-view DSSIM, mean over each kind's captures (ratio to `damcap fit` in brackets). "
+             "`+ K` = the prediction refined K steps (`damcap predict --refine-steps K`).", "",
+             "| kind | captures | " + " | ".join(cols) + " |", "|---|---:|" + "---:|" * len(cols)]
+    for kind, s in res["summary"].items():
+        fit = s["novel"]["fit"]
+        cells = [f"{s['novel']['RM++']:.4f}", f"{fit:.4f}"] + [f"{s['novel'][c]:.4f} (x{s['novel'][c] / fit:.2f})" for c in cols[2:]]
+        lines.append(f"| {kind} | {s['captures']} | " + " | ".join(cells) + " |")
+    lines += ["", "## Time (CPU)", "", "| capture | fit s | " + " | ".join(f"predict {n} ms" for n in nets) + " | "
+              + " | ".join(f"{c} s" for c in refined) + " |", "|---|---:|" + "---:|" * (len(nets) + len(refined))]
+    for r in res["per_capture"]:
+        lines.append(f"| {Path(r['capture']).name} | {r['fit_seconds']:.1f} | " + " | ".join(f"{r['predict_ms'][n]:.0f}" for n in nets)
+                     + " | " + " | ".join(f"{r['refine_seconds'][c]:.2f}" for c in refined) + " |")
+    lines += ["", "## All captures", "", "| method | mean DSSIM | mean ratio to fit | captures below RM++ |", "|---|---:|---:|---:|"]
+    n_caps = len(res["per_capture"])
+    for c in cols:
+        vals = [r["novel"][c] for r in res["per_capture"]]
+        ratio = statistics.mean(r["novel"][c] / r["novel"]["fit"] for r in res["per_capture"])
+        below = sum(r["novel"][c] < r["novel"]["RM++"] for r in res["per_capture"])
+        lines.append(f"| {c} | {statistics.mean(vals):.4f} | x{ratio:.2f} | {below} of {n_caps} |")
+    if res["snapshots"]:
+        lines += ["", "## Out-of-distribution error against training compute", "",
+                  "Predict alone, mean novel-view DSSIM over all captures above, for snapshots of the newest predictor's training run.", "",
+                  "| snapshot | training step | mean DSSIM |", "|---|---:|---:|"]
+        for name, step in res["snapshots"].items():
+            vals = [r["novel"][name] for r in res["per_capture"]]
+            lines.append(f"| {name} | {step} | {statistics.mean(vals):.4f} |")
+        lines.append(f"| {newest} (best step) | | {statistics.mean(r['novel'][newest] for r in res['per_capture']):.4f} |")
+    lines += ["", "## Per capture", "", "| kind | capture | " + " | ".join(cols) + " |", "|---|---|" + "---:|" * len(cols)]
+    for r in res["per_capture"]:
+        lines.append(f"| {r['kind']} | {Path(r['capture']).name} | " + " | ".join(f"{r['novel'][c]:.4f}" for c in cols) + " |")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--predictors", type=Path, nargs="+", required=True, help="predictor files; the last is the newest")
+    ap.add_argument("--snapshots", type=Path, nargs="*", default=[], help="snapshots of the newest predictor's run (NAME.stepN.safetensors)")
+    ap.add_argument("--corpus", type=Path, default=CACHE / "synth_small", help="synth-set corpus whose held-out captures are used")
+    ap.add_argument("--real", type=Path, nargs="*", default=[CACHE / "reconstruct" / "realworld" / "cape-8-256"])
+    ap.add_argument("--refine-steps", type=int, nargs="+", default=[100, 300])
+    ap.add_argument("--closed-form", type=int, default=len(CLOSED_FORM), help="how many of the closed-form captures (smoke runs: fewer)")
+    ap.add_argument("--res", type=int, default=128, help="closed-form captures' resolution (smoke runs: smaller)")
+    ap.add_argument("--fit-steps", type=int, default=None, help="fit steps (default: FitOptions' default)")
+    ap.add_argument("--cache", type=Path, default=CACHE / "hyper_ood", help="where the closed-form captures are rendered once")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(2)
+    nets, info = {}, {}
+    for p in args.predictors:
+        net, meta = load_predictor(p)
+        name = p.stem
+        nets[name] = net
+        tr = meta.get("training", {})
+        info[name] = f"input views {net.arch.input_views}, {tr.get('seconds', float('nan')):.0f} s of training"
+    snaps, snap_steps = {}, {}
+    for p in args.snapshots:
+        net, meta = load_predictor(p)
+        snaps[p.stem] = net
+        snap_steps[p.stem] = meta.get("training", {}).get("snapshot_step")
+    captures = closed_form_captures(args.cache, args.closed_form, args.res)
+    if (args.corpus / "corpus.json").exists():
+        captures += [("Mitsuba held-out", path) for path, e in heldout_entries([args.corpus]) if int(e.get("materials", 1)) == 1]
+    else:
+        log(f"{args.corpus}: no corpus; the Mitsuba kind is left out")
+    captures += [("real (cape)", p) for p in args.real if (p / "transforms.json").exists()]
+    fit = FitOptions(checkpoint_every=0) if args.fit_steps is None else FitOptions(checkpoint_every=0, steps=args.fit_steps)
+    per = [bench_capture(kind, path, nets, args.refine_steps, snaps, fit) for kind, path in captures]
+    res = {"command": command_line("hyper_ood", argv if argv is not None else __import__("sys").argv[1:]),
+           "machine": machine_info(), "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+           "predictors": list(nets), "predictor_info": info, "refine_steps": args.refine_steps,
+           "snapshots": snap_steps, "per_capture": per, "summary": summarise(per)}
+    out_json = (args.out or RESULTS) / "hyper_ood.json"
+    out_md = (args.out or BENCH) / "hyper_ood.md"
+    out_json.parent.mkdir(parents=True, exist_ok=True)
+    out_json.write_text(json.dumps(res, indent=1, default=float))
+    write_markdown(json.loads(out_json.read_text()), out_md)
+    log(f"wrote {out_json} and {out_md}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,38 @@
+"""bench.hyper_ood at tiny sizes: two predictors and a snapshot on two small closed-form captures."""
+
+from __future__ import annotations
+
+import json
+
+import torch
+
+from bench import hyper_ood
+from damcap.appearance.hyper.file import save_predictor
+from damcap.appearance.hyper.model import HyperArchitecture, HyperNet
+
+
+def test_ood_study_writes_every_method_per_kind(tmp_path, is_dssim):
+    paths = []
+    for name, views in (("one", 1), ("set", 2)):
+        p = tmp_path / f"{name}.safetensors"
+        save_predictor(p, HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), input_views=views), torch.Generator().manual_seed(0)),
+                       {"command": "test", "seconds": 1.0})
+        paths.append(p)
+    snap = tmp_path / "set.step5.safetensors"
+    save_predictor(snap, HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), input_views=2)), {"snapshot_step": 5})
+    out = tmp_path / "out"
+    argv = ["--predictors", *map(str, paths), "--snapshots", str(snap), "--corpus", str(tmp_path / "none"), "--real",
+            "--closed-form", "2", "--res", "24", "--fit-steps", "20", "--refine-steps", "5", "--cache", str(tmp_path / "cache"),
+            "--out", str(out)]
+    assert hyper_ood.main(argv) == 0
+    doc = json.loads((out / "hyper_ood.json").read_text())
+    assert [r["kind"] for r in doc["per_capture"]] == ["closed-form sphere, distant light", "closed-form sphere, environment"]
+    for r in doc["per_capture"]:
+        assert set(r["novel"]) == {"fit", "one", "set", "one + 5", "set + 5", "set.step5", "RM++", "RM"}
+        assert all(is_dssim(v) for v in r["novel"].values())
+        assert set(r["refine_seconds"]) == {"one + 5", "set + 5"} and r["predict_ms"]["set"] > 0
+    assert doc["snapshots"] == {"set.step5": 5}
+    s = doc["summary"]["closed-form sphere, environment"]
+    assert s["captures"] == 1 and s["novel"]["fit"] == doc["per_capture"][1]["novel"]["fit"]
+    md = (out / "hyper_ood.md").read_text()
+    assert "| closed-form sphere, environment | 1 |" in md and "| set.step5 | 5 |" in md and "## All captures" in md

@@ -1,0 +1,157 @@
+"""Photometric normal refinement: shape-from-shading with the DAM as the reflectance map.
+
+A DAM maps (view, normal) to radiance: it is a reflectance map, the thing shape-from-shading
+inverts. Reconstructed surfaces lack the relief that shades a real object (embossing, dents), so
+the fitted DAM cannot reproduce even its training photos. This module refines the normals:
+a sparse voxel field of tangent offsets on the surface (the same sparse corner grid as the
+spatial factor, :mod:`.spatial`), interpolated trilinearly at each pixel's surface point, so one
+surface point gets one normal in every view (the multi-view consistency single-image
+shape-from-shading lacks). The field and the DAM's weights are optimised together on the fit's
+cost (L1 of radiance over the radiance scale, the pixels' weights), with an L2 prior on the
+offsets (their smoothness comes from the voxel size: one offset per corner, interpolated).
+
+Measured on the real cape: bench/normal_refine.md and docs/model.md. Pure: tensors and
+arrays in, tensors and arrays out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+
+from damcap.common.validate import COUNT, SEED, check_ranges, in_range
+
+from damcap.appearance.dam import DeepAppearanceMap, encode_inputs
+from damcap.appearance.pixels import PixelSamples
+from damcap.appearance.spatial import corner_lookup, trilinear_corners
+
+
+@dataclass(frozen=True)
+class NormalRefineOptions:
+    """Knobs of the refinement (each trades speed for accuracy; bench/normal_refine.md)."""
+
+    voxel_px: float = field(default=1.0, metadata=in_range(0.1, 1000))
+    """voxel edge of the offset field, in training pixel footprints on the surface: finer
+    resolves finer relief and costs more corners"""
+    prior: float = field(default=0.01, metadata=in_range(0, 1e6))
+    """weight of the L2 prior on the offsets (tangent length; 0.01 ~ a 6 deg offset costs what
+    an L1 error of 1e-4 does)"""
+    steps: int = field(default=400, metadata=COUNT)
+    """Adam steps of the joint optimisation"""
+    batch: int = field(default=16384, metadata=in_range(1, 1 << 24))
+    """pixels per step"""
+    lr_offsets: float = field(default=3e-3, metadata=in_range(0, 10))
+    """Adam learning rate of the offsets (0 = the normals stay: the DAM alone trains on, a control)"""
+    lr_dam: float = field(default=1e-3, metadata=in_range(0, 10))
+    """Adam learning rate of the DAM's weights (0 = the DAM stays as fitted)"""
+    seed: int = field(default=0, metadata=SEED)
+    """seeds the pixel draws"""
+
+    def validate(self) -> None:
+        check_ranges(self)
+
+
+@dataclass(frozen=True)
+class NormalField:
+    """A sparse voxel field of normal offsets (world units per unit normal, tangent part used)."""
+
+    origin_world: np.ndarray
+    """(3,) float64 world position of corner (0, 0, 0)"""
+    voxel_size: float
+    """voxel edge, world units"""
+    keys: np.ndarray
+    """(M,) int64 sorted, unique corner keys (:func:`.spatial.pack_keys`)"""
+    offset: np.ndarray
+    """(M, 3) float32 offset added to the normal at each corner (its normal component is dropped)"""
+
+
+def empty_field(points_world: np.ndarray, voxel_size: float) -> NormalField:
+    """A zero field with a corner for every corner the points touch.
+
+    Args:
+        points_world: (N, 3) surface points.
+        voxel_size: voxel edge, world units.
+    """
+    origin = np.asarray(points_world, np.float64).min(0) - 2 * voxel_size
+    keys, _ = trilinear_corners(points_world, origin, voxel_size)
+    keys = np.unique(keys[keys >= 0])
+    return NormalField(origin, float(voxel_size), keys, np.zeros((keys.size, 3), np.float32))
+
+
+def apply_offsets(normal_world: torch.Tensor, offset: torch.Tensor, index: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """Refined unit normals: n + the interpolated offset's tangent part, normalised.
+
+    Args:
+        normal_world: (N, 3) unit normals.
+        offset: (M, 3) per-corner offsets.
+        index: (N, 8) corner indices into ``offset``.
+        weight: (N, 8) trilinear weights (0 for missing corners).
+
+    Returns:
+        (N, 3) unit normals.
+
+    >>> n = torch.tensor([[0.0, 0.0, 1.0]])
+    >>> apply_offsets(n, torch.tensor([[1.0, 0.0, 5.0]]), torch.zeros(1, 8, dtype=torch.long), torch.full((1, 8), 0.125)).tolist()
+    [[0.7071067690849304, 0.0, 0.7071067690849304]]
+    """
+    off = (weight[..., None] * offset[index]).sum(1)
+    off = off - (off * normal_world).sum(-1, keepdim=True) * normal_world
+    return torch.nn.functional.normalize(normal_world + off, dim=-1)
+
+
+def refined_normals(nf: NormalField, normal_world: np.ndarray, points_world: np.ndarray) -> np.ndarray:
+    """(N, 3) float32 refined normals at surface points (unchanged where the field has no corner)."""
+    idx, w, _ = corner_lookup(nf, points_world)  # NormalField has the fields corner_lookup reads
+    out = apply_offsets(torch.from_numpy(np.ascontiguousarray(normal_world, np.float32)), torch.from_numpy(nf.offset),
+                        torch.from_numpy(idx), torch.from_numpy(w).float())
+    return out.numpy()
+
+
+def refine_normals(model: DeepAppearanceMap, samples: PixelSamples, points_world: np.ndarray, footprint_world: float,
+                   opts: NormalRefineOptions, progress: Callable[[int, float], None] | None = None
+                   ) -> tuple[DeepAppearanceMap, NormalField]:
+    """Optimise a normal field and the DAM's weights together on the training pixels.
+
+    Args:
+        model: the fitted DAM (not modified).
+        samples: the training pixels.
+        points_world: (N, 3) their surface points (:func:`.views.positions_of`).
+        footprint_world: a training pixel's size on the surface, world units
+            (:func:`.spatial_fit.training_footprint`).
+        opts: the knobs.
+        progress: progress(step, loss) after each step.
+
+    Returns:
+        (the DAM with refined weights, the normal field).
+    """
+    opts.validate()
+    nf = empty_field(points_world, opts.voxel_px * footprint_world)
+    idx, w, _ = corner_lookup(nf, points_world)
+    idx, w = torch.from_numpy(idx), torch.from_numpy(w).float()
+    offset = torch.zeros(nf.keys.size, 3, requires_grad=True)
+    out = DeepAppearanceMap(model.arch, model.radiance_scale, model.get_flat_weights())
+    groups = [{"params": [offset], "lr": opts.lr_offsets}] if opts.lr_offsets > 0 else []
+    if opts.lr_dam > 0:
+        groups.append({"params": [out.weights_flat], "lr": opts.lr_dam})
+    else:
+        out.weights_flat.requires_grad_(False)
+    optim = torch.optim.Adam(groups) if groups else None
+    gen = torch.Generator().manual_seed(opts.seed)
+    target = samples.radiance_lin / model.radiance_scale
+    for step in range(opts.steps):
+        b = torch.randint(len(samples), (min(opts.batch, len(samples)),), generator=gen)
+        n = apply_offsets(samples.normal_world[b], offset, idx[b], w[b])
+        pred = out.forward_normalised(encode_inputs(samples.view_dir_world[b], n, out.arch.encoding))
+        wb = samples.weight[b]
+        loss = ((pred - target[b]).abs().sum(-1) * wb).sum() / wb.sum().clamp_min(1e-12) + opts.prior * (offset**2).sum(-1).mean()
+        if optim is not None:
+            optim.zero_grad()
+            loss.backward()
+            optim.step()
+        if progress:
+            progress(step + 1, float(loss))
+    out.weights_flat.requires_grad_(True)
+    return out, NormalField(nf.origin_world, nf.voxel_size, nf.keys, offset.detach().numpy().astype(np.float32))

@@ -1,0 +1,70 @@
+"""Photometric normal refinement against a closed form: a sphere rendered with bumps it was not given."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import torch
+
+from damcap.appearance.fit import FitOptions, fit_dam
+from damcap.appearance.normal_refine import NormalRefineOptions, apply_offsets, empty_field, refine_normals, refined_normals
+from damcap.appearance.pixels import gather_samples
+from damcap.appearance.spatial_fit import training_footprint
+from damcap.appearance.views import ViewData, positions_of
+from damcap.synth.closed_form import ClosedFormOptions, Material, environment_lighting, render_closed_form, shade
+
+
+def bumpy_normals(normal_world: np.ndarray, position_world: np.ndarray, amplitude: float = 0.35) -> np.ndarray:
+    """The true normals: the sphere's tilted by a smooth tangent field of position (period ~1.3)."""
+    p = position_world
+    t = amplitude * np.stack([np.sin(5 * p[..., 1]), np.sin(5 * p[..., 2] + 1), np.sin(5 * p[..., 0] + 2)], -1)
+    t = t - (t * normal_world).sum(-1, keepdims=True) * normal_world
+    n = normal_world + t
+    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1, 1)))
+
+
+def test_zero_offsets_and_normal_components_change_nothing():
+    n = torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
+    idx, w = torch.zeros(50, 8, dtype=torch.long), torch.full((50, 8), 0.125)
+    assert torch.allclose(apply_offsets(n, torch.zeros(1, 3), idx, w), n, atol=1e-6)
+    # an offset along the normal itself is dropped: only its tangent part tilts the normal
+    z = torch.tensor([[0.0, 0.0, 1.0]])
+    assert torch.allclose(apply_offsets(z, torch.tensor([[0.0, 0.0, 3.0]]), idx[:1], w[:1]), z)
+    nf = empty_field(np.random.default_rng(0).uniform(-1, 1, (200, 3)), 0.25)
+    assert nf.keys.size > 0 and (nf.offset == 0).all()
+    pts = np.random.default_rng(1).uniform(-1, 1, (20, 3))
+    nrm = np.tile(np.array([[0.0, 1.0, 0.0]], np.float32), (20, 1))
+    assert np.allclose(refined_normals(nf, nrm, pts), nrm, atol=1e-6)
+
+
+def test_refinement_recovers_bumps_the_geometry_lacks():
+    cams, intr, frames, _ = render_closed_form(ClosedFormOptions(shape="sphere", light="env", views=8, train_views=6, resolution=48,
+                                                                 env_grid=12, seed=2))
+    light, mat = environment_lighting(12), Material((0.5, 0.3, 0.2), 0.3, (0.4, 0.4, 0.4))  # a glossy metal: shading pins normals down
+    views, truth = [], []
+    for m, d in zip(cams, frames):
+        fg = d.coverage > 0
+        true_n = bumpy_normals(d.normal_world, d.position_world)
+        v = m[:3, 3] - d.position_world
+        v /= np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+        rad = np.zeros_like(d.radiance_lin)
+        rad[fg] = shade(torch.from_numpy(true_n[fg]).float(), torch.from_numpy(v[fg]).float(), light, mat).numpy()
+        views.append(ViewData(f"{len(views)}", dataclasses.replace(d, radiance_lin=rad), m))  # smooth normals, bumpy shading
+        truth.append(true_n[d.coverage > 0.5])
+    samples = gather_samples([v.data for v in views], [v.centre_world for v in views])
+    points, true_n = positions_of(views), np.concatenate(truth).astype(np.float32)
+    model = fit_dam(samples, FitOptions(steps=600, checkpoint_every=0)).model
+    before = angle_deg(samples.normal_world.numpy(), true_n)
+    refined_model, nf = refine_normals(model, samples, points, training_footprint(views),
+                                       NormalRefineOptions(voxel_px=4.0, steps=400, batch=8192, lr_offsets=1e-2))
+    after = angle_deg(refined_normals(nf, samples.normal_world.numpy(), points), true_n)
+    # measured: median error 18.6 deg before, 12.0 after (the rest lies mostly along the iso-shading
+    # direction, which shading alone cannot see)
+    assert np.median(after) < 0.75 * np.median(before), (np.median(before), np.median(after))
+    assert math.isfinite(float(refined_model.get_flat_weights().sum()))

@@ -143,16 +143,19 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
     from damcap.common.exr import write_exr, write_png
     from damcap.common.version import damcap_version
     from damcap.common.colour import display_srgb8, exposure_scale_for
-    from damcap.export.turntable import parts_from_vertex_labels, render_orbit
+    from damcap.export.turntable import orbit_intrinsics, parts_from_vertex_labels, render_orbit
 
     opts.validate()
-    views, resolution, video, fps = opts.views, opts.resolution, export_opts.video, export_opts.fps
-    from damcap.common.mesh import load_mesh, normalise_to_unit_sphere
+    views, video, fps = opts.views, export_opts.video, export_opts.fps
+    from damcap.common.mesh import file_vertex_order, load_mesh, normalise_to_unit_sphere, unit_sphere_transform
 
     raw = load_mesh(mesh_path)  # read once: rendered centred and scaled, textured in its own frame
     shape = normalise_to_unit_sphere(raw)
-    if labels is not None:
-        part = parts_from_vertex_labels(shape.triangles, _vertex_labels(labels, len(shape.vertices), len(dams)))
+    centre, radius = unit_sphere_transform(raw.vertices)
+    centre = [float(x) for x in centre]
+    if labels is not None:  # labels follow the file's vertex order, which load_mesh does not keep for every format
+        order, n_file = file_vertex_order(mesh_path, raw.vertices)
+        part = parts_from_vertex_labels(shape.triangles, _vertex_labels(labels, n_file, len(dams))[order])
     elif len(dams) == 1:
         part = np.zeros(len(shape.triangles), np.int64)
     else:
@@ -166,12 +169,10 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
     video_ctx = atomic_path(output / "turntable.mp4") if video else None
     try:
         if video_ctx is not None:
-            import cv2
+            from damcap.export.video import H264Writer
 
             tmp_video = video_ctx.__enter__()
-            writer = cv2.VideoWriter(str(tmp_video), cv2.VideoWriter_fourcc(*"mp4v"), fps, (resolution, resolution))
-            if not writer.isOpened():
-                raise DamcapError(f"{output / 'turntable.mp4'}: OpenCV cannot write MP4 video here")
+            writer = H264Writer(tmp_video, fps)
         for k, (m, buf, rad) in enumerate(tqdm(render_orbit(dams, shape, part, opts, spatial["capture_from_render"]), total=views, desc="export", leave=False, disable=None)):
             if scale is None:  # one exposure for the whole turntable, from the first frame
                 scale = exposure_scale_for(rad, buf.coverage > 0.5)
@@ -179,16 +180,16 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
             png = display_srgb8(rad, scale)
             write_png(output / "display" / f"{k:04d}.png", png)
             if writer is not None:
-                writer.write(np.ascontiguousarray(png[..., ::-1]))
+                writer.write(png)
             cams.append(m.tolist())
         if writer is not None:
-            writer.release()
+            writer.close()
             writer = None
             video_ctx.__exit__(None, None, None)
             video_ctx = None
     finally:
         if writer is not None:
-            writer.release()
+            writer.close()
         if video_ctx is not None:
             video_ctx.__exit__(RuntimeError, RuntimeError("aborted"), None)
     write_json_atomic(output / "export.json", {
@@ -196,6 +197,12 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
         "mesh": str(mesh_path.resolve()), "labels": str(labels.resolve()) if labels else None,
         "options": asdict(opts), "export_options": asdict(export_opts), "exposure_scale": scale, "colorspace": metas[0].get("colorspace"),
         "world_from_cam": cams, "spatial": spatial["record"],
+        # what reproduces a frame: the mesh file's vertices v are rendered at (v - centre) / radius,
+        # seen by pinholes with these intrinsics from world_from_cam
+        "mesh_transform": {"centre": centre, "radius": radius,
+                           "render_from_mesh": [[1 / radius, 0, 0, -centre[0] / radius], [0, 1 / radius, 0, -centre[1] / radius],
+                                                [0, 0, 1 / radius, -centre[2] / radius], [0, 0, 0, 1]]},
+        "intrinsics": dict(zip(("fl_x", "fl_y", "cx", "cy", "w", "h"), orbit_intrinsics(opts))),
     })
 
 

@@ -87,13 +87,14 @@ def segment_labels(
     from damcap.appearance.segment.model import mesh_material_weights
     from damcap.appearance.segment.file import load_segmentation
     from damcap.common.atomic import write_npy_atomic, write_text_atomic
-    from damcap.common.mesh import load_mesh
+    from damcap.common.mesh import load_mesh, read_mesh
 
     check_paths([segmentation, mesh], [file_out(output), file_out(weights)])
     if output.suffix not in (".npy", ".txt"):
         raise DamcapError(f"{output}: labels are written as .npy or .txt; choose one of these suffixes")
     model = load_segmentation(segmentation)
-    shape = load_mesh(mesh)
+    load_mesh(mesh)  # refuses what export cannot render (no triangles left after clean-up, ...)
+    shape = read_mesh(mesh)  # the file's own vertex order: what export --labels reads
     w = mesh_material_weights(model, shape.vertices, align)
     labels = w.argmax(1).astype(np.int64)
     if output.suffix == ".npy":

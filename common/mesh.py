@@ -309,6 +309,31 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     return Mesh(verts.astype(np.float32), tris, normals.astype(np.float32), g)
 
 
+def file_vertex_order(path: str | os.PathLike, loaded_vertices: np.ndarray) -> tuple[np.ndarray, int]:
+    """Where each vertex :func:`load_mesh` returned sits in the file: per-vertex data written in the
+    file's vertex order (``damcap export --labels``) is read through this. Open3D's OBJ reader
+    splits and reorders vertices, and :func:`load_mesh`'s clean-up merges and drops some; positions
+    identify them (the first file vertex wins where several coincide).
+
+    Args:
+        path: the mesh file.
+        loaded_vertices: (V, 3) the vertices :func:`load_mesh` returned for it.
+
+    Returns:
+        (V,) int64 file vertex index per loaded vertex, and the file's vertex count.
+
+    Raises:
+        DamcapError: a loaded vertex matches no file vertex.
+    """
+    file_v = np.ascontiguousarray(read_mesh(path).vertices, np.float32)
+    first = {row.tobytes(): i for i, row in reversed(list(enumerate(file_v)))}
+    order = np.array([first.get(r.tobytes(), -1) for r in np.ascontiguousarray(loaded_vertices, np.float32)], np.int64)
+    if (order < 0).any():
+        raise DamcapError(f"{path}: {int((order < 0).sum())} of the loaded mesh's vertices match no vertex of the file; "
+                          "per-vertex data in the file's order cannot be placed on it")
+    return order, len(file_v)
+
+
 # --------------------------------------------------------------------------------------------
 # Pure mesh operations
 # --------------------------------------------------------------------------------------------
@@ -396,6 +421,19 @@ def clean_mesh(mesh: Mesh, eps: float = 1e-20) -> Mesh:
                 None if mesh.triangle_groups is None else mesh.triangle_groups[ok])
 
 
+def unit_sphere_transform(vertices: np.ndarray, eps: float = 1e-12) -> tuple[np.ndarray, float]:
+    """What :func:`normalise_to_unit_sphere` applies: ``(v - centre) / radius``, the centre of the
+    bounding box and the distance of the farthest vertex from it (at least ``eps``).
+
+    >>> c, r = unit_sphere_transform(np.array([[0.0, 0, 0], [2, 0, 0], [0, 4, 0]]))
+    >>> c.tolist(), round(r, 6)
+    ([1.0, 2.0, 0.0], 2.236068)
+    """
+    v = np.asarray(vertices)
+    centre = (v.min(0) + v.max(0)) / 2
+    return centre, max(float(np.linalg.norm(v - centre, axis=1).max()), eps)
+
+
 def normalise_to_unit_sphere(mesh: Mesh, clean: bool = False, fix_winding: bool = False, eps: float = 1e-12) -> Mesh:
     """Centre the mesh's bounding box at the origin and scale it so its farthest vertex lies at
     distance 1.
@@ -419,9 +457,8 @@ def normalise_to_unit_sphere(mesh: Mesh, clean: bool = False, fix_winding: bool 
     if len(m.triangles) == 0:
         raise DamcapError("the mesh has no non-degenerate triangles")
     v = m.vertices
-    centre = (v.min(0) + v.max(0)) / 2
-    radius = float(np.linalg.norm(v - centre, axis=1).max())
-    p = ((v - centre) / max(radius, eps)).astype(v.dtype)
+    centre, radius = unit_sphere_transform(v, eps)
+    p = ((v - centre) / radius).astype(v.dtype)
     out = Mesh(p, m.triangles, m.vertex_normals, m.triangle_groups)
     if fix_winding and signed_volume(p, m.triangles) < 0:
         out = Mesh(p, m.triangles[:, ::-1].copy(), None if m.vertex_normals is None else -m.vertex_normals, m.triangle_groups)

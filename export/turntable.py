@@ -120,6 +120,18 @@ def spatial_surface_share(model: DeepAppearanceMap, vertices_capture: np.ndarray
     return float(log_albedo_at(model.spatial, np.asarray(vertices_capture, np.float64))[1].mean())
 
 
+def orbit_intrinsics(opts: OrbitOptions) -> tuple[float, float, float, float, int, int]:
+    """(fl_x, fl_y, cx, cy, w, h) of every orbit frame, pixels (the capture-format convention:
+    pixel (i, j)'s centre is (j + 0.5, i + 0.5)).
+
+    >>> orbit_intrinsics(OrbitOptions(resolution=100, fov_deg=90.0))
+    (50.0, 50.0, 50.0, 50.0, 100, 100)
+    """
+    f = focal_px_from_fov(opts.fov_deg, opts.resolution)
+    c = opts.resolution / 2
+    return f, f, c, c, opts.resolution, opts.resolution
+
+
 def render_orbit(models: list[DeepAppearanceMap], mesh: Mesh, triangle_part: np.ndarray, opts: OrbitOptions,
                  capture_from_render: tuple[np.ndarray, float] | None = None) -> Iterator[tuple[np.ndarray, SurfaceBuffers, np.ndarray]]:
     """Yield (world_from_cam, buffers, radiance_lin) per orbit frame (``capture_from_render``:
@@ -130,8 +142,7 @@ def render_orbit(models: list[DeepAppearanceMap], mesh: Mesh, triangle_part: np.
     if triangle_part.min() < 0 or triangle_part.max() >= len(models):
         raise DamcapError(f"the mesh has parts 0..{int(triangle_part.max())} but {len(models)} model(s) were given; give one .dam per part")
     caster = MeshRaycaster(mesh)
-    f = focal_px_from_fov(opts.fov_deg, opts.resolution)
-    c = opts.resolution / 2
+    f, _, c, _ = orbit_intrinsics(opts)[:4]
     for m in orbit_world_from_cam(opts.views, opts.distance, opts.elevation_deg, opts.azimuth0_deg):
         b = caster.buffers(m, f, f, c, c, opts.resolution, opts.resolution, supersample=opts.supersample)
         yield m, b, shade_buffers(models, b, m[:3, 3], triangle_part, capture_from_render)

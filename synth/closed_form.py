@@ -74,8 +74,10 @@ def brdf_lambert_ggx_t(n: torch.Tensor, v: torch.Tensor, l: torch.Tensor, albedo
     Returns:
         (..., 3) BRDF value, 1/sr, >= 0 (0 where n.l <= 0 or n.v <= 0).
 
+    At normal incidence with alpha 1 and F0 1 it is 1/pi + D G F / 4 = 1/pi + 1/(4 pi):
+
     >>> z = torch.tensor([0.0, 0.0, 1.0])
-    >>> round(float(brdf_lambert_ggx_t(z, z, z, torch.ones(3), torch.tensor(1.0), torch.ones(3))[0]), 5)  # 1/pi + D G F / 4 = 1/pi + 1/(4 pi)
+    >>> round(float(brdf_lambert_ggx_t(z, z, z, torch.ones(3), torch.tensor(1.0), torch.ones(3))[0]), 5)
     0.39789
     """
     a2 = alpha**2
@@ -242,7 +244,8 @@ def intersect_torus(origin: np.ndarray, dirs: np.ndarray, major: float = 0.9, mi
     return hit, p, normal
 
 
-def _u(gen: torch.Generator, *shape: int, lo: float = 0.0, hi: float = 1.0) -> torch.Tensor:
+def rand_uniform(gen: torch.Generator, *shape: int, lo: float = 0.0, hi: float = 1.0) -> torch.Tensor:
+    """Uniform draws in [lo, hi) of the given shape, on the generator's device."""
     return lo + (hi - lo) * torch.rand(shape, generator=gen, device=gen.device)
 
 
@@ -267,13 +270,13 @@ def random_blobs(gen: torch.Generator, b: int, max_balls: int, min_balls: int = 
     dev = gen.device
     n = torch.randint(min_balls, max_balls + 1, (b, 1), generator=gen, device=dev)
     if min_balls == 1:
-        n = torch.where(_u(gen, b, 1) < 1 / 3, torch.ones_like(n), n)
+        n = torch.where(rand_uniform(gen, b, 1) < 1 / 3, torch.ones_like(n), n)
     active = torch.arange(max_balls, device=dev)[None] < n
-    centres = random_unit(gen, b, max_balls) * _u(gen, b, max_balls, 1, lo=0.2, hi=0.6)
+    centres = random_unit(gen, b, max_balls) * rand_uniform(gen, b, max_balls, 1, lo=0.2, hi=0.6)
     centres = torch.where(active[..., None], centres, centres[:, :1])
     centres = torch.where((n == 1)[..., None], torch.zeros_like(centres), centres)
-    radii = _u(gen, b, max_balls, lo=0.35, hi=0.7) * active
-    smooth = _u(gen, b, 1, lo=0.05, hi=0.3)
+    radii = rand_uniform(gen, b, max_balls, lo=0.35, hi=0.7) * active
+    smooth = rand_uniform(gen, b, 1, lo=0.05, hi=0.3)
     extent = ((centres.norm(dim=-1) + radii).amax(1, keepdim=True) + smooth / 4).clamp_min(1e-6)  # (B, 1)
     return Blobs(centres / extent[..., None], radii / extent, smooth / extent)
 

@@ -28,7 +28,7 @@ import torch
 from damcap.common.numerics import dot, safe_normalize
 from damcap.common.validate import check_ranges, in_range
 
-from damcap.synth.closed_form import _u, brdf_lambert_ggx_t, equirect_directions, random_blobs, random_unit, trace_blobs
+from damcap.synth.closed_form import rand_uniform, brdf_lambert_ggx_t, equirect_directions, random_blobs, random_unit, trace_blobs
 
 
 @dataclass(frozen=True)
@@ -93,9 +93,9 @@ def hue_rgb(hue: torch.Tensor) -> torch.Tensor:
 
 def random_colour(gen: torch.Generator, b: int, value_lo: float, value_hi: float) -> torch.Tensor:
     """(b, 3) colours: random hue, saturation in [0, 1], value in [value_lo, value_hi]."""
-    sat = _u(gen, b, 1)
-    value = _u(gen, b, 1, lo=value_lo, hi=value_hi)
-    return value * ((1 - sat) + sat * hue_rgb(_u(gen, b)))
+    sat = rand_uniform(gen, b, 1)
+    value = rand_uniform(gen, b, 1, lo=value_lo, hi=value_hi)
+    return value * ((1 - sat) + sat * hue_rgb(rand_uniform(gen, b)))
 
 
 @dataclass
@@ -111,15 +111,15 @@ class Materials:
 def random_materials(gen: torch.Generator, b: int, min_alpha: float) -> Materials:
     """One Lambert + GGX material per scene: 60% dielectric (grey F0 0.02-0.08), 30% metal (dark
     diffuse, coloured F0 0.5-1), 10% diffuse only; alpha log-uniform in [min_alpha, 1]."""
-    kind = _u(gen, b, 1)
+    kind = rand_uniform(gen, b, 1)
     albedo = random_colour(gen, b, 0.02, 0.9)
     metal = kind < 0.3
     diffuse_only = kind > 0.9
-    f0_dielectric = _u(gen, b, 1, lo=0.02, hi=0.08).expand(b, 3)
+    f0_dielectric = rand_uniform(gen, b, 1, lo=0.02, hi=0.08).expand(b, 3)
     f0_metal = 0.5 + 0.5 * random_colour(gen, b, 0.6, 1.0)
     f0 = torch.where(metal, f0_metal, torch.where(diffuse_only, torch.zeros_like(f0_dielectric), f0_dielectric))
-    albedo = torch.where(metal, albedo * _u(gen, b, 1, hi=0.1), albedo)
-    alpha = torch.exp(_u(gen, b, 1, lo=math.log(min_alpha), hi=0.0))
+    albedo = torch.where(metal, albedo * rand_uniform(gen, b, 1, hi=0.1), albedo)
+    alpha = torch.exp(rand_uniform(gen, b, 1, lo=math.log(min_alpha), hi=0.0))
     return Materials(albedo, alpha, f0)
 
 
@@ -148,9 +148,9 @@ def random_lighting(gen: torch.Generator, b: int, env_grid: int, exposure_decade
     n_lobes = torch.randint(0, 4, (b, 1), generator=gen, device=dev)
     for j in range(3):
         mu = random_unit(gen, b)
-        sharp = torch.exp(_u(gen, b, 1, lo=math.log(2.0), hi=math.log(300.0)))
+        sharp = torch.exp(rand_uniform(gen, b, 1, lo=math.log(2.0), hi=math.log(300.0)))
         # a lobe's integral is ~ 2 pi / sharpness: scale its peak so lobes carry comparable energy
-        peak = _u(gen, b, 1, lo=0.5, hi=3.0) * sharp / 4
+        peak = rand_uniform(gen, b, 1, lo=0.5, hi=3.0) * sharp / 4
         lobe = random_colour(gen, b, 0.5, 1.0)[:, None] * peak[:, None] * torch.exp(sharp[:, None] * (grid_dirs[None] @ mu[..., None] - 1))
         env = env + lobe * (j < n_lobes)[:, None].float()
     env_power = env * solid[None, :, None]  # (B, K, 3)
@@ -160,16 +160,16 @@ def random_lighting(gen: torch.Generator, b: int, env_grid: int, exposure_decade
     on = (torch.arange(max_lights, device=dev)[None] < n_lights).float()[..., None]  # (B, L, 1)
     light_power = on * (0.5 + 0.5 * random_colour(gen, b * max_lights, 0.7, 1.0).reshape(b, max_lights, 3)) * 3.0
 
-    mode = _u(gen, b, 1, 1)
+    mode = rand_uniform(gen, b, 1, 1)
     env_total = env_power.sum(1, keepdim=True).mean(-1, keepdim=True).clamp_min(1e-12)  # (B, 1, 1)
     env_only = mode < 0.4
     lights_only = mode > 0.65
     # environment only: as drawn; lights only: a dim environment (0-10% of one light's power);
     # both: the environment rescaled to one light's power
-    dim = _u(gen, b, 1, 1, hi=0.1) * 3.0 / env_total
+    dim = rand_uniform(gen, b, 1, 1, hi=0.1) * 3.0 / env_total
     env_weight = torch.where(env_only, torch.ones_like(dim), torch.where(lights_only, dim, 3.0 / env_total))
     light_weight = (~env_only).float()
-    exposure = 10 ** _u(gen, b, 1, 1, lo=-exposure_decades, hi=exposure_decades)
+    exposure = 10 ** rand_uniform(gen, b, 1, 1, lo=-exposure_decades, hi=exposure_decades)
     dirs = torch.cat([grid_dirs[None].expand(b, k, 3), light_dirs], 1)
     power = torch.cat([env_power * env_weight, light_power * light_weight], 1) * exposure
     return dirs, power
@@ -177,8 +177,8 @@ def random_lighting(gen: torch.Generator, b: int, env_grid: int, exposure_decade
 
 def random_cameras(gen: torch.Generator, b: int, v: int, distance: float = 3.5) -> torch.Tensor:
     """(b, v, 3) camera centres at ``distance``, azimuth uniform, elevation uniform in [-30, 80] deg."""
-    az = _u(gen, b, v, hi=2 * math.pi)
-    el = torch.deg2rad(_u(gen, b, v, lo=-30.0, hi=80.0))
+    az = rand_uniform(gen, b, v, hi=2 * math.pi)
+    el = torch.deg2rad(rand_uniform(gen, b, v, lo=-30.0, hi=80.0))
     return distance * torch.stack([el.cos() * az.sin(), el.sin(), el.cos() * az.cos()], -1)
 
 
@@ -249,7 +249,7 @@ def render_scenes(gen: torch.Generator, b: int, input_views: int, target_samples
 
     n_in = torch.randint(1, input_views + 1, (b, 1), generator=gen, device=dev)
     view_mask = torch.arange(input_views, device=dev)[None] < torch.minimum(n_in, n_cams)
-    pick = (_u(gen, b, input_views) * n_cams).long()  # input views are cameras of the scene
+    pick = (rand_uniform(gen, b, input_views) * n_cams).long()  # input views are cameras of the scene
     in_cams = torch.gather(cams, 1, pick[..., None].expand(b, input_views, 3))
     g = (torch.arange(s, device=dev) + 0.5) / s * 2 - 1
     yy, xx = torch.meshgrid(g, g, indexing="ij")
@@ -264,9 +264,9 @@ def render_scenes(gen: torch.Generator, b: int, input_views: int, target_samples
     img = torch.cat([rad, nrm * hit[..., None], vdir * hit[..., None], hit[..., None].float()], -1)
     views = img.reshape(b, input_views, s, s, 10).permute(0, 1, 4, 2, 3).contiguous()
 
-    t_cam = (_u(gen, b, target_samples) * n_cams).long()
+    t_cam = (rand_uniform(gen, b, target_samples) * n_cams).long()
     t_origin = torch.gather(cams, 1, t_cam[..., None].expand(b, target_samples, 3))
-    t_ray = camera_rays(t_origin, _u(gen, b, target_samples, 2, lo=-1.0, hi=1.0), half_fov_tan)
+    t_ray = camera_rays(t_origin, rand_uniform(gen, b, target_samples, 2, lo=-1.0, hi=1.0), half_fov_tan)
     t_hit, t_pos, t_nrm = trace_blobs(t_origin, t_ray, blobs)
     t_view = safe_normalize(t_origin - t_pos)
     t_hit = t_hit & (dot(t_nrm, t_view)[..., 0] > 1e-4)

@@ -164,7 +164,11 @@ def view_crop(radiance_lin: np.ndarray, normal_world: np.ndarray, view_dir: np.n
     return torch.from_numpy(out).permute(2, 0, 1).contiguous()
 
 
-def choose_input_view(covered_px: list[int], scales: list[float], min_brightness: float = 0.1) -> int:
+LIT_FRACTION = 0.1
+"""a view is lit when its radiance scale is at least this fraction of the brightest train view's"""
+
+
+def choose_input_view(covered_px: list[int], scales: list[float], min_brightness: float = LIT_FRACTION) -> int:
     """The default input view: the best covered among the *lit* views, those whose radiance scale
     is at least ``min_brightness`` times the brightest view's (a view of the unlit side of an
     object under a point light says little about its material).
@@ -225,7 +229,7 @@ def predictor_inputs(train: list[ViewData], count: int = 1, name: str | None = N
     pixels = [torch.from_numpy(v.data.radiance_lin[fg]) for v, fg in zip(train, fgs, strict=True)]
     scales = [radiance_scale_of(p) for p in pixels]
     covered = [int(fg.sum()) for fg in fgs]
-    lit = [k for k, sc in enumerate(scales) if sc >= 0.1 * max(scales) and covered[k] > 0]
+    lit = [k for k, sc in enumerate(scales) if sc >= LIT_FRACTION * max(scales) and covered[k] > 0]
     if name is None:
         k = choose_input_view(covered, scales)
     else:

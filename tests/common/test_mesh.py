@@ -222,3 +222,28 @@ def test_shared_meshes_load(shared_data):
         assert len(m.triangles) == faces, name
         assert np.linalg.norm(m.vertices, axis=-1).max() == pytest.approx(1.0)
         assert signed_volume(m.vertices, m.triangles) > 0.1, name
+
+
+def test_file_vertex_order_undoes_the_obj_loaders_reordering(tmp_path):
+    """Open3D splits OBJ vertices by (v, vt, vn) and renumbers them: per-vertex data written in the
+    file's order (export --labels) is placed through file_vertex_order."""
+    from damcap.common.mesh import file_vertex_order, load_mesh, read_mesh
+
+    grid = [(x, y, 0.0) for y in range(3) for x in range(3)]
+    faces = []
+    for y in range(2):
+        for x in range(2):
+            a = y * 3 + x + 1
+            faces += [(a + 4, a + 3, a), (a, a + 1, a + 4)]
+    lines = [f"v {x:g} {y:g} {z:g}" for x, y, z in grid] + [f"vt {x / 2:g} {y / 2:g}" for x, y, _ in grid] + ["vn 0 0 1"]
+    lines += ["f " + " ".join(f"{i}/{i}/1" for i in f) for f in reversed(faces)]
+    path = tmp_path / "grid.obj"
+    path.write_text("\n".join(lines) + "\n")
+    loaded, in_file = load_mesh(path).vertices, read_mesh(path).vertices
+    order, n_file = file_vertex_order(path, loaded)
+    assert n_file == 9 and not np.array_equal(order, np.arange(len(loaded)))  # the loader did reorder
+    assert np.array_equal(in_file[order].astype(np.float32), loaded)
+    labels_in_file_order = (in_file[:, 0] > 0.5).astype(np.int64)
+    assert np.array_equal(labels_in_file_order[order], (loaded[:, 0] > 0.5).astype(np.int64))
+    with pytest.raises(DamcapError, match="match no vertex of the file"):
+        file_vertex_order(path, loaded + 10)

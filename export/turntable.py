@@ -124,8 +124,8 @@ def orbit_intrinsics(opts: OrbitOptions) -> tuple[float, float, float, float, in
     """(fl_x, fl_y, cx, cy, w, h) of every orbit frame, pixels (the capture-format convention:
     pixel (i, j)'s centre is (j + 0.5, i + 0.5)).
 
-    >>> orbit_intrinsics(OrbitOptions(resolution=100, fov_deg=90.0))
-    (50.0, 50.0, 50.0, 50.0, 100, 100)
+    >>> [round(x, 6) for x in orbit_intrinsics(OrbitOptions(resolution=100, fov_deg=90.0))]
+    [50.0, 50.0, 50.0, 50.0, 100, 100]
     """
     f = focal_px_from_fov(opts.fov_deg, opts.resolution)
     c = opts.resolution / 2

@@ -7,7 +7,7 @@ scene and ``pixels`` target samples from all of its views. Examples come from tw
   rotation about +y, mirror, tinted light), drawn by DataLoader worker processes
   (``loader_workers``) ahead of the step, in step order;
 - random closed-form scenes (``procedural``, a :data:`SceneSource`: ``damcap train-hyper`` passes
-  :func:`damcap.synth.procedural.render_scenes`), rendered on the training device itself, batched.
+  render_scenes in synth/procedural.py, passed in by the CLI), rendered on the training device itself, batched.
 
 Data-parallel: launched with ``torchrun --nproc-per-node N``, every process (rank) draws its own
 share of the batch and PyTorch's DistributedDataParallel averages the gradients (gloo on CPU,
@@ -278,9 +278,9 @@ def draw_batch(captures: list[HyperCapture], n: int, opts: HyperTrainOptions, ge
 
 SceneSource = Callable[[torch.Generator, int, int, int], Any]
 """Random closed-form scenes: (generator, scenes, most input views, target samples) -> an object
-with the fields of :class:`damcap.synth.procedural.SceneBatch` (views, view_mask, view_dir_world,
+with the fields of SceneBatch in synth/procedural.py (views, view_mask, view_dir_world,
 normal_world, radiance_lin, sample_mask) on the generator's device. ``damcap train-hyper`` passes
-:func:`damcap.synth.procedural.render_scenes`; appearance does not import synth."""
+its render_scenes; appearance never imports synth."""
 
 
 def scene_batch(scenes: Any, input_size: int) -> Batch:

@@ -21,6 +21,7 @@ from damcap.common.numerics import reflect, safe_normalize
 from damcap.common.validate import MAX_DAM_DEPTH, MAX_DAM_WIDTH, bounded_int, finite_in
 
 if TYPE_CHECKING:
+    from damcap.appearance.normal_field import NormalField
     from damcap.appearance.spatial import SpatialAlbedo
 
 Encoding = Literal["vn", "nr", "vnr"]
@@ -286,8 +287,10 @@ class DeepAppearanceMap(nn.Module):
 
     ``forward(view_dir_world, normal_world)`` returns linear radiance in the capture's units.
     ``spatial`` (None, or a :class:`.spatial.SpatialAlbedo`) is the optional spatial factor that
-    multiplies it per surface point; ``forward`` is the DAM alone, renderers apply the factor
-    where they know the surface point (:func:`.render.render_frame`).
+    multiplies it per surface point; ``normal_field`` (None, or a :class:`.normal_field.NormalField`)
+    the optional refinement of the surface's normals (relief the geometry lacks). Both belong to
+    the capture's surface: ``forward`` is the DAM alone, renderers apply them where they know the
+    surface point (:func:`.render.render_frame`).
     """
 
     def __init__(self, arch: DamArchitecture, radiance_scale: float = 1.0, weights_flat: torch.Tensor | None = None, generator: torch.Generator | None = None) -> None:
@@ -303,12 +306,28 @@ class DeepAppearanceMap(nn.Module):
             raise DamcapError(f"weight vector has shape {tuple(w.shape)}, the architecture needs ({arch.num_weights},)")
         self.weights_flat = nn.Parameter(w)
         self.spatial: SpatialAlbedo | None = None
+        self.normal_field: NormalField | None = None
 
     def with_spatial(self, spatial: "SpatialAlbedo | None") -> "DeepAppearanceMap":
-        """A copy of this DAM (same weights) carrying ``spatial`` as its spatial factor."""
+        """A copy of this DAM (same weights, same normal field) carrying ``spatial`` as its spatial factor."""
         out = DeepAppearanceMap(self.arch, self.radiance_scale, self.get_flat_weights().cpu())
-        out.spatial = spatial
+        out.spatial, out.normal_field = spatial, self.normal_field
         return out
+
+    def with_normal_field(self, normal_field: "NormalField | None") -> "DeepAppearanceMap":
+        """A copy of this DAM (same weights, same spatial factor) carrying ``normal_field``."""
+        out = self.with_spatial(self.spatial)
+        out.normal_field = normal_field
+        return out
+
+    def dam_alone(self) -> "DeepAppearanceMap":
+        """A copy without the surface's factors (spatial factor, normal field)."""
+        return self.with_spatial(None).with_normal_field(None)
+
+    @property
+    def has_surface_factors(self) -> bool:
+        """Whether the model carries a spatial factor or a normal field (both tied to its capture's surface)."""
+        return self.spatial is not None or self.normal_field is not None
 
     def forward_normalised(self, inputs: torch.Tensor) -> torch.Tensor:
         """(N, C) encoded inputs -> (N, 3) radiance / radiance_scale."""

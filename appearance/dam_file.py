@@ -9,7 +9,10 @@ A model with a spatial factor (:mod:`.spatial`) adds the tensors ``spatial_keys`
 ``spatial_log_albedo`` (M, 3) float32 and the metadata object ``spatial``
 (``kind: "albedo_voxels"``, ``origin_world``, ``voxel_size``), and is written as format version 2
 so that a damcap that cannot apply the factor refuses the file instead of rendering without it.
-A model without one stays version 1.
+A model with a normal field (:mod:`.normal_field`) adds the tensors ``normal_keys`` (M,) int64 and
+``normal_offset`` (M, 3) float32 and the metadata object ``normal_field``
+(``kind: "normal_offset_voxels"``, ``origin_world``, ``voxel_size``), and is written as format
+version 3 for the same reason. A model with neither stays version 1.
 """
 
 from __future__ import annotations
@@ -31,15 +34,21 @@ from damcap.common.errors import DamcapError
 from damcap.common.validate import finite_in, loads_json
 
 from damcap.appearance.dam import FLOAT32_TINY, DamArchitecture, DeepAppearanceMap, overflow_problem
+from damcap.appearance.normal_field import NormalField
 from damcap.appearance.spatial import SpatialAlbedo
 
-DAM_FORMAT_VERSION = 2
-"""the newest format this damcap reads and writes (1: the DAM alone; 2: with a spatial factor)"""
+DAM_FORMAT_VERSION = 3
+"""the newest format this damcap reads and writes (1: the DAM alone; 2: with a spatial factor;
+3: with a normal field, and a spatial factor or not)"""
 SPATIAL_KIND = "albedo_voxels"
+NORMAL_FIELD_KIND = "normal_offset_voxels"
+SPATIAL_TENSORS = ("spatial_keys", "spatial_log_albedo")
+NORMAL_TENSORS = ("normal_keys", "normal_offset")
 METADATA_KEY = "damcap"
 
 
-def save_dam(path: str | os.PathLike, model: DeepAppearanceMap, *, colorspace: str, made_by: str, provenance: dict[str, Any] | None = None) -> None:
+def save_dam(path: str | os.PathLike, model: DeepAppearanceMap, *, colorspace: str, made_by: str, provenance: dict[str, Any] | None = None,
+             up_world: np.ndarray | None = None) -> None:
     """Write a model atomically as a ``.dam`` file.
 
     Args:
@@ -48,24 +57,45 @@ def save_dam(path: str | os.PathLike, model: DeepAppearanceMap, *, colorspace: s
         colorspace: the capture's ``colorspace`` (e.g. ``lin_rec709``).
         made_by: ``fit``, ``predict`` or ``segment``.
         provenance: JSON-serialisable record of how it was made (options, seed, loss, ...).
+        up_world: (3,) the capture's up direction (``Capture.up_world``), recorded as the
+            metadata ``up_world`` (export orbits about it); None records none.
     """
     tensors = {"weights": model.get_flat_weights().float().contiguous()}
     meta: dict[str, Any] = {
-        "format_version": 1 if model.spatial is None else 2,
+        "format_version": format_version_of(model),
         "architecture": model.arch.to_json(),
         "radiance_scale": model.radiance_scale,
         "colorspace": colorspace,
         "made_by": made_by,
         "provenance": provenance or {},
     }
+    if up_world is not None:
+        meta["up_world"] = [float(x) for x in np.asarray(up_world, np.float64) / np.linalg.norm(up_world)]
     if model.spatial is not None:
         sa = model.spatial
         meta["spatial"] = {"kind": SPATIAL_KIND, "origin_world": [float(x) for x in sa.origin_world], "voxel_size": float(sa.voxel_size)}
         tensors["spatial_keys"] = torch.from_numpy(np.ascontiguousarray(sa.keys, np.int64))
         tensors["spatial_log_albedo"] = torch.from_numpy(np.ascontiguousarray(sa.log_albedo, np.float32))
+    if model.normal_field is not None:
+        nf = model.normal_field
+        meta["normal_field"] = {"kind": NORMAL_FIELD_KIND, "origin_world": [float(x) for x in nf.origin_world],
+                                "voxel_size": float(nf.voxel_size)}
+        tensors["normal_keys"] = torch.from_numpy(np.ascontiguousarray(nf.keys, np.int64))
+        tensors["normal_offset"] = torch.from_numpy(np.ascontiguousarray(nf.offset, np.float32))
     blob = st_save(tensors, metadata={METADATA_KEY: json.dumps(meta)})
     with atomic_path(path) as tmp:
         tmp.write_bytes(blob)
+
+
+def recorded_up(meta: dict[str, Any]) -> np.ndarray | None:
+    """(3,) unit up direction a loaded ``.dam``'s metadata records (None when it records none)."""
+    up = meta.get("up_world")
+    return None if up is None else np.asarray(up, np.float64) / np.linalg.norm(up)
+
+
+def format_version_of(model: DeepAppearanceMap) -> int:
+    """The oldest format that holds the model: 1, 2 (spatial factor) or 3 (normal field)."""
+    return 3 if model.normal_field is not None else 2 if model.spatial is not None else 1
 
 
 def load_dam(path: str | os.PathLike) -> tuple[DeepAppearanceMap, dict[str, Any]]:
@@ -112,8 +142,8 @@ def load_dam(path: str | os.PathLike) -> tuple[DeepAppearanceMap, dict[str, Any]
         raise DamcapError(f"{path}: unknown architecture fields ({e})") from None
     except DamcapError as e:
         raise DamcapError(f"{path}: invalid architecture: {e}") from None
-    spatial_meta = meta.get("spatial")
-    expected = {"weights"} if spatial_meta is None else {"weights", "spatial_keys", "spatial_log_albedo"}
+    spatial_meta, normal_meta = meta.get("spatial"), meta.get("normal_field")
+    expected = {"weights"} | (set() if spatial_meta is None else set(SPATIAL_TENSORS)) | (set() if normal_meta is None else set(NORMAL_TENSORS))
     if set(tensors) != expected:
         raise DamcapError(f"{path}: expected the tensors {sorted(expected)}, found {sorted(tensors)}")
     w = tensors["weights"]
@@ -127,28 +157,51 @@ def load_dam(path: str | os.PathLike) -> tuple[DeepAppearanceMap, dict[str, Any]
     problem = overflow_problem(model)
     if problem:
         raise DamcapError(f"{path}: {problem}")
+    if "up_world" in meta:
+        up = meta["up_world"]
+        ok = isinstance(up, list) and len(up) == 3 and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in up)
+        if not ok or not np.isfinite(up).all() or np.linalg.norm(up) < 1e-6:
+            raise DamcapError(f"{path}: metadata 'up_world' must be 3 finite numbers of non-zero length, got {up!r:.80}")
     if spatial_meta is not None:
         model.spatial = _spatial_from(path, spatial_meta, tensors)
+    if normal_meta is not None:
+        model.normal_field = _normal_field_from(path, normal_meta, tensors)
     return model, meta
+
+
+def _voxel_grid_from(path: Path, key: str, kind: str, grid_meta: Any, tensors: dict[str, torch.Tensor],
+                     names: tuple[str, str]) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+    """(origin, voxel size, keys, values) of a sparse voxel grid stored in a .dam file, their
+    types checked (DamcapError naming the file otherwise)."""
+    if not isinstance(grid_meta, dict) or grid_meta.get("kind") != kind:
+        raise DamcapError(f"{path}: metadata {key!r} must be an object of kind {kind!r}, got {grid_meta!r:.80}")
+    keys, values = tensors[names[0]], tensors[names[1]]
+    if keys.dtype != torch.int64 or not values.dtype.is_floating_point:
+        raise DamcapError(f"{path}: tensors {names[0]} and {names[1]} must be int64 and float, got {keys.dtype} and {values.dtype}")
+    try:
+        origin = np.asarray(grid_meta["origin_world"], np.float64)
+        voxel = float(grid_meta["voxel_size"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise DamcapError(f"{path}: metadata {key!r} is invalid ({e!r})") from None
+    return origin, voxel, keys.numpy().copy(), values.float().numpy().copy()
 
 
 def _spatial_from(path: Path, spatial_meta: Any, tensors: dict[str, torch.Tensor]) -> SpatialAlbedo:
     """The spatial factor stored in a .dam file, checked (DamcapError naming the file otherwise)."""
-    if not isinstance(spatial_meta, dict) or spatial_meta.get("kind") != SPATIAL_KIND:
-        raise DamcapError(f"{path}: metadata 'spatial' must be an object of kind {SPATIAL_KIND!r}, got {spatial_meta!r:.80}")
-    keys, la = tensors["spatial_keys"], tensors["spatial_log_albedo"]
-    if keys.dtype != torch.int64 or not la.dtype.is_floating_point:
-        raise DamcapError(f"{path}: spatial tensors must be int64 keys and float log albedo, got {keys.dtype} and {la.dtype}")
-    try:
-        origin = np.asarray(spatial_meta["origin_world"], np.float64)
-        voxel = float(spatial_meta["voxel_size"])
-    except (KeyError, TypeError, ValueError) as e:
-        raise DamcapError(f"{path}: metadata 'spatial' is invalid ({e!r})") from None
-    sa = SpatialAlbedo(origin, voxel, keys.numpy().copy(), la.float().numpy().copy())
+    sa = SpatialAlbedo(*_voxel_grid_from(path, "spatial", SPATIAL_KIND, spatial_meta, tensors, SPATIAL_TENSORS))
     problem = sa.problem()
     if problem:
         raise DamcapError(f"{path}: spatial factor: {problem}")
     return sa
+
+
+def _normal_field_from(path: Path, normal_meta: Any, tensors: dict[str, torch.Tensor]) -> NormalField:
+    """The normal field stored in a .dam file, checked (DamcapError naming the file otherwise)."""
+    nf = NormalField(*_voxel_grid_from(path, "normal_field", NORMAL_FIELD_KIND, normal_meta, tensors, NORMAL_TENSORS))
+    problem = nf.problem()
+    if problem:
+        raise DamcapError(f"{path}: normal field: {problem}")
+    return nf
 
 
 def read_damcap_safetensors(path: Path, noun: str, kind: str) -> tuple[dict[str, torch.Tensor], str]:

@@ -3,8 +3,8 @@
 A DAM maps (view, normal) to radiance: it is a reflectance map, the thing shape-from-shading
 inverts. Reconstructed surfaces lack the relief that shades a real object (embossing, dents), so
 the fitted DAM cannot reproduce even its training photos. This module refines the normals:
-a sparse voxel field of tangent offsets on the surface (the same sparse corner grid as the
-spatial factor, :mod:`.spatial`), interpolated trilinearly at each pixel's surface point, so one
+a sparse voxel field of tangent offsets on the surface (:mod:`.normal_field`, on the same sparse
+corner grid as the spatial factor, :mod:`.spatial`), interpolated trilinearly at each pixel's surface point, so one
 surface point gets one normal in every view (the multi-view consistency single-image
 shape-from-shading lacks). The field and the DAM's weights are optimised together on the fit's
 cost (L1 of radiance over the radiance scale, the pixels' weights), with an L2 prior on the
@@ -26,7 +26,8 @@ from damcap.common.validate import COUNT, SEED, check_ranges, in_range
 
 from damcap.appearance.dam import DeepAppearanceMap, encode_inputs
 from damcap.appearance.pixels import PixelSamples
-from damcap.appearance.spatial import corner_lookup, trilinear_corners
+from damcap.appearance.normal_field import NormalField, apply_offsets, empty_field
+from damcap.appearance.spatial import corner_lookup
 
 
 @dataclass(frozen=True)
@@ -52,62 +53,6 @@ class NormalRefineOptions:
 
     def validate(self) -> None:
         check_ranges(self)
-
-
-@dataclass(frozen=True)
-class NormalField:
-    """A sparse voxel field of normal offsets (world units per unit normal, tangent part used)."""
-
-    origin_world: np.ndarray
-    """(3,) float64 world position of corner (0, 0, 0)"""
-    voxel_size: float
-    """voxel edge, world units"""
-    keys: np.ndarray
-    """(M,) int64 sorted, unique corner keys (:func:`.spatial.pack_keys`)"""
-    offset: np.ndarray
-    """(M, 3) float32 offset added to the normal at each corner (its normal component is dropped)"""
-
-
-def empty_field(points_world: np.ndarray, voxel_size: float) -> NormalField:
-    """A zero field with a corner for every corner the points touch.
-
-    Args:
-        points_world: (N, 3) surface points.
-        voxel_size: voxel edge, world units.
-    """
-    origin = np.asarray(points_world, np.float64).min(0) - 2 * voxel_size
-    keys, _ = trilinear_corners(points_world, origin, voxel_size)
-    keys = np.unique(keys[keys >= 0])
-    return NormalField(origin, float(voxel_size), keys, np.zeros((keys.size, 3), np.float32))
-
-
-def apply_offsets(normal_world: torch.Tensor, offset: torch.Tensor, index: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-    """Refined unit normals: n + the interpolated offset's tangent part, normalised.
-
-    Args:
-        normal_world: (N, 3) unit normals.
-        offset: (M, 3) per-corner offsets.
-        index: (N, 8) corner indices into ``offset``.
-        weight: (N, 8) trilinear weights (0 for missing corners).
-
-    Returns:
-        (N, 3) unit normals.
-
-    >>> n = torch.tensor([[0.0, 0.0, 1.0]])
-    >>> apply_offsets(n, torch.tensor([[1.0, 0.0, 5.0]]), torch.zeros(1, 8, dtype=torch.long), torch.full((1, 8), 0.125)).tolist()
-    [[0.7071067690849304, 0.0, 0.7071067690849304]]
-    """
-    off = (weight[..., None] * offset[index]).sum(1)
-    off = off - (off * normal_world).sum(-1, keepdim=True) * normal_world
-    return torch.nn.functional.normalize(normal_world + off, dim=-1)
-
-
-def refined_normals(nf: NormalField, normal_world: np.ndarray, points_world: np.ndarray) -> np.ndarray:
-    """(N, 3) float32 refined normals at surface points (unchanged where the field has no corner)."""
-    idx, w, _ = corner_lookup(nf, points_world)  # NormalField has the fields corner_lookup reads
-    out = apply_offsets(torch.from_numpy(np.ascontiguousarray(normal_world, np.float32)), torch.from_numpy(nf.offset),
-                        torch.from_numpy(idx), torch.from_numpy(w).float())
-    return out.numpy()
 
 
 def refine_normals(model: DeepAppearanceMap, samples: PixelSamples, points_world: np.ndarray, footprint_world: float,
@@ -152,6 +97,6 @@ def refine_normals(model: DeepAppearanceMap, samples: PixelSamples, points_world
             loss.backward()
             optim.step()
         if progress:
-            progress(step + 1, float(loss))
+            progress(step + 1, float(loss.detach()))
     out.weights_flat.requires_grad_(True)
     return out, NormalField(nf.origin_world, nf.voxel_size, nf.keys, offset.detach().numpy().astype(np.float32))

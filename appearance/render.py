@@ -8,14 +8,16 @@ import torch
 from damcap.common.capture_folder import FrameData
 
 from damcap.appearance.dam import DeepAppearanceMap
+from damcap.appearance.normal_field import surface_normals
 from damcap.appearance.pixels import view_dir_world
 from damcap.appearance.spatial import albedo_at
 
 
 @torch.no_grad()
 def render_frame(model: DeepAppearanceMap, data: FrameData, camera_centre_world: np.ndarray, chunk: int = 1 << 16) -> np.ndarray:
-    """Evaluate the DAM on every covered pixel (A > 0) of a frame, times the model's spatial
-    factor (``model.spatial``) at the pixel's surface point when it has one.
+    """Evaluate the DAM on every covered pixel (A > 0) of a frame, with the normals refined by the
+    model's normal field (``model.normal_field``) and times its spatial factor (``model.spatial``)
+    at the pixel's surface point, where it has them.
 
     Args:
         model: the DAM.
@@ -31,7 +33,7 @@ def render_frame(model: DeepAppearanceMap, data: FrameData, camera_centre_world:
     if not covered.any():
         return out
     v = torch.from_numpy(view_dir_world(data.position_world[covered], camera_centre_world))
-    n = torch.from_numpy(np.ascontiguousarray(data.normal_world[covered]))
+    n = torch.from_numpy(surface_normals(model.normal_field, data.normal_world[covered], data.position_world[covered]))
     dev = model.weights_flat.device
     parts = [model(v[s:s + chunk].to(dev), n[s:s + chunk].to(dev)).cpu() for s in range(0, v.shape[0], chunk)]
     rad = torch.cat(parts).numpy()

@@ -29,6 +29,7 @@ from damcap.common.errors import DamcapError
 from damcap.appearance.dam import DeepAppearanceMap
 from damcap.appearance.evaluate import score_view
 from damcap.appearance.fit import FitOptions, holdout_frames
+from damcap.appearance.normal_field import surface_normals
 from damcap.appearance.render import render_frame
 from damcap.appearance.spatial import SpatialAlbedo, estimate_spatial_albedo, log_ratio, pixel_footprint_world
 from damcap.appearance.views import ViewData, positions_of, samples_of
@@ -87,9 +88,12 @@ def training_footprint(views: list[ViewData]) -> float:
 
 @torch.no_grad()
 def _predicted(model: DeepAppearanceMap, views: list[ViewData], chunk: int = 1 << 16) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(radiance, DAM prediction, weight) of the views' foreground pixels, in samples_of order."""
+    """(radiance, DAM prediction, weight) of the views' foreground pixels, in samples_of order
+    (with the normals refined by the model's normal field where it has one)."""
     s = samples_of(views)
-    pred = torch.cat([model(s.view_dir_world[i:i + chunk], s.normal_world[i:i + chunk]) for i in range(0, len(s), chunk)]) \
+    n = torch.from_numpy(surface_normals(model.normal_field, s.normal_world.numpy(), positions_of(views))) if model.normal_field is not None \
+        else s.normal_world
+    pred = torch.cat([model(s.view_dir_world[i:i + chunk], n[i:i + chunk]) for i in range(0, len(s), chunk)]) \
         if len(s) else torch.zeros(0, 3)
     return s.radiance_lin.numpy(), pred.numpy(), s.weight.numpy()
 
@@ -108,11 +112,14 @@ def mean_dssim(model: DeepAppearanceMap, views: list[ViewData]) -> float:
 
 
 def choose_spatial(model: DeepAppearanceMap, views: list[ViewData], opts: FitOptions,
-                   log: Callable[[str], None] | None = None) -> SpatialDecision:
+                   log: Callable[[str], None] | None = None, heldout_model: DeepAppearanceMap | None = None) -> SpatialDecision:
     """Apply ``opts.spatial`` to a fitted DAM (see the module docstring).
 
     Args:
         model: the DAM fitted to ``views`` (its own spatial factor, if any, is ignored).
+        heldout_model: 'auto' decides with this model in place of ``model``: one whose normal
+            field was refined without the held-out views
+            (:attr:`.normal_fit.NormalRefineDecision.heldout_model`), so that they stay held out.
         views: the training views, in the order the fit used (hold-out indices refer to it).
         opts: the fit's options (``spatial``, ``spatial_voxel_px``, ``spatial_prior``,
             ``spatial_min_gain``, ``holdout_views``).
@@ -134,9 +141,10 @@ def choose_spatial(model: DeepAppearanceMap, views: list[ViewData], opts: FitOpt
             raise DamcapError(f"--spatial auto decides on held-out training views: use --holdout-views >= 1 and at least 3 train views "
                               f"(got {opts.holdout_views} and {len(views)}), or --spatial albedo")
         rest = [v for k, v in enumerate(views) if k not in held]
-        probe = base.with_spatial(estimate_for(base, rest, voxel, opts.spatial_prior))
+        judge = base if heldout_model is None else heldout_model.with_spatial(None)
+        probe = judge.with_spatial(estimate_for(judge, rest, voxel, opts.spatial_prior))
         held_views = [views[k] for k in held]
-        scores = {"off": mean_dssim(base, held_views), "albedo": mean_dssim(probe, held_views)}
+        scores = {"off": mean_dssim(judge, held_views), "albedo": mean_dssim(probe, held_views)}
         gain = scores["off"] - scores["albedo"]
         keep = gain >= opts.spatial_min_gain * scores["off"] and gain >= opts.spatial_min_gain_abs
         if not keep:

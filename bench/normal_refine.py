@@ -28,7 +28,8 @@ import torch
 from bench.common import BENCH, CACHE, RESULTS, command_line, log, machine_info
 
 from damcap.appearance.fit import FitOptions, fit_dam
-from damcap.appearance.normal_refine import NormalRefineOptions, refine_normals, refined_normals
+from damcap.appearance.normal_field import refined_normals
+from damcap.appearance.normal_refine import NormalRefineOptions, refine_normals
 from damcap.appearance.spatial_fit import estimate_for, mean_dssim, training_footprint
 from damcap.appearance.views import ViewData, load_views, positions_of, samples_of
 from damcap.common.capture_folder import read_capture

@@ -228,17 +228,17 @@ def part_registration(fresh: bool, data: Path = DATA, cache: Path = CACHE) -> di
 # Geometry on synthetic photos
 # --------------------------------------------------------------------------------------------
 
-def normal_errors(capture_dir: Path, gt_mesh, gt_cams: np.ndarray, photo_index: dict[str, int]) -> dict:
+def normal_errors(capture_dir: Path, gt_mesh, gt_cams: np.ndarray, photo_index: dict[str, int], model=None) -> dict:
     """Median angle between the capture's normals (mapped into the ground-truth frame) and the
-    ground-truth mesh's normals, over pixels covered in both (A > 0.5)."""
+    ground-truth mesh's normals, over pixels covered in both (A > 0.5); ``model``: a DAM whose
+    normal field refines the capture's normals first."""
+    from damcap.appearance.normal_field import surface_normals
     from damcap.common.capture_folder import read_capture, read_frame
-    from damcap.reconstruct.normalize import similarity_scale, transform_world_from_cam, umeyama_similarity
+    from damcap.reconstruct.normalize import similarity_scale, transform_world_from_cam
     from damcap.common.raycast import MeshRaycaster
 
     cap = read_capture(capture_dir)
-    cams = np.stack([f.world_from_cam for f in cap.frames])
-    gt = np.stack([gt_cams[photo_index[f.extra["photo"]]] for f in cap.frames])
-    gt_from_cap = umeyama_similarity(cams[:, :3, 3], gt[:, :3, 3])
+    gt_from_cap = gt_from_capture(cap, gt_cams, photo_index)
     rot = gt_from_cap[:3, :3] / similarity_scale(gt_from_cap)
     rc = MeshRaycaster(gt_mesh)
     errs, covered_est, covered_gt = [], 0, 0
@@ -249,7 +249,8 @@ def normal_errors(capture_dir: Path, gt_mesh, gt_cams: np.ndarray, photo_index: 
         both = (d.coverage > 0.5) & (b.coverage > 0.5)
         covered_est += int((d.coverage > 0.5).sum())
         covered_gt += int((b.coverage > 0.5).sum())
-        n_est = d.normal_world[both].astype(np.float64) @ rot.T
+        n_cap = d.normal_world[both] if model is None else surface_normals(model.normal_field, d.normal_world[both], d.position_world[both])
+        n_est = n_cap.astype(np.float64) @ rot.T
         cos = np.clip(np.einsum("ij,ij->i", n_est, b.normal_world[both]), -1, 1)
         errs.append(np.degrees(np.arccos(cos)))
     e = np.concatenate(errs)
@@ -257,12 +258,79 @@ def normal_errors(capture_dir: Path, gt_mesh, gt_cams: np.ndarray, photo_index: 
             "pixels": int(len(e)), "coverage_ratio_est_over_gt": covered_est / max(covered_gt, 1)}
 
 
+def gt_from_capture(cap, gt_cams: np.ndarray, photo_index: dict[str, int]) -> np.ndarray:
+    """(4, 4) similarity taking the capture's world to the ground truth's, fitted to the camera centres."""
+    from damcap.reconstruct.normalize import umeyama_similarity
+
+    cams = np.stack([f.world_from_cam for f in cap.frames])
+    gt = np.stack([gt_cams[photo_index[f.extra["photo"]]] for f in cap.frames])
+    return umeyama_similarity(cams[:, :3, 3], gt[:, :3, 3])
+
+
+def chamfer(capture_dir: Path, gt_mesh, gt_cams: np.ndarray, photo_index: dict[str, int], samples: int = 100_000) -> dict:
+    """Symmetric Chamfer distance between the capture's surface (mapped into the ground-truth
+    frame) and the true mesh: the mean of both directions' mean nearest-point distances over
+    ``samples`` area-uniform points each, in % of the true mesh's bounding-sphere radius; and the
+    two directions apart (accuracy: estimate to truth; completeness: truth to estimate)."""
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    from damcap.common.capture_folder import read_capture
+    from damcap.common.mesh import bounding_sphere, load_mesh
+    from damcap.reconstruct.normalize import transform_points
+
+    cap = read_capture(capture_dir)
+    rel = ((cap.extra.get("damcap_source") or {}).get("geometry") or {}).get("mesh")
+    if not rel or not (capture_dir / rel).is_file():
+        return {}
+    est = load_mesh(capture_dir / rel)
+    gt_from_cap = gt_from_capture(cap, gt_cams, photo_index)
+
+    def sample(vertices, triangles, seed):
+        m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(vertices, np.float64)),
+                                      o3d.utility.Vector3iVector(np.asarray(triangles, np.int32)))
+        o3d.utility.random.seed(seed)
+        return np.asarray(m.sample_points_uniformly(samples).points)
+
+    p_est = sample(transform_points(gt_from_cap, est.vertices.astype(np.float64)), est.triangles, 0)
+    p_gt = sample(gt_mesh.vertices, gt_mesh.triangles, 1)
+    radius = bounding_sphere(gt_mesh.vertices)[1]
+    acc = float(cKDTree(p_gt).query(p_est)[0].mean()) / radius * 100
+    comp = float(cKDTree(p_est).query(p_gt)[0].mean()) / radius * 100
+    return {"chamfer_pct": (acc + comp) / 2, "accuracy_pct": acc, "completeness_pct": comp}
+
+
+def refined_normal_errors(capture_dir: Path, gt_mesh, gt_cams: np.ndarray, photo_index: dict[str, int], steps: int = 2000) -> dict:
+    """``damcap fit --normal-refine on`` on the capture's train views (the DAM's fit, then the
+    photometric refinement), and the normal errors of :func:`normal_errors` with the refined
+    normals (every frame: the field carries to the test views)."""
+    from damcap.appearance.fit import FitOptions, fit_dam
+    from damcap.appearance.normal_fit import choose_normal_refine
+    from damcap.appearance.views import load_views, samples_of
+    from damcap.common.capture_folder import read_capture
+
+    cap = read_capture(capture_dir)
+    train = load_views(cap, "train")
+    opts = FitOptions(steps=steps, checkpoint_every=0, normal_refine="on")
+    with Timer() as t:
+        model = fit_dam(samples_of(train), opts).model
+        decision = choose_normal_refine(model, train, opts)
+    return {**normal_errors(capture_dir, gt_mesh, gt_cams, photo_index, decision.model), "tilt_deg": decision.record()["tilt_deg"],
+            **t.record()}
+
+
 GEOMETRY_MODES = ("visual-hull", "poisson", "sphere", "dense", "mesh (align none)", "mesh (align icp)")
+GEOMETRY_MESHES = {"bunny": "stanford-bunny.obj", "dragon": "dragon_10k.obj", "armadillo": "armadillo.obj"}
+"""the geometry part's objects from the shared meshes (the others: the bumpy blob and a sphere, made here)"""
+REFINED_MODES = ("visual-hull", "dense")
+"""modes whose capture is also fitted with --normal-refine on (``--geometry-refine``)"""
 """the geometry part's modes run with the true cameras (after ``auto``, which registers the photos)"""
 
 
 def part_geometry(fresh: bool, cache: Path = CACHE, objects: tuple[str, ...] = ("blob", "sphere"), photos_n: int = 36,
-                  photo_size: int = 320, capture_size: int = 256, modes: tuple[str, ...] = ("auto",) + GEOMETRY_MODES) -> dict:
+                  photo_size: int = 320, capture_size: int = 256, modes: tuple[str, ...] = ("auto",) + GEOMETRY_MODES,
+                  meshes: Path = DATA.parent / "meshes", refine: bool = False) -> dict:
+    from damcap.common.mesh import load_mesh, normalise_to_unit_sphere
     from damcap.common.shapes import sphere_mesh as icosphere_mesh
     from damcap.reconstruct.pipeline import ReconstructOptions, reconstruct_capture
     from damcap.common.mesh import Mesh
@@ -275,7 +343,10 @@ def part_geometry(fresh: bool, cache: Path = CACHE, objects: tuple[str, ...] = (
     for obj in objects:
         root = cache / "geometry" / obj
         photos = root / "photos"
-        mesh: Mesh = bumpy_blob() if obj == "blob" else icosphere_mesh(np.zeros(3), 0.8, 5)
+        if obj in GEOMETRY_MESHES:  # a shared mesh, its bounding sphere at the origin with radius 1 (the blob's size)
+            mesh: Mesh = normalise_to_unit_sphere(load_mesh(meshes / GEOMETRY_MESHES[obj]))
+        else:
+            mesh = bumpy_blob() if obj == "blob" else icosphere_mesh(np.zeros(3), 0.8, 5)
         cams = orbit_cameras(photos_n, 3.2, (10.0, 35.0, 60.0), jitter_deg=3, seed=1)
         if fresh and root.exists():
             shutil.rmtree(root)
@@ -293,10 +364,15 @@ def part_geometry(fresh: bool, cache: Path = CACHE, objects: tuple[str, ...] = (
         # SfM once (geometry auto); the other modes reuse its cameras and points via colmap:DIR
         first = root / "capture-auto"
         if "auto" in modes:
-            with Timer() as t:
-                _, rep = reconstruct_capture(photos / "images", first, base, masks_dir=photos / "masks", log=log)
-            res["auto"] = {"picked": rep.geometry_mode, "reason": rep.geometry_reason, "registered": f"{rep.registered}/{rep.photos}",
-                           "geometry_check": rep.geometry_check, **normal_errors(first, mesh, cams, index), **t.record()}
+            try:
+                with Timer() as t:
+                    _, rep = reconstruct_capture(photos / "images", first, base, masks_dir=photos / "masks", log=log)
+            except Exception as e:  # noqa: BLE001  (a registration that fails is a result too)
+                res["auto"] = {"error": f"{type(e).__name__}: {str(e)[:300]}"}
+            else:
+                res["auto"] = {"picked": rep.geometry_mode, "reason": rep.geometry_reason, "registered": f"{rep.registered}/{rep.photos}",
+                               "geometry_check": rep.geometry_check, **normal_errors(first, mesh, cams, index),
+                               **chamfer(first, mesh, cams, index), **t.record()}
             log(f"  {obj}/auto: {res['auto']}")
         # every mode with the true cameras (geometry error alone; Poisson triangulates with them held fixed)
         for mode, align in (("visual-hull", "auto"), ("poisson", "auto"), ("sphere", "auto"), ("dense", "auto"),
@@ -309,7 +385,10 @@ def part_geometry(fresh: bool, cache: Path = CACHE, objects: tuple[str, ...] = (
                 with Timer() as t:
                     _, rep = reconstruct_capture(photos / "images", cap_dir, replace(base, geometry=mode, mesh_align=align),  # type: ignore[arg-type]
                                                  masks_dir=photos / "masks", poses=str(photos / "transforms.json"), log=log)
-                res[key] = {"reason": rep.geometry_reason, **normal_errors(cap_dir, mesh, cams, index), **t.record()}
+                res[key] = {"reason": rep.geometry_reason, **normal_errors(cap_dir, mesh, cams, index),
+                            **chamfer(cap_dir, mesh, cams, index), **t.record()}
+                if refine and key in REFINED_MODES:
+                    res[key]["refined"] = refined_normal_errors(cap_dir, mesh, cams, index)
             except Exception as e:  # noqa: BLE001  (a mode that fails is a result too)
                 res[key] = {"error": f"{type(e).__name__}: {e}"}
             log(f"  {obj}/{key}: {res[key]}")
@@ -570,14 +649,25 @@ def write_report(res: dict, command: str, path: Path = REPORT, results: Path = R
               "icp)* gives the true mesh but aligns it to the visual hull by scaled ICP. Normals are mapped into the "
               "ground-truth frame by a similarity fitted to the camera centres; error over pixels covered in both "
               "(A > 0.5).", "",
-              "| object | mode | median normal error deg | mean | p90 | coverage est/gt | note |", "|---|---|---|---|---|---|---|"]
+              "Chamfer: the symmetric mean nearest-point distance between 100k area-uniform points on each surface, "
+              "% of the true mesh's bounding radius (accuracy = estimate to truth, completeness = truth to estimate). "
+              "Rows *refined*: the same capture fitted by `damcap fit --normal-refine on` (2000 fit steps, 10 train "
+              "views), its normals refined by the field (bench option `--geometry-refine`).", "",
+              "| object | mode | median normal error deg | mean | p90 | Chamfer % (acc / comp) | coverage est/gt | s | note |",
+              "|---|---|---|---|---|---|---|---|---|"]
         for obj, modes in geo.items():
             for mode, r in modes.items():
                 if "error" in r:
-                    L.append(f"| {obj} | {mode} | failed | | | | {r['error']} |")
-                else:
-                    L.append(f"| {obj} | {mode} | {r['median_deg']:.2f} | {r['mean_deg']:.2f} | {r['p90_deg']:.2f} | "
-                             f"{r['coverage_ratio_est_over_gt']:.3f} | {r.get('reason', '')} |")
+                    L.append(f"| {obj} | {mode} | failed | | | | | | {r['error']} |")
+                    continue
+                ch = f"{r['chamfer_pct']:.2f} ({r['accuracy_pct']:.2f} / {r['completeness_pct']:.2f})" if "chamfer_pct" in r else ""
+                secs = f"{r['wall_s']:.0f}" if "wall_s" in r else ""
+                L.append(f"| {obj} | {mode} | {r['median_deg']:.2f} | {r['mean_deg']:.2f} | {r['p90_deg']:.2f} | {ch} | "
+                         f"{r['coverage_ratio_est_over_gt']:.3f} | {secs} | {r.get('reason', '')} |")
+                f = r.get("refined")
+                if f:
+                    L.append(f"| {obj} | {mode}, refined | {f['median_deg']:.2f} | {f['mean_deg']:.2f} | {f['p90_deg']:.2f} | | | "
+                             f"{f['wall_s']:.0f} | fit + normal refinement (tilt median {f['tilt_deg']['median']:.1f} deg) |")
         L.append("")
         for obj, modes in geo.items():
             check = (modes.get("auto") or {}).get("geometry_check") or {}
@@ -893,7 +983,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=2000, help="realworld: DAM fit steps")
     ap.add_argument("--capture-size", type=int, default=256, help="realworld: capture resolution (longest side, px)")
     ap.add_argument("--geometry", default="auto", help="realworld: reconstruct --geometry (auto picks the visual hull on the cape)")
-    ap.add_argument("--geometry-objects", nargs="+", default=["blob", "sphere"], choices=["blob", "sphere"], help="geometry: photo sets")
+    ap.add_argument("--geometry-objects", nargs="+", default=["blob", "sphere"], choices=["blob", "sphere", *GEOMETRY_MESHES],
+                    help="geometry: photo sets (bunny, dragon, armadillo: the shared meshes)")
+    ap.add_argument("--geometry-refine", action="store_true",
+                    help=f"geometry: also fit the {' and '.join(REFINED_MODES)} captures with --normal-refine on and measure the refined normals")
     ap.add_argument("--geometry-photos", type=int, default=36, help="geometry: photos per set")
     ap.add_argument("--geometry-photo-size", type=int, default=320, help="geometry: photo size, px")
     ap.add_argument("--geometry-capture-size", type=int, default=256, help="geometry: capture resolution, px")
@@ -923,7 +1016,8 @@ def main(argv: list[str] | None = None) -> int:
             res["registration"] = keep_timed_runs(part_registration(args.fresh, data, args.cache), res.get("registration"))
         elif part == "geometry":
             new = part_geometry(args.fresh, args.cache, tuple(args.geometry_objects), args.geometry_photos,
-                                args.geometry_photo_size, args.geometry_capture_size, tuple(args.geometry_modes))
+                                args.geometry_photo_size, args.geometry_capture_size, tuple(args.geometry_modes),
+                                args.data / "meshes", args.geometry_refine)
             old = res.get("geometry") or {}  # modes and objects not rerun keep their earlier results
             res["geometry"] = {**old, **{obj: {**old.get(obj, {}), **modes} for obj, modes in new.items()}}
         else:

@@ -61,6 +61,7 @@ def fit(
     """Fit a deep appearance map to a capture (L1 or quantile data cost, optional adversarial cost)."""
     from damcap.appearance.dam_file import save_dam
     from damcap.appearance.fit import adversarial_frames, fit_dam, holdout_frames
+    from damcap.appearance.normal_fit import choose_normal_refine
     from damcap.appearance.spatial_fit import choose_spatial
     from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import read_capture
@@ -77,8 +78,9 @@ def fit(
         raise DamcapError(f"--holdout-views must leave 2 of the {len(views)} training views of {capture} to fit "
                           f"(at most {held}), got {opts.holdout_views}")
     if target_dssim is not None:
-        if opts.spatial != "off":
-            raise DamcapError("--target-dssim sizes the DAM alone; leave out --spatial (or fit with --spatial and no --target-dssim)")
+        if opts.spatial != "off" or opts.normal_refine != "off":
+            raise DamcapError("--target-dssim sizes the DAM alone; leave out --spatial and --normal-refine (or use them without "
+                              "--target-dssim)")
         _fit_to_target(capture, cap, views, split, target_dssim, opts, output, width_or_depth_given=bool({"width", "depth"} & given),
                        resume=resume)
         return
@@ -90,16 +92,30 @@ def fit(
         result = fit_dam(samples, opts, frames_for_adversarial=frames, checkpoint_path=ckpt, progress=progress_bar(opts.steps, "fit"),
                          log=lambda message: typer.echo(message, err=True), remove_checkpoint=False)
     last = result.history[-1] if result.history else {}
-    spatial = choose_spatial(result.model, views, opts, log=lambda message: typer.echo(message, err=True))
+    say = lambda message: typer.echo(message, err=True)  # noqa: E731
+    normals = choose_normal_refine(result.model, views, opts, log=say, progress=_bar_per_run(opts.normal_refine_steps, "normal refinement"))
+    spatial = choose_spatial(normals.model, views, opts, log=say, heldout_model=normals.heldout_model)
     save_dam(output, spatial.model, colorspace=cap.colorspace, made_by="fit", provenance={
         "damcap_version": damcap_version(), "options": asdict(opts), "capture": str(capture.resolve()),
         "split": split, "frames": [v.name for v in views], "pixels": len(samples), "best_step": result.best_step,
         "train_l1": last.get("train_l1"), "holdout_l1": last.get("holdout_l1"), "seconds": result.seconds,
-        "history": result.history, "spatial": spatial.record(),
-    })
+        "history": result.history, "normal_refine": normals.record(), "spatial": spatial.record(),
+    }, up_world=cap.up_world)
     ckpt.unlink(missing_ok=True)  # only now that the model is saved
     typer.echo(f"wrote {output} ({result.model.arch.num_weights} weights, {len(samples)} pixels, "
                f"best step {result.best_step}, {result.seconds:.1f} s)")
+
+
+def _bar_per_run(steps: int, desc: str):
+    """A ``progress(step, loss)`` callback drawing a new bar each time a run starts again at step 1."""
+    bars = []
+
+    def update(step: int, loss: float) -> None:
+        if step == 1 or not bars:
+            bars.append(progress_bar(steps, desc))
+        bars[-1](step, steps, {"loss": loss})
+
+    return update
 
 
 def _checkpoint_kept(ckpt: Path, every: int) -> str:
@@ -143,7 +159,7 @@ def _fit_to_target(capture: Path, cap, views, split: str, target: float, opts, o
     save_dam(output, choice.model, colorspace=cap.colorspace, made_by="fit", provenance={
         "damcap_version": damcap_version(), "options": asdict(opts), "capture": str(capture.resolve()), "split": split,
         "frames": [v.name for v in views], "target_dssim": target, "target_reached": choice.reached, "sizes_tried": choice.tried,
-    })
+    }, up_world=cap.up_world)
     n = choice.model.arch.num_weights
     err = next(t["heldout_dssim"] for t in choice.tried if t["width"] == choice.width and t["depth"] == choice.depth)
     if choice.reached:

@@ -61,9 +61,9 @@ def export(
     check_paths([*models, mesh, labels], [target])
     loaded = [load_dam(m) for m in models]
     dams = [m for m, _ in loaded]
-    if opts.format != "frames" and any(d.spatial is not None for d in dams):
-        typer.echo(f"note: --format {opts.format} carries the DAM alone; the spatial factor (the albedo texture of the "
-                   "model's capture) is left out", err=True)
+    if opts.format != "frames" and any(d.has_surface_factors for d in dams):
+        typer.echo(f"note: --format {opts.format} carries the DAM alone; the surface factors of the model's capture (albedo "
+                   "texture, normal field) are left out", err=True)
     if opts.format == "onnx":
         if len(dams) != 1:
             raise DamcapError("--format onnx takes one model")
@@ -114,24 +114,25 @@ def _check_onnx(ort, dam, staged: Path, path: Path) -> float:
 
 
 def _spatial_on_shape(dams, model_paths, mesh_path, vertices):
-    """Keep each model's spatial factor only where the shape is its capture's own surface
-    (:data:`.turntable.SPATIAL_MIN_SURFACE`); say which are dropped and why. ``vertices``: the
-    mesh file's own (before the export's centring and scaling)."""
+    """Keep each model's surface factors (spatial factor, normal field) only where the shape is its
+    capture's own surface (:data:`.turntable.SURFACE_MIN_SHARE`); say which are dropped and why.
+    ``vertices``: the mesh file's own (before the export's centring and scaling)."""
     from damcap.common.mesh import bounding_sphere
-    from damcap.export.turntable import SPATIAL_MIN_SURFACE, spatial_surface_share
+    from damcap.export.turntable import SURFACE_MIN_SHARE, surface_share
 
-    if all(d.spatial is None for d in dams):
+    if not any(d.has_surface_factors for d in dams):
         return dams, {"capture_from_render": None, "record": None}
     centre, radius = bounding_sphere(vertices)
     kept, record = [], []
     for d, path in zip(dams, model_paths):
-        share = spatial_surface_share(d, vertices)
-        applied = share is not None and share >= SPATIAL_MIN_SURFACE
+        share = surface_share(d, vertices)
+        applied = share is not None and share >= SURFACE_MIN_SHARE
         if share is not None and not applied:
-            typer.echo(f"note: {path}: its spatial factor (the albedo texture of its capture's surface) covers {share:.0%} of "
-                       f"{mesh_path.name}, so the DAM alone is drawn; the texture applies to the capture's own mesh", err=True)
-        kept.append(d if applied or share is None else d.with_spatial(None))
-        record.append({"model": str(path), "surface_share": share, "applied": applied})
+            typer.echo(f"note: {path}: its surface factors (albedo texture, normal field of its capture's surface) cover {share:.0%} "
+                       f"of {mesh_path.name}, so the DAM alone is drawn; they apply to the capture's own mesh", err=True)
+        kept.append(d if applied or share is None else d.dam_alone())
+        record.append({"model": str(path), "surface_share": share, "applied": applied,
+                       "factors": [k for k, f in (("spatial", d.spatial), ("normal_field", d.normal_field)) if f is not None]})
     return kept, {"capture_from_render": (centre, radius), "record": record}
 
 
@@ -143,7 +144,8 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
     from damcap.common.exr import write_exr, write_png
     from damcap.common.version import damcap_version
     from damcap.common.colour import display_srgb8, exposure_scale_for
-    from damcap.export.turntable import orbit_intrinsics, parts_from_vertex_labels, render_orbit
+    from damcap.appearance.dam_file import recorded_up
+    from damcap.export.turntable import orbit_intrinsics, orbit_up, parts_from_vertex_labels, render_orbit
 
     opts.validate()
     views, video, fps = opts.views, export_opts.video, export_opts.fps
@@ -163,6 +165,9 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
     if part.max() >= len(dams):
         raise DamcapError(f"{labels or mesh_path}: part {int(part.max())} has no model; give {int(part.max()) + 1} .dam files (one per part)")
     dams, spatial = _spatial_on_shape(dams, model_paths, mesh_path, raw.vertices)
+    up, up_source, up_note = orbit_up(opts.up, [recorded_up(m) for m in metas])
+    if up_note:
+        typer.echo(f"note: {up_note}", err=True)
     (output / "frames").mkdir(parents=True, exist_ok=True)
     (output / "display").mkdir(parents=True, exist_ok=True)
     writer, tmp_video, scale, cams = None, None, None, []
@@ -173,7 +178,7 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
 
             tmp_video = video_ctx.__enter__()
             writer = H264Writer(tmp_video, fps)
-        for k, (m, buf, rad) in enumerate(tqdm(render_orbit(dams, shape, part, opts, spatial["capture_from_render"]), total=views, desc="export", leave=False, disable=None)):
+        for k, (m, buf, rad) in enumerate(tqdm(render_orbit(dams, shape, part, opts, spatial["capture_from_render"], up), total=views, desc="export", leave=False, disable=None)):
             if scale is None:  # one exposure for the whole turntable, from the first frame
                 scale = exposure_scale_for(rad, buf.coverage > 0.5)
             write_exr(output / "frames" / f"{k:04d}.exr", np.concatenate([rad, buf.coverage[..., None]], -1), RADIANCE_CHANNELS + ("A",), dtype="float")
@@ -197,6 +202,7 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
         "mesh": str(mesh_path.resolve()), "labels": str(labels.resolve()) if labels else None,
         "options": asdict(opts), "export_options": asdict(export_opts), "exposure_scale": scale, "colorspace": metas[0].get("colorspace"),
         "world_from_cam": cams, "spatial": spatial["record"],
+        "up_world": up.tolist(), "up_source": up_source,  # the orbit's axis: --up, the first model's capture, or +y
         # what reproduces a frame: the mesh file's vertices v are rendered at (v - centre) / radius,
         # seen by pinholes with these intrinsics from world_from_cam
         "mesh_transform": {"centre": centre, "radius": radius,
@@ -230,10 +236,10 @@ def view(
     opts.validate()
     check_paths([model, mesh], [file_out(output)])
     dam, _ = load_dam(model)
-    if dam.spatial is not None:
-        typer.echo("note: the viewer draws the DAM alone; the spatial factor (the albedo texture of the model's capture) is "
-                   "left out", err=True)
-        dam = dam.with_spatial(None)
+    if dam.has_surface_factors:
+        typer.echo("note: the viewer draws the DAM alone; the surface factors of the model's capture (albedo texture, normal "
+                   "field) are left out", err=True)
+        dam = dam.dam_alone()
     shape = _load_mesh(mesh)
     _, buf, rad = next(render_orbit([dam], shape, np.zeros(len(shape.triangles), np.int64), opts))
     html = viewer_html(dam, shape, exposure_scale_for(rad, buf.coverage > 0.5), cam, title=f"{model.name} on {mesh.name if mesh else 'a sphere'}")

@@ -167,6 +167,6 @@ def predict(
         after = resynthesis_error(model, train_views, samples)
         record.update(train_dssim_refined=after.dssim, train_l1_refined=after.l1)
         extra += f": train DSSIM {err.dssim:.4f} -> {after.dssim:.4f}, L1 {err.l1:.4f} -> {after.l1:.4f}"
-    save_dam(output, model, colorspace=cap.colorspace, made_by="predict", provenance=record)
+    save_dam(output, model, colorspace=cap.colorspace, made_by="predict", provenance=record, up_world=cap.up_world)
     source = frame.file_path if len(frames) == 1 else f"{len(frames)} views ({', '.join(f.name for f in frames)})"
     typer.echo(f"wrote {output} (predicted from {source} in {1000 * predict_s:.0f} ms{extra})")

@@ -67,7 +67,7 @@ def segment(
     # per-frame names by relative path where frames lie in several folders (images/0004, images2/0004)
     names = frame_output_names([f.file_path for f in cap.split("train")], "")
     with staged_folder(output, replace=True) as stage:  # everything moves into OUTPUT together, at the end
-        save_segmentation_folder(stage, model, train, names, colorspace=cap.colorspace, provenance=provenance,
+        save_segmentation_folder(stage, model, train, names, colorspace=cap.colorspace, provenance=provenance, up_world=cap.up_world,
                                  summary={"auto": auto, "choice": asdict(choice), "reason": reason, "curve": curve,
                                           "history": model.history, "seconds": model.seconds})
     typer.echo(f"wrote {model.materials} materials to {output} (material_*.dam, weights/*.exr, preview/*.png, segmenter.safetensors)")

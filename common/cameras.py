@@ -33,17 +33,22 @@ def look_at_world_from_cam(centre_world: np.ndarray, target_world: np.ndarray, u
     return m
 
 
-def orbit_world_from_cam(n_views: int, distance: float, elevation_deg: float, azimuth0_deg: float = 0.0) -> np.ndarray:
-    """Cameras equally spaced on a circle around the origin (y up), all looking at the origin.
+def orbit_world_from_cam(n_views: int, distance: float, elevation_deg: float, azimuth0_deg: float = 0.0,
+                         up_world: np.ndarray | None = None) -> np.ndarray:
+    """Cameras equally spaced on a circle around the origin, all looking at the origin, turning
+    about ``up_world`` (default +y).
 
     Args:
         n_views: number of cameras.
         distance: distance from the origin, scene units.
-        elevation_deg: angle above the xz-plane, degrees, in (-90, 90).
-        azimuth0_deg: azimuth of the first camera, degrees.
+        elevation_deg: angle above the plane normal to up, degrees, in (-90, 90).
+        azimuth0_deg: azimuth of the first camera, degrees (0: on +z for up +y; for another up,
+            the +y orbit turned by the smallest rotation taking +y to it).
+        up_world: (3,) the orbit's axis (any length but 0).
 
     Returns:
-        (n_views, 4, 4) float64 world_from_cam.
+        (n_views, 4, 4) float64 world_from_cam; each camera's image up lies in the plane of its
+        view direction and ``up_world``.
     """
     el = math.radians(elevation_deg)
     mats = []
@@ -51,7 +56,53 @@ def orbit_world_from_cam(n_views: int, distance: float, elevation_deg: float, az
         az = math.radians(azimuth0_deg) + 2 * math.pi * k / n_views
         centre = distance * np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
         mats.append(look_at_world_from_cam(centre, np.zeros(3), np.array([0.0, 1.0, 0.0])))
-    return np.stack(mats)
+    out = np.stack(mats)
+    if up_world is not None:
+        rot = np.eye(4)
+        rot[:3, :3] = rotation_between(np.array([0.0, 1.0, 0.0]), np.asarray(up_world, np.float64))
+        out = rot[None] @ out
+    return out
+
+
+def up_direction(world_from_cams: np.ndarray, planarity: float = 0.3) -> np.ndarray:
+    """The capture's up direction: the normal of the camera ring when the cameras lie near a
+    plane (an orbit), else the mean of the cameras' up axes.
+
+    Args:
+        world_from_cams: (N, 4, 4) OpenGL camera-to-world (camera y = up in the image).
+        planarity: the ring's normal is used when the centres' smallest spread is below this
+            fraction of the middle one and the normal is within 45 degrees of the mean up.
+
+    Returns:
+        (3,) unit vector.
+    """
+    m = np.asarray(world_from_cams, dtype=np.float64)
+    mean_up = m[:, :3, 1].sum(0)
+    mean_up /= max(np.linalg.norm(mean_up), 1e-12)
+    centres = m[:, :3, 3]
+    if len(centres) >= 4:
+        _, s, vt = np.linalg.svd(centres - centres.mean(0), full_matrices=False)
+        normal = vt[2] * np.sign(vt[2] @ mean_up or 1.0)
+        if s[1] > 0 and s[2] < planarity * s[1] and normal @ mean_up > np.cos(np.radians(45)):
+            return normal
+    return mean_up
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(3, 3) smallest rotation taking unit vector a to unit vector b.
+
+    >>> np.round(rotation_between(np.array([1., 0, 0]), np.array([0., 1, 0])) @ [1, 0, 0], 6).tolist()
+    [0.0, 1.0, 0.0]
+    """
+    a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
+    b = np.asarray(b, dtype=np.float64) / np.linalg.norm(b)
+    v, c = np.cross(a, b), float(a @ b)
+    if c < -1 + 1e-12:  # opposite: turn half-way around any axis perpendicular to a
+        axis = np.cross(a, [1.0, 0, 0]) if abs(a[0]) < 0.9 else np.cross(a, [0, 1.0, 0])
+        axis /= np.linalg.norm(axis)
+        return 2 * np.outer(axis, axis) - np.eye(3)
+    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + k + k @ k / (1 + c)
 
 
 def focal_px_from_fov(fov_deg: float, size_px: int) -> float:

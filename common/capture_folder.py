@@ -17,6 +17,7 @@ from typing import Any, Iterable, Literal
 import numpy as np
 
 from damcap.common.atomic import write_json_atomic
+from damcap.common.cameras import up_direction
 from damcap.common.errors import DamcapError
 from damcap.common.exr import read_exr_channels, write_exr
 from damcap.common.validate import MAX_MATERIALS, finite_in, load_json_file, require_resolution
@@ -99,6 +100,11 @@ class Capture:
     colorspace: str = "lin_rec709"
     materials: int | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def up_world(self) -> np.ndarray:
+        """(3,) unit up direction of the capture, from its cameras (:func:`.cameras.up_direction`)."""
+        return up_direction(np.stack([f.world_from_cam for f in self.frames]))
 
     def split(self, split: Split) -> list[Frame]:
         """Frames of a split, in file order. Raises DamcapError when the split is empty."""

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from damcap.appearance.dam import DeepAppearanceMap
+from damcap.appearance.normal_field import field_share, refined_normals
 from damcap.appearance.spatial import log_albedo_at, albedo_at
 from damcap.common.errors import DamcapError
 from damcap.common.validate import AZIMUTH_DEG, CAMERA_DISTANCE, ELEVATION_DEG, FOV_DEG, MAX_IMAGE_SIDE, check_ranges, in_range, require_resolution
@@ -24,7 +25,7 @@ class OrbitOptions:
     views: int = field(default=36, metadata=in_range(1, 100_000))
     """frames on the orbit"""
     elevation_deg: float = field(default=20.0, metadata={**ELEVATION_DEG, "cli_flag": "--elevation"})
-    """camera elevation above the y = 0 plane, degrees"""
+    """camera elevation above the plane normal to the up axis (``up``), degrees"""
     azimuth0_deg: float = field(default=0.0, metadata=AZIMUTH_DEG)
     """azimuth of the first frame, degrees"""
     resolution: int = field(default=512, metadata=in_range(8, MAX_IMAGE_SIDE))
@@ -35,9 +36,14 @@ class OrbitOptions:
     """full field of view, degrees"""
     supersample: int = field(default=1, metadata=in_range(1, 16))
     """sub-pixel grid per axis for silhouette coverage (1 = pixel-centre rays only)"""
+    up: str = "model"
+    """the axis the orbit turns about: 'model' (the up direction the first model's capture
+    recorded, +y for a model that records none), an axis ('+x', '-x', '+y', '-y', '+z', '-z') or
+    three numbers 'x,y,z'. Elevation is measured from the plane normal to it"""
 
     def validate(self) -> None:
         check_ranges(self)
+        parse_up(self.up)
         require_resolution(self.resolution, self.resolution, 4 * 32 * self.supersample ** 2, f"--resolution {self.resolution}: a frame")
 
 
@@ -55,6 +61,62 @@ class ExportOptions:
 
     def validate(self) -> None:
         check_ranges(self)
+
+
+AXES = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0),
+        "+z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0)}
+UP_DISAGREE_DEG = 1.0
+"""models whose recorded up directions differ by more than this get a note (the first one's is used)"""
+
+
+def parse_up(text: str) -> np.ndarray | None:
+    """``OrbitOptions.up`` as a unit vector, or None for 'model'.
+
+    Raises:
+        DamcapError: neither 'model', an axis nor three finite numbers of non-zero length.
+
+    >>> parse_up("-z").tolist(), parse_up("0,2,0").tolist(), parse_up("model")
+    ([0.0, 0.0, -1.0], [0.0, 1.0, 0.0], None)
+    """
+    t = text.strip().lower()
+    if t == "model":
+        return None
+    if t in AXES or t in ("x", "y", "z"):
+        return np.array(AXES[t if t[0] in "+-" else "+" + t])
+    try:
+        v = np.array([float(x) for x in t.split(",")], np.float64)
+    except ValueError:
+        v = np.zeros(0)
+    if v.shape != (3,) or not np.isfinite(v).all() or np.linalg.norm(v) < 1e-12:
+        raise DamcapError(f"--up must be 'model', one of {', '.join(AXES)} or three numbers x,y,z of non-zero length, got {text!r}")
+    return v / np.linalg.norm(v)
+
+
+def orbit_up(up_option: str, model_ups: list[np.ndarray | None]) -> tuple[np.ndarray, str, str | None]:
+    """The orbit's axis: (unit vector, where it came from, a note or None).
+
+    Args:
+        up_option: ``OrbitOptions.up``.
+        model_ups: each model's recorded up direction (None where it records none).
+
+    >>> orbit_up("model", [np.array([0.0, 0.0, 1.0]), None])[:2]
+    (array([0., 0., 1.]), 'model')
+    >>> orbit_up("model", [None])[:2]
+    (array([0., 1., 0.]), 'default')
+    """
+    given = parse_up(up_option)
+    if given is not None:
+        return given, "--up", None
+    first = model_ups[0] if model_ups else None
+    if first is None:
+        return np.array(AXES["+y"]), "default", None
+    note = None
+    for k, u in enumerate(model_ups[1:], 1):
+        if u is not None and float(np.degrees(np.arccos(np.clip(u @ first, -1, 1)))) > UP_DISAGREE_DEG:
+            note = (f"the models' captures disagree about up (model {k + 1}: {np.round(u, 3).tolist()}, the first: "
+                    f"{np.round(first, 3).tolist()}); the orbit turns about the first's (--up overrides)")
+            break
+    return first, "model", note
 
 
 def parts_from_vertex_labels(triangles: np.ndarray, vertex_labels: np.ndarray) -> np.ndarray:
@@ -82,8 +144,9 @@ def shade_buffers(models: list[DeepAppearanceMap], buffers: SurfaceBuffers, came
         camera_centre_world: (3,).
         triangle_part: (T,) part index per triangle.
         capture_from_render: (centre (3,), radius): a rendered point p lies at
-            p * radius + centre in the capture's world, where a model's spatial factor
-            (``model.spatial``) is looked up. None: spatial factors are not applied.
+            p * radius + centre in the capture's world, where a model's normal field
+            (``model.normal_field``) and spatial factor (``model.spatial``) are looked up (the
+            transform has no rotation: normals are the same in both). None: neither is applied.
     """
     covered = buffers.triangle_id >= 0
     out = np.zeros(covered.shape + (3,), np.float32)
@@ -99,25 +162,37 @@ def shade_buffers(models: list[DeepAppearanceMap], buffers: SurfaceBuffers, came
         for k, model in enumerate(models):
             sel = part == k
             if sel.any():
-                rad[sel] = model(torch.from_numpy(v[sel]), torch.from_numpy(n[sel])).numpy()
-                if model.spatial is not None and capture_from_render is not None:
+                n_sel, pos_capture = n[sel], None
+                if capture_from_render is not None and model.has_surface_factors:
                     centre, radius = capture_from_render
-                    rad[sel] *= albedo_at(model.spatial, pos[sel].astype(np.float64) * radius + centre)
+                    pos_capture = pos[sel].astype(np.float64) * radius + centre
+                    if model.normal_field is not None:
+                        n_sel = refined_normals(model.normal_field, n_sel, pos_capture)
+                rad[sel] = model(torch.from_numpy(v[sel]), torch.from_numpy(n_sel)).numpy()
+                if model.spatial is not None and pos_capture is not None:
+                    rad[sel] *= albedo_at(model.spatial, pos_capture)
     out[covered] = rad
     return out
 
 
-SPATIAL_MIN_SURFACE = 0.9
-"""a model's spatial factor is applied to a shape only when it has texture at this share of the
-shape's vertices (it is the capture's own surface); on any other shape the DAM alone is drawn"""
+SURFACE_MIN_SHARE = 0.9
+"""a model's surface factors (spatial factor, normal field) are applied to a shape only when they
+cover this share of the shape's vertices (it is the capture's own surface); on any other shape
+the DAM alone is drawn"""
 
 
-def spatial_surface_share(model: DeepAppearanceMap, vertices_capture: np.ndarray) -> float | None:
-    """Share of the vertices (capture world) at which ``model``'s spatial factor has texture
-    (None: the model has none)."""
-    if model.spatial is None or len(vertices_capture) == 0:
+def surface_share(model: DeepAppearanceMap, vertices_capture: np.ndarray) -> float | None:
+    """Share of the vertices (capture world) that ``model``'s surface factors cover: the smaller of
+    the spatial factor's and the normal field's (None: the model has neither)."""
+    if not model.has_surface_factors or len(vertices_capture) == 0:
         return None
-    return float(log_albedo_at(model.spatial, np.asarray(vertices_capture, np.float64))[1].mean())
+    v = np.asarray(vertices_capture, np.float64)
+    shares = []
+    if model.spatial is not None:
+        shares.append(float(log_albedo_at(model.spatial, v)[1].mean()))
+    if model.normal_field is not None:
+        shares.append(field_share(model.normal_field, v))
+    return min(shares)
 
 
 def orbit_intrinsics(opts: OrbitOptions) -> tuple[float, float, float, float, int, int]:
@@ -133,9 +208,10 @@ def orbit_intrinsics(opts: OrbitOptions) -> tuple[float, float, float, float, in
 
 
 def render_orbit(models: list[DeepAppearanceMap], mesh: Mesh, triangle_part: np.ndarray, opts: OrbitOptions,
-                 capture_from_render: tuple[np.ndarray, float] | None = None) -> Iterator[tuple[np.ndarray, SurfaceBuffers, np.ndarray]]:
+                 capture_from_render: tuple[np.ndarray, float] | None = None,
+                 up_world: np.ndarray | None = None) -> Iterator[tuple[np.ndarray, SurfaceBuffers, np.ndarray]]:
     """Yield (world_from_cam, buffers, radiance_lin) per orbit frame (``capture_from_render``:
-    see :func:`shade_buffers`)."""
+    see :func:`shade_buffers`; ``up_world``: the orbit's axis, :func:`orbit_up`, default +y)."""
     opts.validate()
     if triangle_part.shape != (len(mesh.triangles),):
         raise ValueError("one part index per triangle expected")
@@ -143,6 +219,6 @@ def render_orbit(models: list[DeepAppearanceMap], mesh: Mesh, triangle_part: np.
         raise DamcapError(f"the mesh has parts 0..{int(triangle_part.max())} but {len(models)} model(s) were given; give one .dam per part")
     caster = MeshRaycaster(mesh)
     f, _, c, _ = orbit_intrinsics(opts)[:4]
-    for m in orbit_world_from_cam(opts.views, opts.distance, opts.elevation_deg, opts.azimuth0_deg):
+    for m in orbit_world_from_cam(opts.views, opts.distance, opts.elevation_deg, opts.azimuth0_deg, up_world):
         b = caster.buffers(m, f, f, c, c, opts.resolution, opts.resolution, supersample=opts.supersample)
         yield m, b, shade_buffers(models, b, m[:3, 3], triangle_part, capture_from_render)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from damcap.common.cameras import rotation_between, up_direction
 from damcap.common.errors import DamcapError
 from damcap.common.mesh import Mesh, bounding_sphere
 
@@ -84,47 +85,6 @@ def optical_axes_focus(world_from_cams: np.ndarray) -> tuple[np.ndarray, float]:
         b += p @ m[:3, 3]
     ev = np.linalg.eigvalsh(a)
     return np.linalg.lstsq(a, b, rcond=None)[0], float(ev[0] / max(ev[-1], 1e-12))
-
-
-def up_direction(world_from_cams: np.ndarray, planarity: float = 0.3) -> np.ndarray:
-    """The capture's up direction: the normal of the camera ring when the cameras lie near a
-    plane (an orbit), else the mean of the cameras' up axes.
-
-    Args:
-        world_from_cams: (N, 4, 4) OpenGL camera-to-world (camera y = up in the image).
-        planarity: the ring's normal is used when the centres' smallest spread is below this
-            fraction of the middle one and the normal is within 45 degrees of the mean up.
-
-    Returns:
-        (3,) unit vector.
-    """
-    m = np.asarray(world_from_cams, dtype=np.float64)
-    mean_up = m[:, :3, 1].sum(0)
-    mean_up /= max(np.linalg.norm(mean_up), 1e-12)
-    centres = m[:, :3, 3]
-    if len(centres) >= 4:
-        _, s, vt = np.linalg.svd(centres - centres.mean(0), full_matrices=False)
-        normal = vt[2] * np.sign(vt[2] @ mean_up or 1.0)
-        if s[1] > 0 and s[2] < planarity * s[1] and normal @ mean_up > np.cos(np.radians(45)):
-            return normal
-    return mean_up
-
-
-def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(3, 3) smallest rotation taking unit vector a to unit vector b.
-
-    >>> np.round(rotation_between(np.array([1., 0, 0]), np.array([0., 1, 0])) @ [1, 0, 0], 6).tolist()
-    [0.0, 1.0, 0.0]
-    """
-    a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
-    b = np.asarray(b, dtype=np.float64) / np.linalg.norm(b)
-    v, c = np.cross(a, b), float(a @ b)
-    if c < -1 + 1e-12:  # opposite: turn half-way around any axis perpendicular to a
-        axis = np.cross(a, [1.0, 0, 0]) if abs(a[0]) < 0.9 else np.cross(a, [0, 1.0, 0])
-        axis /= np.linalg.norm(axis)
-        return 2 * np.outer(axis, axis) - np.eye(3)
-    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + k + k @ k / (1 + c)
 
 
 def object_radius(centre_world: np.ndarray, world_from_cams: np.ndarray, points_world: np.ndarray | None = None,

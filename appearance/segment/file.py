@@ -36,14 +36,16 @@ WEIGHTS_FOLDER = "weights"
 SEGMENT_FORMAT_VERSION = 1
 
 
-def save_segmentation(folder: str | os.PathLike, model: SegmentationModel, *, colorspace: str, provenance: dict[str, Any]) -> list[Path]:
-    """Write the n DAMs and the segmenter; returns the DAM paths."""
+def save_segmentation(folder: str | os.PathLike, model: SegmentationModel, *, colorspace: str, provenance: dict[str, Any],
+                      up_world: np.ndarray | None = None) -> list[Path]:
+    """Write the n DAMs and the segmenter (``up_world``: the capture's, recorded in each DAM); returns the DAM paths."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
     for k, dam in enumerate(model.dams):
         p = folder / f"material_{k}.dam"
-        save_dam(p, dam, colorspace=colorspace, made_by="segment", provenance={**provenance, "material": k, "materials": model.materials})
+        save_dam(p, dam, colorspace=colorspace, made_by="segment", provenance={**provenance, "material": k, "materials": model.materials},
+                 up_world=up_world)
         paths.append(p)
     tensors = {f"psi.{k}": v.detach().cpu().contiguous() for k, v in model.psi.state_dict().items()}
     tensors["points_world"] = torch.from_numpy(np.ascontiguousarray(model.points_world))
@@ -57,7 +59,8 @@ def save_segmentation(folder: str | os.PathLike, model: SegmentationModel, *, co
 
 
 def save_segmentation_folder(folder: str | os.PathLike, model: SegmentationModel, views: list[ViewData], names: list[str], *,
-                             colorspace: str, provenance: dict[str, Any], summary: dict[str, Any]) -> None:
+                             colorspace: str, provenance: dict[str, Any], summary: dict[str, Any],
+                             up_world: np.ndarray | None = None) -> None:
     """Write everything ``damcap segment`` writes into ``folder`` (normally a staging folder).
 
     The DAMs and segmenter (:func:`save_segmentation`), per training view ``weights/NAME.exr``
@@ -68,7 +71,7 @@ def save_segmentation_folder(folder: str | os.PathLike, model: SegmentationModel
         views: the training views, in the order of ``names`` (one output name each).
     """
     folder = Path(folder)
-    save_segmentation(folder, model, colorspace=colorspace, provenance=provenance)
+    save_segmentation(folder, model, colorspace=colorspace, provenance=provenance, up_world=up_world)
     for v, name in zip(views, names):
         w = model.weights_of(v)
         write_exr(folder / WEIGHTS_FOLDER / f"{name}.exr", w, weight_channels(model.materials), dtype="half")

@@ -182,3 +182,74 @@ def test_refuses_a_damaged_spatial_factor(tmp_path):
     (tmp_path / "extra.dam").write_bytes(st_save(extra, metadata={"damcap": json.dumps(meta)}))
     with pytest.raises(DamcapError, match="extra.dam: expected the tensors \\['weights'\\]"):
         load_dam(tmp_path / "extra.dam")
+
+
+def _with_normal_field(model, keys=(3, 5), offset=((0.1, 0.0, 0.0), (0.0, -0.2, 0.05))):
+    import numpy as np
+
+    from damcap.appearance.normal_field import NormalField
+
+    return model.with_normal_field(NormalField(np.array([0.5, -1.0, 2.0]), 0.02, np.array(keys, np.int64), np.array(offset, np.float32)))
+
+
+def test_round_trip_with_a_normal_field_is_format_3(tmp_path):
+    import numpy as np
+
+    m = _with_normal_field(_with_spatial(DeepAppearanceMap(DamArchitecture(width=8, depth=2), radiance_scale=1.5)))
+    save_dam(tmp_path / "n.dam", m, colorspace="lin_rec709", made_by="fit")
+    back, meta = load_dam(tmp_path / "n.dam")
+    assert meta["format_version"] == 3 and meta["normal_field"]["kind"] == "normal_offset_voxels"
+    nf, want = back.normal_field, m.normal_field
+    assert nf is not None and nf.voxel_size == want.voxel_size and back.spatial is not None
+    np.testing.assert_array_equal(nf.keys, want.keys)
+    np.testing.assert_array_equal(nf.offset, want.offset)
+    np.testing.assert_array_equal(nf.origin_world, want.origin_world)
+    # the field alone is format 3 as well; dropping both factors gives format 1
+    save_dam(tmp_path / "f.dam", back.with_spatial(None), colorspace="lin_rec709", made_by="fit")
+    f_model, f_meta = load_dam(tmp_path / "f.dam")
+    assert f_meta["format_version"] == 3 and f_model.spatial is None and f_model.normal_field is not None
+    save_dam(tmp_path / "plain.dam", back.dam_alone(), colorspace="lin_rec709", made_by="fit")
+    plain, p_meta = load_dam(tmp_path / "plain.dam")
+    assert p_meta["format_version"] == 1 and not plain.has_surface_factors
+
+
+def test_refuses_a_damaged_normal_field(tmp_path):
+    base = DeepAppearanceMap(DamArchitecture(width=8, depth=2))
+    cases = {
+        "unsorted": (_with_normal_field(base, keys=(5, 3)), "sorted"),
+        "huge": (_with_normal_field(base, offset=((0, 0, 0), (1e5, 0, 0))), "more than"),
+        "nan": (_with_normal_field(base, offset=((0, 0, 0), (float("nan"), 0, 0))), "NaN"),
+    }
+    for name, (model, needle) in cases.items():
+        save_dam(tmp_path / f"{name}.dam", model, colorspace="lin_rec709", made_by="fit")
+        with pytest.raises(DamcapError, match=f"{name}.dam: normal field: .*{needle}"):
+            load_dam(tmp_path / f"{name}.dam")
+    meta = {"format_version": 3, "architecture": base.arch.to_json(), "radiance_scale": 1.0, "colorspace": "lin_rec709",
+            "made_by": "fit", "normal_field": {"kind": "albedo_voxels", "origin_world": [0, 0, 0], "voxel_size": 0.01}}
+    good = _with_normal_field(base).normal_field
+    tensors = {"weights": base.get_flat_weights(), "normal_keys": torch.from_numpy(good.keys), "normal_offset": torch.from_numpy(good.offset)}
+    (tmp_path / "kind.dam").write_bytes(st_save(tensors, metadata={"damcap": json.dumps(meta)}))
+    with pytest.raises(DamcapError, match="kind.dam: metadata 'normal_field' must be an object of kind 'normal_offset_voxels'"):
+        load_dam(tmp_path / "kind.dam")
+    meta["normal_field"]["kind"] = "normal_offset_voxels"
+    (tmp_path / "missing.dam").write_bytes(st_save({"weights": base.get_flat_weights()}, metadata={"damcap": json.dumps(meta)}))
+    with pytest.raises(DamcapError, match="missing.dam: expected the tensors"):
+        load_dam(tmp_path / "missing.dam")
+
+
+def test_up_direction_is_recorded_and_checked(tmp_path):
+    import numpy as np
+
+    from damcap.appearance.dam_file import recorded_up
+
+    m = DeepAppearanceMap(DamArchitecture(width=8, depth=2))
+    save_dam(tmp_path / "z.dam", m, colorspace="lin_rec709", made_by="fit", up_world=np.array([0.0, 0.0, 3.0]))
+    _, meta = load_dam(tmp_path / "z.dam")
+    assert meta["up_world"] == [0.0, 0.0, 1.0] and recorded_up(meta).tolist() == [0.0, 0.0, 1.0] and meta["format_version"] == 1
+    save_dam(tmp_path / "none.dam", m, colorspace="lin_rec709", made_by="fit")
+    assert recorded_up(load_dam(tmp_path / "none.dam")[1]) is None
+    for name, up in {"short": [0, 1], "zero": [0, 0, 0], "text": ["0", "1", "0"], "inf": [0, 1e400, 0]}.items():
+        meta = {"format_version": 1, "architecture": m.arch.to_json(), "radiance_scale": 1.0, "up_world": up}
+        (tmp_path / f"{name}.dam").write_bytes(st_save({"weights": m.get_flat_weights()}, metadata={"damcap": json.dumps(meta)}))
+        with pytest.raises(DamcapError, match=f"{name}.dam: metadata 'up_world' must be 3 finite numbers"):
+            load_dam(tmp_path / f"{name}.dam")

@@ -9,7 +9,8 @@ import numpy as np
 import torch
 
 from damcap.appearance.fit import FitOptions, fit_dam
-from damcap.appearance.normal_refine import NormalRefineOptions, apply_offsets, empty_field, refine_normals, refined_normals
+from damcap.appearance.normal_field import refined_normals
+from damcap.appearance.normal_refine import NormalRefineOptions, refine_normals
 from damcap.appearance.pixels import gather_samples
 from damcap.appearance.spatial_fit import training_footprint
 from damcap.appearance.views import ViewData, positions_of
@@ -27,20 +28,6 @@ def bumpy_normals(normal_world: np.ndarray, position_world: np.ndarray, amplitud
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1, 1)))
-
-
-def test_zero_offsets_and_normal_components_change_nothing():
-    n = torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
-    idx, w = torch.zeros(50, 8, dtype=torch.long), torch.full((50, 8), 0.125)
-    assert torch.allclose(apply_offsets(n, torch.zeros(1, 3), idx, w), n, atol=1e-6)
-    # an offset along the normal itself is dropped: only its tangent part tilts the normal
-    z = torch.tensor([[0.0, 0.0, 1.0]])
-    assert torch.allclose(apply_offsets(z, torch.tensor([[0.0, 0.0, 3.0]]), idx[:1], w[:1]), z)
-    nf = empty_field(np.random.default_rng(0).uniform(-1, 1, (200, 3)), 0.25)
-    assert nf.keys.size > 0 and (nf.offset == 0).all()
-    pts = np.random.default_rng(1).uniform(-1, 1, (20, 3))
-    nrm = np.tile(np.array([[0.0, 1.0, 0.0]], np.float32), (20, 1))
-    assert np.allclose(refined_normals(nf, nrm, pts), nrm, atol=1e-6)
 
 
 def test_refinement_recovers_bumps_the_geometry_lacks():

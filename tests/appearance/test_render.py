@@ -77,3 +77,35 @@ def test_spatial_factor_multiplies_the_render_at_each_surface_point():
     np.testing.assert_allclose(textured[..., 0], np.where(found & covered, 2.0, 1.0) * plain[..., 0], rtol=1e-5)
     np.testing.assert_allclose(textured[..., 1:], plain[..., 1:], rtol=1e-6)
     assert np.all(textured[~covered] == 0)
+
+
+def test_normal_field_tilts_the_normals_the_dam_sees():
+    """A constant offset at every stored corner: each covered pixel renders as the DAM evaluated
+    at n + the offset's tangent part, normalised (closed form); a pixel whose corners are not
+    stored keeps its normal; the spatial factor still multiplies on top."""
+    from damcap.appearance.normal_field import NormalField
+    from damcap.appearance.spatial import trilinear_corners
+
+    model = DeepAppearanceMap(DamArchitecture(width=8, depth=2), radiance_scale=1.0, generator=torch.Generator().manual_seed(4))
+    data = _frame(seed=3)
+    centre = np.array([0.0, 0.0, 5.0])
+    covered = data.coverage > 0
+    origin, h = np.full(3, -10.0), 0.5
+    corners = lambda p: trilinear_corners(np.asarray(p, np.float64).reshape(-1, 3), origin, h)[0]  # noqa: E731
+    keys = np.setdiff1d(np.unique(corners(data.position_world[covered])), corners(data.position_world[2, 2]))
+    found = np.array([[np.isin(corners(data.position_world[i, j]), keys).any() for j in range(5)] for i in range(6)])
+    # every stored corner has the same offset: wherever a point finds any corner, the
+    # renormalised trilinear mean is that offset itself
+    offset = np.array([0.3, -0.2, 0.1], np.float32)
+    nf = NormalField(origin, h, keys, np.tile(offset, (keys.size, 1)))
+    got = render_frame(model.with_normal_field(nf), data, centre)
+    n = data.normal_world.astype(np.float64)
+    t = offset[None, None] - (n * offset).sum(-1, keepdims=True) * n
+    n_want = np.where(found[..., None], n + t, n)
+    n_want /= np.linalg.norm(n_want, axis=-1, keepdims=True)
+    v = view_dir_world(data.position_world[covered], centre)
+    want = model(torch.from_numpy(v), torch.from_numpy(n_want[covered].astype(np.float32))).detach().numpy()
+    np.testing.assert_allclose(got[covered], want, rtol=1e-4, atol=1e-6)
+    assert not found[2, 2] and found[covered].sum() >= covered.sum() - 3
+    np.testing.assert_array_equal(got[2, 2], render_frame(model, data, centre)[2, 2])
+    assert np.all(got[~covered] == 0)

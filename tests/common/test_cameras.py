@@ -98,3 +98,35 @@ def test_pixel_rays_cache_is_read_only():
     d2[...] = 0  # a caller's copy can be changed
     _, again = pixel_rays_world(np.eye(4), 10.0, 10.0, 2.0, 2.0, 4, 4)
     np.testing.assert_allclose(np.linalg.norm(again, axis=-1), 1.0, atol=1e-12)
+
+
+def test_orbit_about_another_up_axis():
+    """Turned to orbit about +z: every centre sits at the elevation above the xy-plane, the ring's
+    normal is +z, each camera still looks at the origin, and its image up leans toward +z."""
+    from damcap.common.cameras import up_direction
+
+    el = 25.0
+    m = orbit_world_from_cam(12, 3.0, el, up_world=np.array([0.0, 0.0, 2.0]))
+    centres = m[:, :3, 3]
+    np.testing.assert_allclose(centres[:, 2], 3.0 * math.sin(math.radians(el)), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(centres, axis=1), 3.0, atol=1e-12)
+    np.testing.assert_allclose(up_direction(m), [0, 0, 1], atol=1e-9)
+    np.testing.assert_allclose(np.einsum("ij,ij->i", -m[:, :3, 2], -centres / 3.0), 1.0, atol=1e-12)
+    assert (m[:, 2, 1] > 0.5).all()  # camera y (image up) has a large +z component
+    # the default and an explicit +y are the same orbit
+    np.testing.assert_allclose(orbit_world_from_cam(5, 2.0, 10.0, 30.0, np.array([0.0, 1.0, 0.0])), orbit_world_from_cam(5, 2.0, 10.0, 30.0),
+                               atol=1e-12)
+
+
+def test_up_direction_of_a_ring_and_of_scattered_cameras():
+    from damcap.common.cameras import rotation_between, up_direction
+
+    up = np.array([0.3, -0.4, 0.8]) / np.linalg.norm([0.3, -0.4, 0.8])
+    ring = orbit_world_from_cam(10, 4.0, 15.0, up_world=up)
+    np.testing.assert_allclose(up_direction(ring), up, atol=1e-9)
+    # two cameras (no ring): the mean of their image-up axes
+    two = ring[:2]
+    mean_up = two[:, :3, 1].sum(0)
+    np.testing.assert_allclose(up_direction(two), mean_up / np.linalg.norm(mean_up), atol=1e-12)
+    np.testing.assert_allclose(rotation_between(np.array([0.0, 1.0, 0.0]), up) @ [0, 1, 0], up, atol=1e-12)
+    np.testing.assert_allclose(rotation_between(up, -up) @ up, -up, atol=1e-12)

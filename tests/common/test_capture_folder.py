@@ -221,3 +221,14 @@ class TestHostileTransforms:
         with pytest.raises(DamcapError, match=r"image channel count \(header\) must be an integer in \[1, 1024\]"):
             check_header_size(tmp_path / "x.exr", 4, 4, 5000, 4)
         check_header_size(tmp_path / "x.exr", 64, 64, 4, 4)
+
+
+def test_up_world_follows_the_cameras(tmp_path):
+    """A ring of cameras turning about +z (a z-up capture) has up +z; the same ring about +y, +y."""
+    from damcap.common.cameras import orbit_world_from_cam
+    from damcap.common.capture_folder import Capture, Frame, Intrinsics
+
+    for up in ([0.0, 0.0, 1.0], [0.0, 1.0, 0.0]):
+        cams = orbit_world_from_cam(8, 3.0, 20.0, up_world=np.array(up))
+        frames = [Frame(f"images/{k}.exr", f"geometry/{k}.exr", m, Intrinsics(10.0, 10.0, 4.0, 4.0, 8, 8)) for k, m in enumerate(cams)]
+        np.testing.assert_allclose(Capture(tmp_path, frames, [], []).up_world, up, atol=1e-9)

@@ -141,6 +141,73 @@ def test_spatial_factor_is_drawn_on_its_own_surface_only(model_file, bunny, tmp_
     np.testing.assert_allclose(own[..., 1:], plain[..., 1:], rtol=1e-5)
     assert frames["own"][2][0]["applied"] and frames["own"][2][0]["surface_share"] > 0.99 and frames["plain"][2] is None
     np.testing.assert_array_equal(away, plain)
-    assert not frames["elsewhere"][2][0]["applied"] and "covers 0% of stanford-bunny.obj" in frames["elsewhere"][1]
+    assert not frames["elsewhere"][2][0]["applied"] and "cover 0% of stanford-bunny.obj" in frames["elsewhere"][1]
     assert main(["export", str(tmp_path / "own.dam"), "--format", "glsl", "-o", str(tmp_path / "dam.glsl")]) == 0
     assert "carries the DAM alone" in capsys.readouterr().err
+
+
+def test_normal_field_is_applied_on_its_own_surface_only(model_file, bunny, tmp_path, capsys):
+    """A normal field on the bunny's own surface (one constant offset) changes the shading of
+    the export; moved away from it, it is left out with a note and the frame is the DAM alone."""
+    from damcap.appearance.dam_file import load_dam
+    from damcap.appearance.normal_field import NormalField
+    from damcap.appearance.spatial import trilinear_corners
+    from damcap.common.mesh import load_mesh
+
+    dam, _ = load_dam(model_file)
+    verts = load_mesh(bunny).vertices.astype(np.float64)
+    h = 0.05 * float(np.ptp(verts, axis=0).max())
+    origin = verts.min(0) - 2 * h
+    keys = np.unique(trilinear_corners(verts, origin, h)[0])
+    offset = np.tile(np.array([[0.8, 0.0, 0.0]], np.float32), (keys.size, 1))
+    frames = {}
+    for name, o in (("own", origin), ("elsewhere", origin + 100.0)):
+        save_dam(tmp_path / f"{name}.dam", dam.with_normal_field(NormalField(o, h, keys, offset)), colorspace="lin_rec709", made_by="fit")
+    for name in ("plain", "own", "elsewhere"):
+        model = model_file if name == "plain" else tmp_path / f"{name}.dam"
+        capsys.readouterr()
+        assert main(["export", str(model), "--mesh", str(bunny), "-o", str(tmp_path / name), "--views", "2", "--resolution", "48"]) == 0
+        frames[name] = (read_exr(tmp_path / name / "frames" / "0001.exr")[0], capsys.readouterr().err,
+                        json.loads((tmp_path / name / "export.json").read_text())["spatial"])
+    plain, own, away = frames["plain"][0], frames["own"][0], frames["elsewhere"][0]
+    fg = plain[..., 3] > 0
+    assert np.abs(own[fg, :3] - plain[fg, :3]).mean() > 0.02 * np.abs(plain[fg, :3]).mean()
+    record = frames["own"][2][0]
+    assert record["applied"] and record["surface_share"] > 0.99 and record["factors"] == ["normal_field"]
+    np.testing.assert_array_equal(away, plain)
+    assert not frames["elsewhere"][2][0]["applied"] and "cover 0% of stanford-bunny.obj" in frames["elsewhere"][1]
+
+
+def test_orbit_turns_about_the_captures_recorded_up(model_file, bunny, tmp_path, capsys):
+    """A model recording up = +z orbits about +z (every camera at the elevation above the xy-plane);
+    --up overrides; models that disagree get a note; a bad --up is one line, exit 2."""
+    from damcap.appearance.dam_file import load_dam
+    from tests.conftest import assert_one_line_error, run_cli
+
+    dam, _ = load_dam(model_file)
+    save_dam(tmp_path / "z.dam", dam, colorspace="lin_rec709", made_by="fit", up_world=np.array([0.0, 0.0, 1.0]))
+    save_dam(tmp_path / "y.dam", dam, colorspace="lin_rec709", made_by="fit", up_world=np.array([0.0, 1.0, 0.0]))
+    common = ["--mesh", bunny, "--views", "4", "--resolution", "32", "--elevation", "30"]
+
+    def export(name, *args):
+        code, _, err = run_cli(["export", *args, *common, "-o", tmp_path / name], capsys)
+        assert code == 0, err
+        return json.loads((tmp_path / name / "export.json").read_text()), err
+
+    rec, _ = export("z", tmp_path / "z.dam")
+    cams = np.array(rec["world_from_cam"])
+    assert rec["up_world"] == [0.0, 0.0, 1.0] and rec["up_source"] == "model"
+    np.testing.assert_allclose(cams[:, 2, 3], 3.0 * np.sin(np.radians(30)), atol=1e-9)
+    rec, _ = export("z_over", tmp_path / "z.dam", "--up", "+y")
+    assert rec["up_world"] == [0.0, 1.0, 0.0] and rec["up_source"] == "--up"
+    np.testing.assert_allclose(np.array(rec["world_from_cam"])[:, 1, 3], 3.0 * np.sin(np.radians(30)), atol=1e-9)
+    rec, _ = export("plain", model_file)
+    assert rec["up_source"] in ("default", "model")
+    from damcap.common.mesh import read_mesh
+
+    labels = np.arange(len(read_mesh(bunny).vertices)) % 2  # the file's vertex order
+    np.save(tmp_path / "labels.npy", labels)
+    rec, err = export("two", tmp_path / "z.dam", tmp_path / "y.dam", "--labels", tmp_path / "labels.npy")
+    assert rec["up_world"] == [0.0, 0.0, 1.0] and "disagree about up" in err
+    code, _, err = run_cli(["export", tmp_path / "z.dam", *common, "--up", "sideways", "-o", tmp_path / "bad"], capsys)
+    assert_one_line_error(code, err, "--up", "sideways")

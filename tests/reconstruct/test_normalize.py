@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from damcap.common.capture_folder import rigid_problem
-from damcap.common.cameras import look_at_world_from_cam
+from damcap.common.cameras import look_at_world_from_cam, up_direction
 from damcap.reconstruct.normalize import (
     normalization_transform,
     optical_axes_focus,
@@ -16,7 +16,6 @@ from damcap.reconstruct.normalize import (
     transform_points,
     transform_world_from_cam,
     umeyama_similarity,
-    up_direction,
 )
 
 

@@ -31,31 +31,39 @@ $(STAMP): constraints.txt pyproject.toml setup.py
 venv: system $(STAMP)
 
 DAMCAP := $(VENV)/bin/damcap
-PHOTOS := samples/photos_blob
+PHOTOS := samples/photos_studio
 DEMO_OUT ?= demo_out
 
-# The main job, photos to appearance, on the bundled photos (24 JPEGs with masks): register and
-# reconstruct a capture folder, validate it, fit a DAM, predict one with the shipped predictor
-# (+100 refinement steps), render the fitted one into the novel views, evaluate both, and export
-# the fitted appearance onto a new shape (a torus damcap generates) as a turntable.
+# The main job, photos to appearance, on the bundled photos (24 path-traced JPEGs of a bunny in
+# red plastic, gold and aluminium on a printed board, with masks; samples/README.md): register and
+# reconstruct a capture folder, validate it, segment it into its 3 materials, fit one DAM,
+# predict one with the shipped predictor (+100 refinement steps), render the fitted one into the
+# novel views, evaluate all of them, carry the segmentation onto a new shape (a torus damcap
+# generates) and export the three materials on it as a turntable, and write the viewer page.
 demo: venv
 	$(DAMCAP) reconstruct $(PHOTOS)/images -o $(DEMO_OUT)/capture --masks $(PHOTOS)/masks
 	$(DAMCAP) inspect $(DEMO_OUT)/capture
+	$(DAMCAP) segment $(DEMO_OUT)/capture -o $(DEMO_OUT)/segmentation --materials 3
 	$(DAMCAP) fit $(DEMO_OUT)/capture -o $(DEMO_OUT)/model.dam
 	$(DAMCAP) predict $(DEMO_OUT)/capture -o $(DEMO_OUT)/predicted.dam --refine-steps 100
 	$(DAMCAP) render $(DEMO_OUT)/model.dam $(DEMO_OUT)/capture -o $(DEMO_OUT)/renders --split test
-	$(DAMCAP) evaluate $(DEMO_OUT)/capture --model $(DEMO_OUT)/model.dam --model $(DEMO_OUT)/predicted.dam --json $(DEMO_OUT)/evaluation.json
+	$(DAMCAP) evaluate $(DEMO_OUT)/capture --model $(DEMO_OUT)/model.dam --model $(DEMO_OUT)/predicted.dam --segmentation $(DEMO_OUT)/segmentation --json $(DEMO_OUT)/evaluation.json
 	$(DAMCAP) shape torus $(DEMO_OUT)/torus.obj
-	$(DAMCAP) export $(DEMO_OUT)/model.dam --mesh $(DEMO_OUT)/torus.obj -o $(DEMO_OUT)/export --views 24 --resolution 256 --video
+	$(DAMCAP) segment-labels $(DEMO_OUT)/segmentation --mesh $(DEMO_OUT)/torus.obj -o $(DEMO_OUT)/torus_labels.npy
+	$(DAMCAP) export $(DEMO_OUT)/segmentation/material_0.dam $(DEMO_OUT)/segmentation/material_1.dam $(DEMO_OUT)/segmentation/material_2.dam --mesh $(DEMO_OUT)/torus.obj --labels $(DEMO_OUT)/torus_labels.npy -o $(DEMO_OUT)/export --views 24 --resolution 256 --video
+	$(DAMCAP) view $(DEMO_OUT)/model.dam -o $(DEMO_OUT)/viewer.html --mesh $(DEMO_OUT)/torus.obj
 	@echo
 	@echo "demo results are in $(DEMO_OUT)/:"
 	@echo "  capture/           the capture folder reconstructed from $(PHOTOS)/images (cameras, geometry, linear radiance)"
-	@echo "  model.dam          the fitted deep appearance map (safetensors + JSON metadata)"
+	@echo "  segmentation/      the 3 materials: material_*.dam (one DAM each), weights/*.exr, preview/*.png (which pixel is which)"
+	@echo "  model.dam          one deep appearance map fitted to the whole object (safetensors + JSON metadata)"
 	@echo "  predicted.dam      the DAM predicted from one view by the shipped predictor, refined 100 steps"
 	@echo "  renders/*.exr      the fitted model rendered into the test (novel) views (linear EXR)"
-	@echo "  evaluation.json    mean and per-frame DSSIM of both models, RM++ and RM, same and novel view"
+	@echo "  evaluation.json    mean and per-frame DSSIM of the models, the segmentation, RM++ and RM, same and novel view"
 	@echo "  evaluation.png     per-frame DSSIM sorted, one curve per method"
-	@echo "  export/            model.dam on a new shape (torus.obj): frames/*.exr linear, display/*.png sRGB, turntable.mp4"
+	@echo "  export/            the 3 materials on a new shape (torus.obj, labels carried over): frames/*.exr linear,"
+	@echo "                     display/*.png sRGB, turntable.mp4 (H.264)"
+	@echo "  viewer.html        model.dam on the torus in the browser (WebGL)"
 
 test: venv
 	$(PY) -m pytest -q

@@ -1,5 +1,6 @@
 """Commands of the synthetic data: closed-form (a capture known in closed form), synth (one
-Mitsuba capture), synth-set (the corpus), synth-photos (a textured photo set), shape (a mesh)."""
+Mitsuba capture), synth-set (the corpus), synth-photos (a textured photo set), synth-studio (a
+path-traced photo set of a multi-material object), shape (a mesh)."""
 
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ if TYPE_CHECKING:
     from damcap.synth.corpus import CorpusOptions
     from damcap.synth.mitsuba_capture import SynthOptions
     from damcap.synth.photos import PhotoSetOptions
+    from damcap.synth.studio import StudioOptions
 
 
 @command("closed-form", opts="damcap.synth.closed_form:ClosedFormOptions")
@@ -121,6 +123,26 @@ def synth_photos(
     names = make_photo_set(out, opts)
     where = " in a textured room" if opts.room else ""
     typer.echo(f"wrote {len(names)} photos ({opts.motion}{where}), masks and transforms.json (ground truth, object frame) to {out}")
+
+
+@command("synth-studio", opts="damcap.synth.studio:StudioOptions")
+def synth_studio(
+    out: Path = typer.Argument(..., help="new folder for images/, masks/ and transforms.json (a rerun resumes it)"),
+    *,
+    opts: StudioOptions,
+) -> None:
+    """Photograph a multi-material object on a textured board under an environment map, path traced
+    by Mitsuba 3: JPEGs with EXIF exposure, masks, ground-truth cameras and the scene's materials
+    (the input of damcap reconstruct; samples/photos_studio, make demo)."""
+    from damcap.synth.studio import make_studio_photos
+
+    check_paths([Path(opts.object), Path(opts.env)] if opts.object and opts.env else [], [folder_out(out)])
+    opts.validate()
+    bar = progress_bar(opts.views, "synth-studio")
+    with on_interrupt(lambda: f"the photos written so far are kept; rerun the same command to finish {out}"):
+        names = make_studio_photos(out, opts, progress=lambda k, n: bar(k, n, {}))
+    typer.echo(f"wrote {len(names)} photos of {Path(opts.object).name} ({opts.materials}) under {Path(opts.env).name}, "
+               f"masks and transforms.json (ground-truth cameras and materials) to {out}")
 
 
 @command()

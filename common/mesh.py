@@ -309,11 +309,16 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     return Mesh(verts.astype(np.float32), tris, normals.astype(np.float32), g)
 
 
+FILE_VERTEX_TOL = 1e-5
+"""a loaded vertex is a file vertex when they lie within this fraction of the mesh's extent"""
+
+
 def file_vertex_order(path: str | os.PathLike, loaded_vertices: np.ndarray) -> tuple[np.ndarray, int]:
     """Where each vertex :func:`load_mesh` returned sits in the file: per-vertex data written in the
     file's vertex order (``damcap export --labels``) is read through this. Open3D's OBJ reader
     splits and reorders vertices, and :func:`load_mesh`'s clean-up merges and drops some; positions
-    identify them (the first file vertex wins where several coincide).
+    identify them, within :data:`FILE_VERTEX_TOL` of the mesh's extent (the first file vertex wins
+    where several coincide).
 
     Args:
         path: the mesh file.
@@ -325,9 +330,16 @@ def file_vertex_order(path: str | os.PathLike, loaded_vertices: np.ndarray) -> t
     Raises:
         DamcapError: a loaded vertex matches no file vertex.
     """
-    file_v = np.ascontiguousarray(read_mesh(path).vertices, np.float32)
-    first = {row.tobytes(): i for i, row in reversed(list(enumerate(file_v)))}
-    order = np.array([first.get(r.tobytes(), -1) for r in np.ascontiguousarray(loaded_vertices, np.float32)], np.int64)
+    from scipy.spatial import cKDTree
+
+    file_v = np.asarray(read_mesh(path).vertices, np.float64)
+    loaded = np.asarray(loaded_vertices, np.float64)
+    # the two readers parse the same text into floats that may differ in the last bits (measured:
+    # 1.2e-7 on a unit torus) and in the sign of zero: match within a tolerance, not bit for bit
+    extent = float(np.ptp(file_v, axis=0).max()) if len(file_v) else 0.0
+    tol = FILE_VERTEX_TOL * max(extent, 1e-30)
+    near = cKDTree(file_v).query_ball_point(loaded, tol) if len(file_v) else [[] for _ in loaded]
+    order = np.array([min(c) if c else -1 for c in near], np.int64)
     if (order < 0).any():
         raise DamcapError(f"{path}: {int((order < 0).sum())} of the loaded mesh's vertices match no vertex of the file; "
                           "per-vertex data in the file's order cannot be placed on it")

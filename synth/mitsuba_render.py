@@ -139,6 +139,18 @@ class SphereLight:
     """emitted radiance (white), W / (m^2 sr)"""
 
 
+@dataclass(frozen=True)
+class Board:
+    """A textured square the object stands on (a turntable board or a printed mat), diffuse."""
+
+    y: float
+    """height of the board's plane (world y), scene units"""
+    half_size: float
+    """half its edge, scene units"""
+    albedo: np.ndarray
+    """(R, R, 3) float32 linear albedo texture in [0, 1) over the square, row 0 at -z"""
+
+
 def mesh_part(mi: Any, name: str, mesh: Mesh, normals: np.ndarray, bsdf: Any) -> Any:
     """A Mitsuba mesh built from arrays (works in every variant).
 
@@ -161,16 +173,18 @@ def mesh_part(mi: Any, name: str, mesh: Mesh, normals: np.ndarray, bsdf: Any) ->
     return shape
 
 
-def build_scene(parts: list[tuple[Mesh, np.ndarray] | None], materials: list[LayeredMaterial],
-                light: EnvLight | SphereLight, max_depth: int) -> Any:
+def build_scene(parts: list[tuple[Mesh, np.ndarray] | None], materials: list[LayeredMaterial | dict[str, Any]],
+                light: EnvLight | SphereLight, max_depth: int, board: Board | None = None) -> Any:
     """The Mitsuba scene: one shape per material, the light, a path tracer.
 
     Args:
         parts: per material, its (mesh, vertex normals), or a single ``None`` for the analytic
             unit sphere; shape ids are ``material_0``, ``material_1``, ...
-        materials: one per part.
+        materials: one per part: a :class:`LayeredMaterial`, or a Mitsuba BSDF description
+            (wrapped in ``twosided``).
         light: environment map or spherical area light.
         max_depth: the path tracer's longest path (2 = direct light only).
+        board: a textured square under the object (shape id ``board``), or None.
 
     Returns:
         a ``mitsuba.Scene``.
@@ -180,10 +194,17 @@ def build_scene(parts: list[tuple[Mesh, np.ndarray] | None], materials: list[Lay
     scene: dict[str, Any] = {"type": "scene",
                              "integrator": {"type": "path", "max_depth": int(max_depth), "hide_emitters": True}}
     for k, (part, mat) in enumerate(zip(parts, materials, strict=True)):
+        bsdf = material_dict(mat) if isinstance(mat, LayeredMaterial) else {"type": "twosided", "bsdf": mat}
         if part is None:
-            scene[f"material_{k}"] = {"type": "sphere", "center": [0.0, 0.0, 0.0], "radius": 1.0, "bsdf": material_dict(mat)}
+            scene[f"material_{k}"] = {"type": "sphere", "center": [0.0, 0.0, 0.0], "radius": 1.0, "bsdf": bsdf}
         else:
-            scene[f"material_{k}"] = mesh_part(mi, f"material_{k}", part[0], part[1], mi.load_dict(material_dict(mat)))
+            scene[f"material_{k}"] = mesh_part(mi, f"material_{k}", part[0], part[1], mi.load_dict(bsdf))
+    if board is not None:
+        scene["board"] = {"type": "rectangle",
+                          "to_world": mi.ScalarTransform4f().translate([0.0, float(board.y), 0.0]).rotate([1, 0, 0], -90)
+                          .scale(float(board.half_size)),
+                          "bsdf": {"type": "diffuse", "reflectance": {"type": "bitmap", "raw": True,
+                                                                      "bitmap": mi.Bitmap(np.ascontiguousarray(board.albedo, np.float32))}}}
     if isinstance(light, EnvLight):
         scene["light"] = {"type": "envmap", "filename": light.path, "scale": float(light.scale),
                           "to_world": mi.ScalarTransform4f().rotate([0, 1, 0], float(light.rotation_deg))}

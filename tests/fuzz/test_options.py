@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import pytest
 
+from damcap.common.data_dir import shared_data_dir
 from tests.fuzz.conftest import refused
 
 NAN, INF, NEG, ZERO, HUGE_I, HUGE_F, WORD = "nan", "inf", "-1", "0", "100000000000000000000", "1e300", "abc"
@@ -41,6 +42,8 @@ BASE = {
     "predict": ["predict", f"{W}/cap", "-o", f"{W}/out"],
     "synth": ["synth", f"{W}/out", "--views", "3", "--train-views", "2", "--res", "8", "--spp", "1"],
     "synth-set": ["synth-set", f"{W}/out", "--dry-run", "--data-dir", f"{W}"],
+    "synth-studio": ["synth-studio", f"{W}/out", "--object", f"{W}/mesh.obj", "--env", str(shared_data_dir() / "envmaps" / "studio.hdr"),
+                     "--views", "3", "--size", "16", "--spp", "1"],
 }
 
 OPTIONS = {
@@ -49,7 +52,9 @@ OPTIONS = {
     "fit": {"--target-dssim": [NAN, INF, NEG, ZERO, "1.5", WORD], "--steps": INT_POS, "--batch-size": INT_POS, "--learning-rate": FLOAT_POS,
             "--width": INT_POS, "--depth": INT_POS, "--adversarial-alpha": FLOAT_NONNEG, "--holdout-views": INT_NONNEG + ["2"],
             "--eval-every": INT_POS, "--seed": SEED, "--checkpoint-every": INT_NONNEG, "--weight-decay": FLOAT_NONNEG,
-            "--quantile": FRACTION + ["1"]},
+            "--quantile": FRACTION + ["1"], "--normal-refine-steps": INT_POS, "--normal-refine-voxel-px": FLOAT_POS,
+            "--normal-refine-prior": FLOAT_NONNEG, "--normal-refine-min-gain": [NAN, INF, NEG, "1", WORD],
+            "--normal-refine-min-gain-abs": [NAN, INF, NEG, "1", WORD]},
     "evaluate": {"--kmeans": INT_POS, "--kmeans-steps": INT_POS},
     "hdr": {"--reference-exposure": FLOAT_POS, "--saturation-fraction": FRACTION, "--response-samples": INT_POS, "--smoothness": FLOAT_NONNEG,
             "--flat-fraction": FRACTION, "--sample-phase": [NAN, INF, NEG, "1", WORD], "--iterations": INT_NONNEG},
@@ -80,6 +85,9 @@ OPTIONS = {
     "predict": {"--refine-steps": INT_NONNEG},
     "synth": {"--materials": [ZERO, "9", WORD], "--views": INT_POS, "--res": INT_POS, "--spp": INT_POS, "--elevation": ELEV, "--max-depth": INT_POS},
     "synth-set": {"--jobs": INT_POS},
+    "synth-studio": {"--views": INT_POS + ["2"], "--size": INT_POS, "--spp": INT_POS, "--elevation": ELEV, "--jitter": FLOAT_NONNEG,
+                     "--distance": FLOAT_POS + ["0.5"], "--board-size": FLOAT_POS + ["1"], "--board-saturation": [NAN, INF, NEG, "1.5", WORD],
+                     "--max-depth": INT_POS + ["1"], "--seed": SEED, "--env-rotation-deg": [NAN, INF, "1e300", WORD]},
 }
 
 CASES = [(cmd, opt, v) for cmd, opts in OPTIONS.items() for opt, vals in opts.items() for v in vals]

@@ -117,13 +117,13 @@ def choose_spatial(model: DeepAppearanceMap, views: list[ViewData], opts: FitOpt
 
     Args:
         model: the DAM fitted to ``views`` (its own spatial factor, if any, is ignored).
-        heldout_model: 'auto' decides with this model in place of ``model``: one whose normal
-            field was refined without the held-out views
-            (:attr:`.normal_fit.NormalRefineDecision.heldout_model`), so that they stay held out.
         views: the training views, in the order the fit used (hold-out indices refer to it).
         opts: the fit's options (``spatial``, ``spatial_voxel_px``, ``spatial_prior``,
             ``spatial_min_gain``, ``holdout_views``).
         log: one line per decision.
+        heldout_model: 'auto' decides with this model in place of ``model``: one whose normal
+            field was refined without the held-out views
+            (:attr:`.normal_fit.NormalRefineDecision.heldout_model`), so that they stay held out.
 
     Raises:
         DamcapError: 'auto' without held-out training views; no foreground.

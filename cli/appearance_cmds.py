@@ -88,13 +88,15 @@ def fit(
     frames = adversarial_frames(views, samples, opts)
     if not resume and ckpt.exists():
         ckpt.unlink()
+    say = lambda message: typer.echo(message, err=True)  # noqa: E731
+    # an interrupt during the refinement or the spatial factor keeps the fit's checkpoint too: a rerun resumes the fit, then redoes them
     with on_interrupt(lambda: _checkpoint_kept(ckpt, opts.checkpoint_every)):
         result = fit_dam(samples, opts, frames_for_adversarial=frames, checkpoint_path=ckpt, progress=progress_bar(opts.steps, "fit"),
-                         log=lambda message: typer.echo(message, err=True), remove_checkpoint=False)
+                         log=say, remove_checkpoint=False)
+        normals = choose_normal_refine(result.model, views, opts, log=say,
+                                       progress=_bar_per_run(opts.normal_refine_steps, "normal refinement"))
+        spatial = choose_spatial(normals.model, views, opts, log=say, heldout_model=normals.heldout_model)
     last = result.history[-1] if result.history else {}
-    say = lambda message: typer.echo(message, err=True)  # noqa: E731
-    normals = choose_normal_refine(result.model, views, opts, log=say, progress=_bar_per_run(opts.normal_refine_steps, "normal refinement"))
-    spatial = choose_spatial(normals.model, views, opts, log=say, heldout_model=normals.heldout_model)
     save_dam(output, spatial.model, colorspace=cap.colorspace, made_by="fit", provenance={
         "damcap_version": damcap_version(), "options": asdict(opts), "capture": str(capture.resolve()),
         "split": split, "frames": [v.name for v in views], "pixels": len(samples), "best_step": result.best_step,

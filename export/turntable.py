@@ -99,10 +99,10 @@ def orbit_up(up_option: str, model_ups: list[np.ndarray | None]) -> tuple[np.nda
         up_option: ``OrbitOptions.up``.
         model_ups: each model's recorded up direction (None where it records none).
 
-    >>> orbit_up("model", [np.array([0.0, 0.0, 1.0]), None])[:2]
-    (array([0., 0., 1.]), 'model')
-    >>> orbit_up("model", [None])[:2]
-    (array([0., 1., 0.]), 'default')
+    >>> up, source, _ = orbit_up("model", [np.array([0.0, 0.0, 1.0]), None]); up.tolist(), source
+    ([0.0, 0.0, 1.0], 'model')
+    >>> up, source, _ = orbit_up("model", [None]); up.tolist(), source
+    ([0.0, 1.0, 0.0], 'default')
     """
     given = parse_up(up_option)
     if given is not None:

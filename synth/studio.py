@@ -129,11 +129,14 @@ def studio_object(opts: StudioOptions) -> tuple[Mesh, np.ndarray, np.ndarray]:
     return mesh, normals, labels
 
 
-def _record(opts: StudioOptions, mesh: Mesh, labels: np.ndarray, env_scale: float) -> dict[str, Any]:
+def _record(opts: StudioOptions, mesh: Mesh, labels: np.ndarray, env_scale: float, gain: float, median_factor: float) -> dict[str, Any]:
     names = opts.material_names()
     return {"options": asdict(opts), "object_file": Path(opts.object).name, "env_file": Path(opts.env).name,
             "env_scale": env_scale, "materials": [{"name": n, "bsdf": STUDIO_MATERIALS[n]} for n in names],
-            "face_share": np.bincount(labels, minlength=len(names)).tolist(), "faces": len(mesh.triangles)}
+            "face_share": np.bincount(labels, minlength=len(names)).tolist(), "faces": len(mesh.triangles),
+            # a photo's linear value (before the sRGB curve, 8-bit rounding and clipping at 1) is the
+            # rendered radiance x exposure_gain x its EXIF factor (time x ISO / f-number^2)
+            "exposure_gain": gain, "median_exposure_factor": median_factor}
 
 
 def make_studio_photos(out: str | os.PathLike, opts: StudioOptions, progress: Callable[[int, int], None] | None = None) -> list[str]:
@@ -198,7 +201,7 @@ def make_studio_photos(out: str | os.PathLike, opts: StudioOptions, progress: Ca
         if progress:
             progress(k + 1, opts.views)
     write_json_atomic(out / "transforms.json", {"camera_model": "OPENCV", **intr.to_json(), "frames": frames,
-                                                "damcap_studio": _record(opts, mesh, labels, 1.0 / mean)})
+                                                "damcap_studio": _record(opts, mesh, labels, 1.0 / mean, float(gain), median_factor)})
     marker.unlink()
     gain_file.unlink(missing_ok=True)
     return photos

@@ -70,7 +70,11 @@ def test_fit_ctrl_c_console_script(work):
     out = work / "o.dam"
     ckpt = Path(str(out) + ".ckpt")
     exe = Path(sys.executable).parent / "damcap"
-    p = subprocess.Popen([str(exe), "fit", str(work / "cap"), "-o", str(out), *FIT], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # as from a terminal: SIGINT at its default, even when this test run was started in the
+    # background by a shell without job control (which starts it, and so every child, with SIGINT
+    # ignored: Python then installs no KeyboardInterrupt handler and Ctrl-C does nothing)
+    p = subprocess.Popen([str(exe), "fit", str(work / "cap"), "-o", str(out), *FIT], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     t0 = time.monotonic()
     while not ckpt.is_file() and time.monotonic() - t0 < 40 and p.poll() is None:
         time.sleep(0.05)

@@ -57,6 +57,7 @@ def test_a_small_set_is_photographed_with_masks_cameras_and_materials(inputs, tm
     t = json.loads((tmp_path / "set" / "transforms.json").read_text())
     assert [m["name"] for m in t["damcap_studio"]["materials"]] == ["blue-plastic", "copper"]
     assert all(s > 0 for s in t["damcap_studio"]["face_share"]) and not (tmp_path / "set" / PARTIAL_MARKER).exists()
+    assert t["damcap_studio"]["exposure_gain"] > 0 and t["damcap_studio"]["median_exposure_factor"] > 0
     mesh, normals, labels = studio_object(opts)
     assert np.bincount(labels).tolist() == t["damcap_studio"]["face_share"]
     intr: Intrinsics = default_intrinsics(48)

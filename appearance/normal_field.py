@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from damcap.appearance.spatial import KEY_BITS, corner_lookup, trilinear_corners
+from damcap.appearance.spatial import corner_lookup, grid_problem, trilinear_corners
 
 OFFSET_MAX = 100.0
 """the longest offset a file may store (a tangent of length 100 tilts a normal by 89.4 deg);
@@ -36,17 +36,10 @@ class NormalField:
 
     def problem(self) -> str | None:
         """Why these arrays cannot be a normal field (None when they can)."""
-        o, k, off = self.origin_world, self.keys, self.offset
-        if o.shape != (3,) or not np.isfinite(o).all():
-            return f"origin must be 3 finite numbers, got shape {o.shape}"
-        if not (np.isfinite(self.voxel_size) and self.voxel_size > 0):
-            return f"voxel size must be positive and finite, got {self.voxel_size!r}"
-        if k.ndim != 1 or off.shape != (k.shape[0], 3):
-            return f"keys {k.shape} and offsets {off.shape} must be (M,) and (M, 3)"
-        if k.size and (k.min() < 0 or k.max() >= 1 << (3 * KEY_BITS) or (np.diff(k) <= 0).any()):
-            return "corner keys must be sorted, unique and within 63 bits"
-        if not np.isfinite(off).all():
-            return "offsets contain NaN or inf"
+        off = self.offset
+        grid = grid_problem(self.origin_world, self.voxel_size, self.keys, off, "offset")
+        if grid:
+            return grid
         if off.size and float(np.abs(off).max()) > OFFSET_MAX:
             return f"offsets reach {float(np.abs(off).max()):.3g}, more than {OFFSET_MAX:g}"
         return None

@@ -31,7 +31,7 @@ from damcap.appearance.dam import DeepAppearanceMap
 from damcap.appearance.fit import FitOptions, holdout_frames
 from damcap.appearance.normal_field import NormalField
 from damcap.appearance.normal_refine import refine_normals
-from damcap.appearance.spatial_fit import mean_dssim, training_footprint
+from damcap.appearance.spatial_fit import mean_dssim, pays_on_heldout, training_footprint
 from damcap.appearance.views import ViewData, positions_of, samples_of
 
 
@@ -125,8 +125,7 @@ def choose_normal_refine(model: DeepAppearanceMap, views: list[ViewData], opts: 
         assert probe is not None
         held_views = [views[k] for k in held]
         scores = {"off": mean_dssim(base, held_views), "on": mean_dssim(probe, held_views)}
-        gain = scores["off"] - scores["on"]
-        if not (gain >= opts.normal_refine_min_gain * scores["off"] and gain >= opts.normal_refine_min_gain_abs):
+        if not pays_on_heldout(scores["off"], scores["on"], opts.normal_refine_min_gain, opts.normal_refine_min_gain_abs):
             decision = NormalRefineDecision(base, "auto", False, footprint, voxel, scores, time.perf_counter() - t0)
             if log:
                 log(decision.summary())

@@ -55,21 +55,32 @@ class SpatialAlbedo:
 
     def problem(self) -> str | None:
         """Why these arrays cannot be a spatial factor (None when they can)."""
-        o, k, la = self.origin_world, self.keys, self.log_albedo
-        if o.shape != (3,) or not np.isfinite(o).all():
-            return f"origin must be 3 finite numbers, got shape {o.shape}"
-        if not (np.isfinite(self.voxel_size) and self.voxel_size > 0):
-            return f"voxel size must be positive and finite, got {self.voxel_size!r}"
-        if k.ndim != 1 or la.shape != (k.shape[0], 3):
-            return f"keys {k.shape} and log albedo {la.shape} must be (M,) and (M, 3)"
-        if k.size and (k.min() < 0 or k.max() >= 1 << (3 * KEY_BITS) or (np.diff(k) <= 0).any()):
-            return "corner keys must be sorted, unique and within 63 bits"
-        if not np.isfinite(la).all():
-            return "log albedo contains NaN or inf"
+        la = self.log_albedo
+        grid = grid_problem(self.origin_world, self.voxel_size, self.keys, la, "log albedo")
+        if grid:
+            return grid
         lo, hi = LOG_ALBEDO_RANGE
         if la.size and (la.min() < lo or la.max() > hi):
             return f"log albedo {float(la.min()):.3g}..{float(la.max()):.3g} lies outside [{lo}, {hi}]"
         return None
+
+
+def grid_problem(origin_world: np.ndarray, voxel_size: float, keys: np.ndarray, values: np.ndarray, what: str) -> str | None:
+    """Why arrays cannot be a sparse corner grid (this module's, or :class:`.normal_field.NormalField`'s):
+    origin, voxel size, (M,) keys sorted, unique and in range, (M, 3) finite ``values`` (named
+    ``what`` in the message). None when they can."""
+    o, k = origin_world, keys
+    if o.shape != (3,) or not np.isfinite(o).all():
+        return f"origin must be 3 finite numbers, got shape {o.shape}"
+    if not (np.isfinite(voxel_size) and voxel_size > 0):
+        return f"voxel size must be positive and finite, got {voxel_size!r}"
+    if k.ndim != 1 or values.shape != (k.shape[0], 3):
+        return f"keys {k.shape} and {what} {values.shape} must be (M,) and (M, 3)"
+    if k.size and (k.min() < 0 or k.max() >= 1 << (3 * KEY_BITS) or (np.diff(k) <= 0).any()):
+        return "corner keys must be sorted, unique and within 63 bits"
+    if not np.isfinite(values).all():
+        return f"{what} contains NaN or inf"
+    return None
 
 
 def pack_keys(ijk: np.ndarray) -> np.ndarray:

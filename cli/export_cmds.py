@@ -113,7 +113,7 @@ def _check_onnx(ort, dam, staged: Path, path: Path) -> float:
     return err
 
 
-def _spatial_on_shape(dams, model_paths, mesh_path, vertices):
+def _surface_factors_on_shape(dams, model_paths, mesh_path, vertices):
     """Keep each model's surface factors (spatial factor, normal field) only where the shape is its
     capture's own surface (:data:`.turntable.SURFACE_MIN_SHARE`); say which are dropped and why.
     ``vertices``: the mesh file's own (before the export's centring and scaling)."""
@@ -164,7 +164,7 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
         part = shape.triangle_groups.astype(np.int64)
     if part.max() >= len(dams):
         raise DamcapError(f"{labels or mesh_path}: part {int(part.max())} has no model; give {int(part.max()) + 1} .dam files (one per part)")
-    dams, spatial = _spatial_on_shape(dams, model_paths, mesh_path, raw.vertices)
+    dams, spatial = _surface_factors_on_shape(dams, model_paths, mesh_path, raw.vertices)
     up, up_source, up_note = orbit_up(opts.up, [recorded_up(m) for m in metas])
     if up_note:
         typer.echo(f"note: {up_note}", err=True)

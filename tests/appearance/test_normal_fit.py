@@ -17,15 +17,7 @@ from damcap.appearance.spatial_fit import mean_dssim
 from damcap.appearance.views import ViewData, samples_of
 from damcap.common.errors import DamcapError
 from damcap.synth.closed_form import ClosedFormOptions, Material, environment_lighting, render_closed_form, shade
-
-
-def _bumpy(normal_world: np.ndarray, position_world: np.ndarray, amplitude: float = 0.35) -> np.ndarray:
-    """The sphere's normals tilted by a smooth tangent field of position (period ~1.3)."""
-    p = position_world
-    t = amplitude * np.stack([np.sin(5 * p[..., 1]), np.sin(5 * p[..., 2] + 1), np.sin(5 * p[..., 0] + 2)], -1)
-    t = t - (t * normal_world).sum(-1, keepdims=True) * normal_world
-    n = normal_world + t
-    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+from tests.appearance.conftest import bumpy_normals
 
 
 def _views(bumpy: bool) -> tuple[list[ViewData], list[ViewData]]:
@@ -37,7 +29,7 @@ def _views(bumpy: bool) -> tuple[list[ViewData], list[ViewData]]:
     views = []
     for k, (m, d) in enumerate(zip(cams, frames)):
         fg = d.coverage > 0
-        n = _bumpy(d.normal_world, d.position_world) if bumpy else d.normal_world
+        n = bumpy_normals(d.normal_world, d.position_world) if bumpy else d.normal_world
         v = m[:3, 3] - d.position_world
         v /= np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
         rad = np.zeros_like(d.radiance_lin)

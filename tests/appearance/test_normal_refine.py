@@ -15,15 +15,7 @@ from damcap.appearance.pixels import gather_samples
 from damcap.appearance.spatial_fit import training_footprint
 from damcap.appearance.views import ViewData, positions_of
 from damcap.synth.closed_form import ClosedFormOptions, Material, environment_lighting, render_closed_form, shade
-
-
-def bumpy_normals(normal_world: np.ndarray, position_world: np.ndarray, amplitude: float = 0.35) -> np.ndarray:
-    """The true normals: the sphere's tilted by a smooth tangent field of position (period ~1.3)."""
-    p = position_world
-    t = amplitude * np.stack([np.sin(5 * p[..., 1]), np.sin(5 * p[..., 2] + 1), np.sin(5 * p[..., 0] + 2)], -1)
-    t = t - (t * normal_world).sum(-1, keepdims=True) * normal_world
-    n = normal_world + t
-    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+from tests.appearance.conftest import bumpy_normals
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:

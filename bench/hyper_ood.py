@@ -6,8 +6,8 @@ the analytic sky, the held-out Mitsuba captures of a ``damcap synth-set`` corpus
 interreflection, measured environment maps), and the real cape (the realworld bench's cached
 capture). Per capture: RM++, ``damcap fit`` (default options, timed), each predictor alone and
 the newest one refined 100 / 300 steps (timed, as ``damcap predict --refine-steps K``). With
-``--snapshots``: predict alone for each snapshot of one training run (how out-of-distribution
-error falls with training compute).
+``--snapshots``: predict alone for each snapshot of the predictors' training runs (how
+out-of-distribution error falls with training compute, counted over warm starts).
 
 Targets (issue 28): predict alone at most 1.15x the fit's DSSIM on every kind and never worse
 than RM++; predict + refinement within 2 s at most 1.0x the fit; prediction under 100 ms on CPU.
@@ -15,7 +15,7 @@ than RM++; predict + refinement within 2 s at most 1.0x the fit; prediction unde
 Run (from the repository root)::
 
     .venv/bin/python -m bench.hyper_ood --predictors appearance/hyper/predictors/dam-predictor-v1.safetensors \\
-        appearance/hyper/predictors/dam-predictor-v2.safetensors
+        appearance/hyper/predictors/dam-predictor-v3.safetensors
 
 It writes bench/results/hyper_ood.json and bench/hyper_ood.md (``--out DIR`` elsewhere).
 """
@@ -99,7 +99,6 @@ def summarise(per_capture: list[dict]) -> dict:
 
 def write_markdown(res: dict, path: Path) -> None:
     nets, ks = res["predictors"], res["refine_steps"]
-    newest = nets[-1]
     refined = [f"{n} + {k}" for n in nets for k in ks]
     cols = ["RM++", "fit"] + nets + refined
     lines = ["# The predictor on captures unlike its training set (issue 28)", "",
@@ -127,12 +126,16 @@ def write_markdown(res: dict, path: Path) -> None:
         lines.append(f"| {c} | {statistics.mean(vals):.4f} | x{ratio:.2f} | {below} of {n_caps} |")
     if res["snapshots"]:
         lines += ["", "## Out-of-distribution error against training compute", "",
-                  "Predict alone, mean novel-view DSSIM over all captures above, for snapshots of the newest predictor's training run.", "",
-                  "| snapshot | training step | mean DSSIM |", "|---|---:|---:|"]
-        for name, step in res["snapshots"].items():
+                  "Predict alone, mean novel-view DSSIM over all captures above, for snapshots of the predictors' training runs and "
+                  "the predictors themselves (their best validation step). Total steps count the steps of the predictor a run "
+                  "started from (`train-hyper --init`); every step is one batch of 64 scenes.", "",
+                  "| model | run step | total steps | mean DSSIM |", "|---|---:|---:|---:|"]
+        points = [(name, d["step"], d["total"]) for name, d in res["snapshots"].items()]
+        runs = {name.rsplit(".step", 1)[0] for name in res["snapshots"]}  # predictors whose run has snapshots
+        points += [(n, res["predictor_steps"][n]["step"], res["predictor_steps"][n]["total"]) for n in nets if n in runs]
+        for name, step, total in sorted(points, key=lambda x: x[2]):
             vals = [r["novel"][name] for r in res["per_capture"]]
-            lines.append(f"| {name} | {step} | {statistics.mean(vals):.4f} |")
-        lines.append(f"| {newest} (best step) | | {statistics.mean(r['novel'][newest] for r in res['per_capture']):.4f} |")
+            lines.append(f"| {name} | {step} | {total} | {statistics.mean(vals):.4f} |")
     lines += ["", "## Per capture", "", "| kind | capture | " + " | ".join(cols) + " |", "|---|---|" + "---:|" * len(cols)]
     for r in res["per_capture"]:
         lines.append(f"| {r['kind']} | {Path(r['capture']).name} | " + " | ".join(f"{r['novel'][c]:.4f}" for c in cols) + " |")
@@ -142,7 +145,8 @@ def write_markdown(res: dict, path: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--predictors", type=Path, nargs="+", required=True, help="predictor files; the last is the newest")
-    ap.add_argument("--snapshots", type=Path, nargs="*", default=[], help="snapshots of the newest predictor's run (NAME.stepN.safetensors)")
+    ap.add_argument("--snapshots", type=Path, nargs="*", default=[], help="snapshots of the predictors' training runs (NAME.stepN.safetensors, "
+                    "counted after the steps of the predictor NAME started from)")
     ap.add_argument("--corpus", type=Path, default=CACHE / "synth_small", help="synth-set corpus whose held-out captures are used")
     ap.add_argument("--real", type=Path, nargs="*", default=[CACHE / "reconstruct" / "realworld" / "cape-8-256"])
     ap.add_argument("--refine-steps", type=int, nargs="+", default=[100, 300])
@@ -153,18 +157,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
     torch.set_num_threads(2)
-    nets, info = {}, {}
+    nets, info, before, pred_steps = {}, {}, {}, {}
     for p in args.predictors:
         net, meta = load_predictor(p)
         name = p.stem
         nets[name] = net
         tr = meta.get("training", {})
-        info[name] = f"input views {net.arch.input_views}, {tr.get('seconds', float('nan')):.0f} s of training"
+        init = tr.get("init") or {}
+        before[name] = int(init.get("steps", 0))
+        info[name] = (f"input views {net.arch.input_views}, {tr.get('seconds', float('nan')):.0f} s of training"
+                      + (f" on {tr['launcher']['device']}" if tr.get("launcher", {}).get("device") else "")
+                      + (f", started from {init['file']} ({before[name]} steps, {init.get('seconds', 0):.0f} s)" if init else ""))
+        if isinstance(tr.get("best_step"), int):
+            pred_steps[name] = {"step": tr["best_step"], "total": tr["best_step"] + before[name]}
     snaps, snap_steps = {}, {}
     for p in args.snapshots:
         net, meta = load_predictor(p)
         snaps[p.stem] = net
-        snap_steps[p.stem] = meta.get("training", {}).get("snapshot_step")
+        step = int(meta.get("training", {}).get("snapshot_step"))
+        run = p.stem.rsplit(".step", 1)[0]  # NAME.stepN: the run of predictor NAME
+        snap_steps[p.stem] = {"step": step, "total": step + before.get(run, 0)}
     captures = closed_form_captures(args.cache, args.closed_form, args.res)
     if (args.corpus / "corpus.json").exists():
         captures += [("Mitsuba held-out", path) for path, e in heldout_entries([args.corpus]) if int(e.get("materials", 1)) == 1]
@@ -176,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     res = {"command": command_line("hyper_ood", argv if argv is not None else __import__("sys").argv[1:]),
            "machine": machine_info(), "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
            "predictors": list(nets), "predictor_info": info, "refine_steps": args.refine_steps,
-           "snapshots": snap_steps, "per_capture": per, "summary": summarise(per)}
+           "snapshots": snap_steps, "predictor_steps": pred_steps, "per_capture": per, "summary": summarise(per)}
     out_json = (args.out or RESULTS) / "hyper_ood.json"
     out_md = (args.out or BENCH) / "hyper_ood.md"
     out_json.parent.mkdir(parents=True, exist_ok=True)

@@ -1,18 +1,23 @@
 #!/usr/bin/env bash
-# The recipe of the shipped predictor (appearance/hyper/predictors/dam-predictor-v2): train it on
+# The recipe of the shipped predictors (appearance/hyper/predictors/dam-predictor-v2, -v3): train on
 # random closed-form scenes rendered on the fly on the training device (a GPU where one is
 # present), for a wall-clock budget: 20 calibration steps measure the seconds per step, then the
 # run takes as many steps as fit the budget, writing snapshots at 1/4, 1/2 and 3/4 of it
 # (bench/hyper.py scores them: out-of-distribution error against training compute).
 #
-# usage: bench/train_predictor.sh OUT_DIR [SECONDS] [extra train-hyper options, which win]
-# e.g. on a GPU:      bench/train_predictor.sh runs/v2 390
+# usage: [NAME=dam-predictor-vN] bench/train_predictor.sh OUT_DIR [SECONDS] [extra train-hyper options, which win]
+# e.g. on a GPU:      NAME=dam-predictor-v2 bench/train_predictor.sh runs/v2 390
+#      v3 = v2 trained further (v2 from the history: git show f25b5a5:appearance/hyper/predictors/dam-predictor-v2.safetensors):
+#                        NAME=dam-predictor-v3 bench/train_predictor.sh runs/v3 470 --init v2.safetensors --learning-rate 2e-4
+# On a machine where damcap is not installed, put it on the module path first (a damcap/ folder
+# whose rooms link to the repository's; see docs/learning-to-learn.md) and run from outside the repository.
 #      several GPUs:  PYTHON="torchrun --nproc-per-node 4 -m" would need the module form below
 set -euo pipefail
 out=$1
 budget=${2:-390}
 shift $(( $# >= 2 ? 2 : 1 ))
 py=${PYTHON:-python3}
+name=${NAME:-dam-predictor-v3}
 mkdir -p "$out"
 recipe=(--procedural 1 --input-views 4 --input-size 128 --channels 16,32,64,128,128,256,256 --batch-size 64
         --pixels 4096 --learning-rate 5e-4 --scene-px 128 --scene-env-grid 8 --val-scenes 128 --device auto)
@@ -21,7 +26,7 @@ $py -m damcap.cli.main train-hyper -o "$out/calib.safetensors" "${recipe[@]}" --
 steps=$($py -c "import json; d = json.load(open('$out/calib.json')); print(max(100, int($budget / (d['seconds'] / 20)) // 100 * 100))")
 rm -f "$out"/calib.*
 echo "calibrated: $steps steps fit $budget s"
-$py -m damcap.cli.main train-hyper -o "$out/dam-predictor-v2.safetensors" "${recipe[@]}" --steps "$steps" \
+$py -m damcap.cli.main train-hyper -o "$out/$name.safetensors" "${recipe[@]}" --steps "$steps" \
     --eval-every $(( steps / 20 )) --checkpoint-every $(( steps / 10 )) --snapshot-every $(( steps / 4 )) "$@" 2>&1 \
     | grep -v "it/s\]" | tail -30
-rm -f "$out"/dam-predictor-v2.step"$steps".safetensors  # the last snapshot is the run's end; the predictor is its best step
+rm -f "$out/$name.step$steps.safetensors"  # the last snapshot is the run's end; the predictor is its best step

@@ -79,7 +79,7 @@ def train_hyper_cmd(
         "corpus": str(dataset.resolve()) if dataset is not None else None, "train_captures": result.train_captures,
         "val_captures": result.val_captures, "options": {**asdict(opts), "channels": list(opts.channels)},
         "scenes": asdict(scene) if opts.procedural > 0 else None, "curve": result.curve, "best_step": result.best_step,
-        "seconds": result.seconds, "resumed_from": result.resumed_from, "rank_weight_sha256": result.rank_weight_sha256,
+        "seconds": result.seconds, "init": result.init, "resumed_from": result.resumed_from, "rank_weight_sha256": result.rank_weight_sha256,
     }
     try:
         preset = json.loads((dataset / "corpus.json").read_text()).get("preset", {}).get("name") if dataset is not None else None
@@ -102,13 +102,13 @@ def predict(
     view: Optional[str] = typer.Option(None, "--view", help="(first) input frame (a train-split file_path or its stem); default: the best "
                                        "covered lit one; a predictor reading several views adds the lit views that spread the cameras most"),
     predictor: Optional[str] = typer.Option(None, "--predictor", help="predictor file, or a shipped one by name: v1 (one view, "
-                                            "trained on Mitsuba captures) or v2 (up to 4 views, random closed-form scenes); "
+                                            "trained on Mitsuba captures) or v3 (up to 4 views, random closed-form scenes); "
                                             "default: the shipped default (docs/learning-to-learn.md)"),
     device: str = typer.Option("cpu", help="cpu | cuda | auto"),
     *,
     opts: PredictOptions,
 ) -> None:
-    """Predict a deep appearance map from one view (a set of views with predictor v2) in
+    """Predict a deep appearance map from one view (a set of views with predictor v3) in
     milliseconds, say how well it re-synthesises the train views (and whether to refine),
     optionally refine it."""
     from damcap.appearance.dam_file import save_dam

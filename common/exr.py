@@ -5,14 +5,21 @@ from __future__ import annotations
 import errno
 import os
 from pathlib import Path
-from typing import Literal, Mapping, Sequence
+from typing import Any, Literal, Mapping, Sequence
 
 import numpy as np
-import OpenImageIO as oiio
 
 from damcap.common.atomic import atomic_path
 from damcap.common.errors import DamcapError
 from damcap.common.native_stderr import native_stderr_caught
+
+
+def _oiio():
+    """OpenImageIO, imported on first use (commands that read or write no image, such as
+    ``train-hyper --procedural 1``, then run where it is not installed, e.g. a bare GPU machine)."""
+    import OpenImageIO
+
+    return OpenImageIO
 
 
 def _one_line(message: str, path: Path) -> str:
@@ -58,9 +65,9 @@ def read_exr(path: str | os.PathLike) -> tuple[np.ndarray, tuple[str, ...]]:
     path = Path(path)
     if not path.is_file():
         raise DamcapError(f"{path}: file not found")
-    inp = oiio.ImageInput.open(str(path))
+    inp = _oiio().ImageInput.open(str(path))
     if inp is None:
-        raise DamcapError(f"{path}: cannot read image ({_one_line(oiio.geterror(), path)})")
+        raise DamcapError(f"{path}: cannot read image ({_one_line(_oiio().geterror(), path)})")
     try:
         spec = inp.spec()
         check_header_size(path, spec.width, spec.height, spec.nchannels, 4)
@@ -112,7 +119,7 @@ def write_exr(
     if pixels.ndim != 3 or pixels.shape[2] != len(channel_names):
         raise ValueError(f"pixels shape {pixels.shape} does not match channels {list(channel_names)}")
     h, w, c = pixels.shape
-    spec = oiio.ImageSpec(w, h, c, dtype)
+    spec = _oiio().ImageSpec(w, h, c, dtype)
     spec.channelnames = tuple(channel_names)
     spec.attribute("compression", "zip")
     for key, value in (attributes or {}).items():
@@ -120,13 +127,13 @@ def write_exr(
     _write_atomic(path, spec, np.ascontiguousarray(pixels))
 
 
-def _write_atomic(path: str | os.PathLike, spec: "oiio.ImageSpec", pixels: np.ndarray) -> None:
+def _write_atomic(path: str | os.PathLike, spec: Any, pixels: np.ndarray) -> None:
     """Write pixels with an OpenImageIO spec to a temporary file renamed onto ``path``; the
     format follows ``path``'s extension."""
     with atomic_path(path) as tmp:
-        out = oiio.ImageOutput.create(str(tmp))
+        out = _oiio().ImageOutput.create(str(tmp))
         if out is None:
-            raise DamcapError(f"{path}: cannot create image writer ({oiio.geterror().strip()})")
+            raise DamcapError(f"{path}: cannot create image writer ({_oiio().geterror().strip()})")
         try:
             if not (out.open(str(tmp), spec) and out.write_image(pixels)):
                 raise DamcapError(f"{path}: cannot write image ({out.geterror().strip()})")
@@ -143,7 +150,7 @@ def _verify_written(tmp: Path, path: str | os.PathLike) -> None:
         OSError: ENOSPC naming ``path`` (the caller's one line for a full disk).
     """
     with native_stderr_caught():
-        inp = oiio.ImageInput.open(str(tmp))
+        inp = _oiio().ImageInput.open(str(tmp))
         ok = inp is not None and inp.read_image() is not None and not inp.geterror()
         if inp is not None:
             inp.close()
@@ -162,7 +169,7 @@ def write_image_u8(path: str | os.PathLike, pixels_u8: np.ndarray, attributes: M
     if px.ndim == 2:  # OpenImageIO reads a 2-D array's second axis as channels
         px = px[..., None]
     h, w, c = px.shape
-    spec = oiio.ImageSpec(w, h, c, "uint8")
+    spec = _oiio().ImageSpec(w, h, c, "uint8")
     spec.attribute("oiio:UnassociatedAlpha", 1)
     for key, value in (attributes or {}).items():
         spec.attribute(key, value)
@@ -179,10 +186,10 @@ def read_image_u8(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise DamcapError(f"{path}: {'is a folder, not an image' if path.is_dir() else 'file not found'}")
-    config = oiio.ImageSpec()
+    config = _oiio().ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)
     with native_stderr_caught() as printed:  # libpng prints its own lines on a damaged PNG
-        inp = oiio.ImageInput.open(str(path), config)
+        inp = _oiio().ImageInput.open(str(path), config)
         if inp is not None:
             try:
                 spec = inp.spec()
@@ -192,7 +199,7 @@ def read_image_u8(path: str | os.PathLike) -> np.ndarray:
             finally:
                 inp.close()
     if inp is None:
-        raise DamcapError(f"{path}: cannot read image ({_one_line(oiio.geterror() or chr(10).join(printed), path)})")
+        raise DamcapError(f"{path}: cannot read image ({_one_line(_oiio().geterror() or chr(10).join(printed), path)})")
     if px is None or err:
         raise DamcapError(f"{path}: cannot read pixels, the file is damaged or truncated "
                           f"({_one_line(err or chr(10).join(printed) or 'no data', path)})")

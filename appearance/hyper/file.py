@@ -28,12 +28,13 @@ PREDICTOR_FORMAT_VERSION = 1
 KIND = "dam-predictor"
 SHIPPED = {
     "v1": "dam-predictor-v1.safetensors",
-    "v2": "dam-predictor-v2.safetensors",
+    "v3": "dam-predictor-v3.safetensors",
 }
 """the trained predictors shipped in ``damcap.appearance.hyper/predictors/`` by name (each one's
-recipe: the .json beside it; docs/learning-to-learn.md compares them): v1 read one view and was
-trained on 202 Mitsuba captures; v2 reads up to 4 views and was trained on random closed-form
-scenes rendered on a GPU"""
+recipe: the .json beside it; docs/learning-to-learn.md compares them): v1 reads one view and was
+trained on 202 Mitsuba captures; v3 reads up to 4 views and was trained on random closed-form
+scenes rendered on a GPU (v2, 900 steps, trained 700 steps further; v2 itself is no longer
+shipped: it is in the repository's history at commit f25b5a5)"""
 DEFAULT_SHIPPED = "v1"
 """the predictor ``damcap predict`` uses when none is named"""
 SHIPPED_NAME = SHIPPED[DEFAULT_SHIPPED]
@@ -52,10 +53,10 @@ def shipped_predictor_path(name: str = DEFAULT_SHIPPED) -> Path:
 
 def predictor_path(choice: str | os.PathLike | None) -> Path:
     """The predictor a ``--predictor`` value names: None = the default shipped one, a shipped
-    name (``v1``, ``v2``), or a file path.
+    name (``v1``, ``v3``), or a file path.
 
-    >>> predictor_path("v2").name, predictor_path("my.safetensors").name
-    ('dam-predictor-v2.safetensors', 'my.safetensors')
+    >>> predictor_path("v3").name, predictor_path("my.safetensors").name
+    ('dam-predictor-v3.safetensors', 'my.safetensors')
     """
     if choice is None:
         return shipped_predictor_path()

@@ -95,6 +95,10 @@ class HyperTrainOptions:
     val_scenes: int = field(default=64, metadata=in_range(0, 100_000))
     """random closed-form scenes (fixed, never trained on) scored by the validation curve when
     ``--procedural`` is above 0"""
+    init: str = ""
+    """predictor file, or a shipped one by name (v1, v3), whose weights start the run instead of a
+    random initialisation: trains a predictor further (the architecture options must match it;
+    the learning-rate schedule starts afresh). '' = random initialisation"""
     grad_clip: float = field(default=1.0, metadata=in_range(0, 1e6))
     """largest gradient norm of a step (0 = no clipping): a hypernetwork's output weights
     multiply through the DAM's layers, so one bad batch can otherwise throw it far off"""
@@ -144,6 +148,8 @@ class HyperTrainResult:
     val_captures: list[str] = field(default_factory=list)
     device: str = "cpu"
     """what trained it: 'cpu', or the GPU's name"""
+    init: dict[str, Any] | None = None
+    """the predictor the run started from (:func:`init_weights`'s record), None = random weights"""
 
 
 MIN_INPUT_BRIGHTNESS = 0.1
@@ -378,6 +384,41 @@ def validation_scenes_l1(net: HyperNet, batches: list[Batch]) -> float:
     return total
 
 
+def held_out_l1(corpus_l1: float | None, scenes_l1: float | None) -> float:
+    """The validation number the best step is chosen by: the mean of the validation sets the run
+    has (None = the run has no such set), NaN when any of them is not finite (a diverged net).
+
+    >>> held_out_l1(0.2, None), held_out_l1(0.2, 0.4), held_out_l1(float("nan"), 0.4), held_out_l1(None, None)
+    (0.2, 0.30000000000000004, nan, nan)
+    """
+    present = [x for x in (corpus_l1, scenes_l1) if x is not None]
+    if not present or not all(math.isfinite(x) for x in present):
+        return math.nan
+    return float(np.mean(present))
+
+
+def init_weights(choice: str, arch: HyperArchitecture) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """The weights a run starts from (``--init``) and their record for the recipe: file, weight
+    digest, and the steps and seconds of training already in them (so compute adds up).
+
+    Raises:
+        DamcapError: the file is not a readable predictor, or its architecture is not ``arch``.
+    """
+    from damcap.appearance.hyper.file import load_predictor, predictor_path
+
+    path = predictor_path(choice)
+    net, meta = load_predictor(path)
+    if net.arch != arch:
+        raise DamcapError(f"{path}: --init predictor has architecture {net.arch.to_json()}, but the options ask for {arch.to_json()}; "
+                          f"give the same --input-size, --channels, --encoding and --input-views as it was trained with")
+    training = meta.get("training") or {}
+    prior = training.get("init") or {}
+    steps = int((training.get("options") or {}).get("steps", 0)) + int(prior.get("steps", 0))
+    seconds = float(training.get("seconds", 0.0)) + float(prior.get("seconds", 0.0))
+    record = {"file": path.name, "weights_sha256": weights_sha256(net), "steps": steps, "seconds": seconds}
+    return {k: v.detach().clone() for k, v in net.state_dict().items()}, record
+
+
 def weights_sha256(net: torch.nn.Module) -> str:
     """Digest of a network's parameters (bitwise: equal digests = identical weights)."""
     h = hashlib.sha256()
@@ -479,6 +520,10 @@ def train_hyper(
     with torch.random.fork_rng(devices=[]):  # conv/linear default init, seeded without touching the global RNG
         torch.manual_seed(opts.seed)
         net = HyperNet(arch, torch.Generator().manual_seed(opts.seed))
+    init_record = None
+    if opts.init:  # every rank reads the same file before the DDP wrap, so ranks start identical
+        init_state, init_record = init_weights(opts.init, arch)
+        net.load_state_dict(init_state)
     net.to(device).train()
     model: torch.nn.Module = net
     if world > 1:
@@ -487,7 +532,7 @@ def train_hyper(
         model = DDP(net, device_ids=[device.index] if device.type == "cuda" else None)
     optim = torch.optim.Adam(net.parameters(), lr=opts.learning_rate)
     lr_at = lambda s: opts.learning_rate * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * s / opts.steps)))  # noqa: E731
-    state_key = _options_json(opts, [p.name for p in paths])
+    state_key = _options_json(opts, [p.name for p in paths]) + (init_record["weights_sha256"] if init_record else "")
 
     start, best_val, best_step, curve, elapsed_before = 0, math.inf, 0, [], 0.0
     best_state = {k: v.detach().cpu().clone() for k, v in net.state_dict().items()}
@@ -519,6 +564,11 @@ def train_hyper(
     n_scenes = round(per_rank * opts.procedural) if train else per_rank
     corpus_part = corpus_loader(train, per_rank - n_scenes, opts, rank, start, pin=device.type == "cuda")
     t0 = time.perf_counter()
+    if rank == 0 and init_record and start == 0 and (val or val_scenes):  # the start is a candidate: never worse than --init
+        v_corpus, v_scenes = validation_l1(net, val), validation_scenes_l1(net, val_scenes)
+        best_val = held_out_l1(v_corpus if val else None, v_scenes if val_scenes else None)
+        curve.append({"step": 0, "train_l1": math.nan, "val_l1": best_val, "val_corpus_l1": v_corpus, "val_scenes_l1": v_scenes, "seconds": 0.0})
+        say(f"step 0 (--init {init_record['file']}): validation L1 {best_val:.4f}")
     running = None
     for step in range(start, opts.steps):
         for g in optim.param_groups:
@@ -539,13 +589,14 @@ def train_hyper(
         stats = {"loss": running}
         if rank == 0 and (done % opts.eval_every == 0 or done == opts.steps):
             v_corpus, v_scenes = validation_l1(net, val), validation_scenes_l1(net, val_scenes)
-            held = [x for x in (v_corpus, v_scenes) if math.isfinite(x)]
-            vl = float(np.mean(held)) if held else math.nan
+            vl = held_out_l1(v_corpus if val else None, v_scenes if val_scenes else None)
             curve.append({"step": done, "train_l1": running, "val_l1": vl, "val_corpus_l1": v_corpus, "val_scenes_l1": v_scenes,
                           "seconds": elapsed_before + time.perf_counter() - t0})
-            if not held or vl < best_val:
-                best_val, best_step = (vl if held else math.inf), done
+            if not (val or val_scenes) or vl < best_val:  # a NaN (diverged) validation never replaces the best
+                best_val, best_step = (vl if (val or val_scenes) else math.inf), done
                 best_state = {k: t.detach().cpu().clone() for k, t in net.state_dict().items()}
+            elif not math.isfinite(vl):
+                say(f"step {done}: validation L1 is {vl}: training diverged; the result stays the best step so far ({best_step})")
             stats["val"] = vl
             say(f"step {done}/{opts.steps}: train L1 {running:.4f}, validation L1 {vl:.4f}")
         if rank == 0 and progress:
@@ -574,4 +625,5 @@ def train_hyper(
         dist.destroy_process_group()
     device_name = torch.cuda.get_device_name(device) if device.type == "cuda" else device.type
     return HyperTrainResult(final, curve, best_step if validated else opts.steps, seconds, resumed_from, world, digests,
-                            [p.name for p in train_paths], [p.name for p in val_paths], device_name)
+                            [p.name for p in train_paths], [p.name for p in val_paths], device_name,
+                            init_record)

@@ -15,8 +15,9 @@ def test_ood_study_writes_every_method_per_kind(tmp_path, is_dssim):
     paths = []
     for name, views in (("one", 1), ("set", 2)):
         p = tmp_path / f"{name}.safetensors"
+        started = {"init": {"file": "first.safetensors", "steps": 10, "seconds": 2.0}, "best_step": 7} if name == "set" else {}
         save_predictor(p, HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), input_views=views), torch.Generator().manual_seed(0)),
-                       {"command": "test", "seconds": 1.0})
+                       {"command": "test", "seconds": 1.0, **started})
         paths.append(p)
     snap = tmp_path / "set.step5.safetensors"
     save_predictor(snap, HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), input_views=2)), {"snapshot_step": 5})
@@ -31,8 +32,9 @@ def test_ood_study_writes_every_method_per_kind(tmp_path, is_dssim):
         assert set(r["novel"]) == {"fit", "one", "set", "one + 5", "set + 5", "set.step5", "RM++", "RM"}
         assert all(is_dssim(v) for v in r["novel"].values())
         assert set(r["refine_seconds"]) == {"one + 5", "set + 5"} and r["predict_ms"]["set"] > 0
-    assert doc["snapshots"] == {"set.step5": 5}
+    assert doc["snapshots"] == {"set.step5": {"step": 5, "total": 15}}  # counted after the 10 steps of the predictor it started from
     s = doc["summary"]["closed-form sphere, environment"]
     assert s["captures"] == 1 and s["novel"]["fit"] == doc["per_capture"][1]["novel"]["fit"]
     md = (out / "hyper_ood.md").read_text()
-    assert "| closed-form sphere, environment | 1 |" in md and "| set.step5 | 5 |" in md and "## All captures" in md
+    assert "| closed-form sphere, environment | 1 |" in md and "| set.step5 | 5 | 15 |" in md and "| set | 7 | 17 |" in md
+    assert "## All captures" in md and "| one | " not in md.split("against training compute")[1].split("## Per capture")[0]

@@ -182,3 +182,27 @@ def test_train_hyper_cli_defaults_are_the_options_defaults(tiny_corpus, tmp_path
             run_cli(["train-hyper", tiny_corpus, "-o", tmp_path / "p.safetensors", *args], capsys)
     assert seen[0] == HyperTrainOptions()
     assert seen[1] == dataclasses.replace(HyperTrainOptions(), channels=(4, 8, 8, 8, 8), steps=7)
+
+
+def test_init_starts_from_a_predictor_and_never_ends_worse(tmp_path):
+    """``--init``: the run starts from the file's weights (its step-0 validation is that
+    predictor's own), counts the steps already in it, keeps the start when training does not
+    beat it, and refuses a predictor of another architecture with one line naming the file."""
+    from functools import partial
+
+    from damcap.appearance.hyper.file import save_predictor
+    from damcap.common.errors import DamcapError
+    from damcap.synth.procedural import ProceduralOptions, render_scenes
+
+    scenes = partial(render_scenes, opts=ProceduralOptions(scene_px=24, scene_views_max=8))
+    base = {**TINY, "batch_size": 4, "eval_every": 5, "procedural": 1.0, "val_scenes": 8, "checkpoint_every": 0}
+    first = train_hyper([], HyperTrainOptions(**{**base, "steps": 10, "learning_rate": 3e-3}), scenes=scenes)
+    start = tmp_path / "start.safetensors"
+    save_predictor(start, first.net, {"options": {"steps": 10}, "seconds": 2.5})
+    again = train_hyper([], HyperTrainOptions(**{**base, "steps": 5, "learning_rate": 1.0, "init": str(start)}), scenes=scenes)
+    assert again.curve[0]["step"] == 0 and again.curve[0]["val_l1"] == pytest.approx(min(c["val_l1"] for c in first.curve), rel=1e-5)
+    assert again.init == {"file": "start.safetensors", "weights_sha256": weights_sha256(first.net), "steps": 10, "seconds": 2.5}
+    # a learning rate of 1 throws the weights off: the result is the start, not the wreck
+    assert again.best_step == 0 and weights_sha256(again.net) == weights_sha256(first.net)
+    with pytest.raises(DamcapError, match=r"start\.safetensors: --init predictor has architecture"):
+        train_hyper([], HyperTrainOptions(**{**base, "input_views": 2, "init": str(start)}), scenes=scenes)

@@ -6,7 +6,7 @@ PIP := $(PY) -m pip
 STAMP := $(VENV)/.installed
 APT_PACKAGES := libusb-1.0-0 libllvm19 libgomp1 chromium
 
-.PHONY: demo test wheel-check bench tables system venv clean
+.PHONY: demo test wheel-check bench export-truth tables system venv clean
 
 # System packages the stack needs (open3d: libusb; mitsuba llvm_ad_rgb: libLLVM 19; the viewer's
 # browser test: chromium).
@@ -76,6 +76,10 @@ wheel-check: venv
 BENCHES ?= dam_core export hyper segment registration_sparse registration_gt
 bench: venv
 	@set -e; for b in $(BENCHES); do echo "== python -m bench.$$b"; $(PY) -m bench.$$b; done
+
+# The demo's export against the path-traced truth (bench/export_truth.md; runs the demo first)
+export-truth: demo
+	$(PY) -m bench.export_truth --demo $(DEMO_OUT)
 
 # The paper's Tables 1 and 2 (renders the held-out corpora first when missing; resumable)
 SMALL := bench/.cache/synth_small

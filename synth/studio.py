@@ -26,6 +26,7 @@ from typing import Any, Callable
 import numpy as np
 
 from damcap.common.atomic import write_json_atomic
+from damcap.common.capture_folder import Intrinsics
 from damcap.common.colour import display_srgb8
 from damcap.common.errors import DamcapError
 from damcap.common.exr import read_exr, write_png
@@ -139,14 +140,97 @@ def _record(opts: StudioOptions, mesh: Mesh, labels: np.ndarray, env_scale: floa
             "exposure_gain": gain, "median_exposure_factor": median_factor}
 
 
+def capture_radiance_scale(record: dict[str, Any]) -> float:
+    """What a studio render is multiplied by to be in the units of the capture ``damcap
+    reconstruct`` makes from its photos: a photo's linear value is radiance x ``exposure_gain`` x
+    its EXIF factor, and reconstruct divides the factor out relative to the set's median one.
+
+    >>> capture_radiance_scale({"exposure_gain": 2.0, "median_exposure_factor": 0.25})
+    0.5
+    """
+    return float(record["exposure_gain"]) * float(record["median_exposure_factor"])
+
+
+def env_scale(opts: StudioOptions) -> float:
+    """What the environment map is multiplied by: 1 / its mean luminance.
+
+    Raises:
+        DamcapError: an unreadable or black map.
+    """
+    from damcap.synth.mitsuba_capture import env_mean_luminance
+
+    env_pixels, _ = read_exr(opts.env)
+    mean = env_mean_luminance(env_pixels)
+    if not mean > 0:
+        raise DamcapError(f"{opts.env}: environment map is black (mean luminance {mean})")
+    return 1.0 / mean
+
+
+def studio_scene(opts: StudioOptions, mesh: Mesh, normals: np.ndarray, face_material: np.ndarray) -> Any:
+    """The Mitsuba scene of a studio set with ``mesh`` as its object: face f is made of material
+    ``opts.material_names()[face_material[f]]``, the board lies under the mesh's lowest point
+    (world y) and the environment map is normalised as for the photos.
+
+    Args:
+        opts: the set's options (the environment file must be readable).
+        mesh: the object, scene units (the set's objects fit in the unit sphere).
+        normals: (V, 3) vertex normals.
+        face_material: (F,) int index into the set's materials; a material no face uses is left out.
+
+    Raises:
+        DamcapError: an unreadable or black environment map (:func:`env_scale`), or an index
+            outside the materials.
+    """
+    from damcap.synth.mitsuba_render import Board, EnvLight, build_scene
+
+    names = opts.material_names()
+    if len(face_material) != len(mesh.triangles) or face_material.min() < 0 or face_material.max() >= len(names):
+        raise DamcapError(f"face materials must index the set's {len(names)} materials ({', '.join(names)}), one per face")
+    used = [k for k in range(len(names)) if (face_material == k).any()]
+    board = Board(float(mesh.vertices[:, 1].min()), opts.board_size, board_albedo(opts.board_size, opts.board_saturation, opts.seed))
+    return build_scene([submesh(mesh, normals, face_material == k) for k in used], [STUDIO_MATERIALS[names[k]] for k in used],
+                       EnvLight(str(Path(opts.env).resolve()), opts.env_rotation_deg, env_scale(opts)), opts.max_depth, board)
+
+
+def render_on_shape(opts: StudioOptions, mesh: Mesh, face_material: np.ndarray, world_from_cam: np.ndarray, intr: Intrinsics,
+                    spp: int | None = None, seed: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A studio set's materials and light on another shape, path traced: the truth that an export
+    of the set's DAMs onto that shape is compared against.
+
+    Args:
+        opts: the set's options (``transforms.json``'s ``damcap_studio.options``).
+        mesh: the shape in the set's world (y up, standing on the board at its lowest point).
+        face_material: (F,) the set's material index of each face.
+        world_from_cam: (N, 4, 4) cameras, OpenGL axes, in the set's world.
+        intr: their pinhole (square pixels).
+        spp: samples per pixel (default: the set's).
+        seed: the path tracer's seed (default: the set's); two seeds give two independent
+            renders, whose difference is the truth's own noise.
+
+    Returns:
+        radiance_lin (N, H, W, 3) float32 as rendered (times :func:`capture_radiance_scale` for
+        the capture's units) and alpha (N, H, W) float32; the board and background are rendered too.
+    """
+    from damcap.synth.mitsuba_render import pass_sample_counts, render_view, select_variant, set_render_threads
+
+    select_variant("auto")
+    set_render_threads(os.cpu_count() or 2)
+    normals = vertex_normals_area_weighted(mesh.vertices, mesh.triangles, SYNTH_NORMAL_EPS, SYNTH_ISOLATED_NORMAL)
+    scene = studio_scene(opts, mesh, normals, np.asarray(face_material, np.int64))
+    passes = pass_sample_counts(spp or opts.spp, intr.w, intr.h)
+    seed = opts.seed if seed is None else seed
+    out = [render_view(scene, m, intr, passes, [seed * 100_003 + 7 * k + j for j in range(len(passes))])
+           for k, m in enumerate(np.asarray(world_from_cam, np.float64))]
+    return np.stack([r for r, _ in out]), np.stack([a for _, a in out])
+
+
 def make_studio_photos(out: str | os.PathLike, opts: StudioOptions, progress: Callable[[int, int], None] | None = None) -> list[str]:
     """Render the photo set of ``opts`` into ``out`` (see the module docstring); returns the photo names.
 
     Raises:
         DamcapError: bad options or input files; ``out`` holds another command's photos.
     """
-    from damcap.synth.mitsuba_capture import env_mean_luminance
-    from damcap.synth.mitsuba_render import Board, EnvLight, build_scene, pass_sample_counts, render_view, select_variant, set_render_threads
+    from damcap.synth.mitsuba_render import pass_sample_counts, render_view, select_variant, set_render_threads
 
     opts.validate()
     out = Path(out)
@@ -159,21 +243,14 @@ def make_studio_photos(out: str | os.PathLike, opts: StudioOptions, progress: Ca
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "masks").mkdir(parents=True, exist_ok=True)
     marker.write_text(record_opts)
-    env_pixels, _ = read_exr(opts.env)
-    mean = env_mean_luminance(env_pixels)
-    if not mean > 0:
-        raise DamcapError(f"{opts.env}: environment map is black (mean luminance {mean})")
     mesh, normals, labels = studio_object(opts)
     names = opts.material_names()
-    parts = [submesh(mesh, normals, labels == k) for k in range(len(names))]
-    empty = [names[k] for k, p in enumerate(parts) if len(p[0].triangles) == 0]
+    empty = [names[k] for k in range(len(names)) if not (labels == k).any()]
     if empty:
         raise DamcapError(f"{opts.object}: the region(s) of {', '.join(empty)} got no faces (mesh too coarse?); try another --seed")
     select_variant("auto")
     set_render_threads(os.cpu_count() or 2)
-    board = Board(float(mesh.vertices[:, 1].min()), opts.board_size, board_albedo(opts.board_size, opts.board_saturation, opts.seed))
-    scene = build_scene(parts, [STUDIO_MATERIALS[n] for n in names], EnvLight(str(Path(opts.env).resolve()), opts.env_rotation_deg, 1.0 / mean),
-                        opts.max_depth, board)
+    scene = studio_scene(opts, mesh, normals, labels)
     cams = orbit_cameras(opts.views, opts.distance, (opts.elevation_deg,), jitter_deg=opts.jitter_deg, seed=opts.seed)
     intr = default_intrinsics(opts.size)
     exposures = exposure_series(opts.views, opts.seed)
@@ -201,7 +278,7 @@ def make_studio_photos(out: str | os.PathLike, opts: StudioOptions, progress: Ca
         if progress:
             progress(k + 1, opts.views)
     write_json_atomic(out / "transforms.json", {"camera_model": "OPENCV", **intr.to_json(), "frames": frames,
-                                                "damcap_studio": _record(opts, mesh, labels, 1.0 / mean, float(gain), median_factor)})
+                                                "damcap_studio": _record(opts, mesh, labels, env_scale(opts), float(gain), median_factor)})
     marker.unlink()
     gain_file.unlink(missing_ok=True)
     return photos

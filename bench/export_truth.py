@@ -1,0 +1,253 @@
+"""Benchmark: the demo's export against the truth (issue 29).
+
+``make demo`` exports the three materials it segments from the bundled studio photos
+(``samples/photos_studio``) onto a torus. Those photos were path traced from known materials,
+light and cameras (``transforms.json``'s ``damcap_studio`` record), so the truth of that export can
+be rendered: the same torus, posed as the export posed it, each part made of the studio material
+its segment covers in the photos, under the same environment map and board, by Mitsuba
+(:func:`damcap.synth.studio.render_on_shape`). Per material region: DSSIM of the export's frames
+against the truth next to a constant-colour baseline (the region painted with its mean truth
+colour over all frames), each scored on its region alone (elsewhere both images are the truth).
+Target (issue 29): the export at most 0.5x the baseline.
+
+How the frames are matched:
+- the capture's world is a similarity of the studio's (``damcap reconstruct`` registered the photos
+  itself and normalised the result); it is estimated from the camera centres (Umeyama) and
+  reported with its residuals;
+- a segment's material is the studio material most of its pixels show in the training photos
+  (the studio object ray cast from each photo's camera mapped into the studio world), reported
+  with its purity;
+- truth radiance is in the capture's units (:func:`damcap.synth.studio.capture_radiance_scale`).
+
+Run (from the repository root)::
+
+    make demo DEMO_OUT=demo_out
+    .venv/bin/python -m bench.export_truth --demo demo_out
+
+It writes bench/results/export_truth.json, bench/export_truth.md and bench/export_truth.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from damcap.appearance.metrics import dssim
+from damcap.common.capture_folder import Intrinsics, read_capture
+from damcap.common.exr import read_exr, write_png
+from damcap.common.colour import display_srgb8, exposure_scale_for
+from damcap.common.mesh import Mesh, file_vertex_order, load_mesh, normalise_to_unit_sphere
+from damcap.common.raycast import MeshRaycaster
+from damcap.export.labels import read_vertex_labels
+from damcap.export.turntable import parts_from_vertex_labels
+from damcap.reconstruct.normalize import umeyama_similarity
+from damcap.synth.studio import StudioOptions, capture_radiance_scale, render_on_shape, studio_object
+
+from bench.common import BENCH, RESULTS, command_line, log, machine_info
+
+INTERIOR = 0.99
+"""a pixel belongs to a region when its coverage in both images is above this (no silhouette mixing)"""
+TARGET_RATIO = 0.5
+
+
+def studio_from_capture(capture_c2w: np.ndarray, studio_c2w: np.ndarray) -> tuple[np.ndarray, dict]:
+    """The similarity taking capture-world points to the studio world, from matched cameras.
+
+    Args:
+        capture_c2w: (N, 4, 4) cameras in the capture's world.
+        studio_c2w: (N, 4, 4) the same photos' ground-truth cameras.
+
+    Returns:
+        (4, 4) studio_from_capture ``[s R | t]`` and its residuals: camera centres (RMS, in studio
+        units) and camera orientations (median and largest angle, degrees).
+    """
+    t = umeyama_similarity(capture_c2w[:, :3, 3], studio_c2w[:, :3, 3])
+    s = float(np.cbrt(np.linalg.det(t[:3, :3])))
+    rot = t[:3, :3] / s
+    centres = capture_c2w[:, :3, 3] @ t[:3, :3].T + t[:3, 3]
+    angles = []
+    for a, b in zip(capture_c2w, studio_c2w):
+        r = (rot @ a[:3, :3]).T @ b[:3, :3]
+        angles.append(float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1)))))
+    return t, {"scale": s, "centre_rms": float(np.sqrt(((centres - studio_c2w[:, :3, 3]) ** 2).sum(1).mean())),
+               "rotation_median_deg": float(np.median(angles)), "rotation_max_deg": float(np.max(angles))}
+
+
+def camera_to_studio(c2w: np.ndarray, studio_from_capture: np.ndarray) -> np.ndarray:
+    """A capture-world camera (OpenGL axes) in the studio world: rotated and moved, not scaled."""
+    s = float(np.cbrt(np.linalg.det(studio_from_capture[:3, :3])))
+    out = np.eye(4)
+    out[:3, :3] = studio_from_capture[:3, :3] / s @ c2w[:3, :3]
+    out[:3, 3] = studio_from_capture[:3, :3] @ c2w[:3, 3] + studio_from_capture[:3, 3]
+    return out
+
+
+def segment_materials(demo: Path, photos: Path, studio_from_capture: np.ndarray, opts: StudioOptions) -> tuple[list[int], np.ndarray]:
+    """Each segment's studio material: (material index per segment, confusion counts (segments, materials))."""
+    cap = read_capture(demo / "capture")
+    mesh, normals, face_label = studio_object(opts)
+    caster = MeshRaycaster(replace(mesh, vertex_normals=normals))
+    counts = None
+    for f in cap.split("train"):
+        weights_file = demo / "segmentation" / "weights" / (Path(f.file_path).stem + ".exr")
+        if not weights_file.is_file():
+            continue
+        w, _ = read_exr(weights_file)
+        if counts is None:
+            counts = np.zeros((w.shape[2], len(opts.material_names())), np.int64)
+        i = f.intrinsics
+        b = caster.buffers(camera_to_studio(f.world_from_cam, studio_from_capture), i.fl_x, i.fl_y, i.cx, i.cy, i.w, i.h, supersample=1)
+        hit = b.triangle_id >= 0
+        np.add.at(counts, (w.argmax(2)[hit], face_label[b.triangle_id[hit]]), 1)
+    if counts is None:
+        raise SystemExit(f"{demo / 'segmentation'}: no weights/*.exr for the capture's training frames")
+    return [int(k) for k in counts.argmax(1)], counts
+
+
+def export_parts(export: dict) -> tuple[Mesh, np.ndarray]:
+    """The export's shape as it rendered it (unit sphere) and its part per triangle, as ``damcap export`` derives them."""
+    raw = load_mesh(export["mesh"])
+    shape = normalise_to_unit_sphere(raw)
+    if not export["labels"]:
+        return shape, np.zeros(len(shape.triangles), np.int64)
+    order, n_file = file_vertex_order(export["mesh"], raw.vertices)
+    labels = read_vertex_labels(Path(export["labels"]), n_file, len(export["models"]))
+    return shape, parts_from_vertex_labels(shape.triangles, labels[order])
+
+
+def region_scores(truth: np.ndarray, pred: np.ndarray, mask: np.ndarray, constant: np.ndarray) -> tuple[float, float] | None:
+    """(DSSIM of ``pred``, DSSIM of the constant colour) against ``truth`` on ``mask`` alone (elsewhere both are the truth)."""
+    if mask.sum() < 50:
+        return None
+    p = np.where(mask[..., None], pred, truth)
+    c = np.where(mask[..., None], constant[None, None, :], truth)
+    a, b = dssim(truth, p, mask.astype(np.float32)), dssim(truth, c, mask.astype(np.float32))
+    return (a, b) if a is not None and b is not None else None
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--demo", type=Path, required=True, help="make demo's output folder (DEMO_OUT)")
+    ap.add_argument("--photos", type=Path, default=Path("samples/photos_studio"), help="the studio photo set the demo ran on")
+    ap.add_argument("--spp", type=int, default=256, help="samples per pixel of the truth")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args(argv)
+    t_start = time.perf_counter()
+    studio = json.loads((args.photos / "transforms.json").read_text())
+    record = studio["damcap_studio"]
+    opts = StudioOptions(**record["options"])
+    names = opts.material_names()
+    gt = {Path(fr["file_path"]).name: np.array(fr["transform_matrix"], np.float64) for fr in studio["frames"]}
+    cap_json = json.loads((args.demo / "capture" / "transforms.json").read_text())
+    pairs = [(np.array(fr["transform_matrix"], np.float64), gt[fr["photo"]]) for fr in cap_json["frames"] if fr.get("photo") in gt]
+    sim, residual = studio_from_capture(np.stack([a for a, _ in pairs]), np.stack([b for _, b in pairs]))
+    log(f"capture -> studio: {len(pairs)} cameras, centre RMS {residual['centre_rms']:.4f}, rotation median {residual['rotation_median_deg']:.3f} deg")
+    export = json.loads((args.demo / "export" / "export.json").read_text())
+    shape, part = export_parts(export)
+    if export["labels"]:
+        seg_material, confusion = segment_materials(args.demo, args.photos, sim, opts)
+    elif len(names) == 1:  # one DAM of a one-material set
+        seg_material, confusion = [0], np.ones((1, 1), np.int64)
+    else:
+        raise SystemExit(f"{args.demo / 'export'}: an export without --labels of a {len(names)}-material set; export the segmentation's materials with --labels")
+    purity = (confusion.max(1) / np.maximum(confusion.sum(1), 1)).tolist()
+    log("segments: " + ", ".join(f"{k} -> {names[m]} ({p:.0%})" for k, (m, p) in enumerate(zip(seg_material, purity))))
+    i = export["intrinsics"]
+    intr = Intrinsics(i["fl_x"], i["fl_y"], i["cx"], i["cy"], int(i["w"]), int(i["h"]))
+    cams = np.array(export["world_from_cam"], np.float64)
+    s = float(np.cbrt(np.linalg.det(sim[:3, :3])))
+    rot = sim[:3, :3] / s
+    torus_studio = Mesh(shape.vertices @ rot.T, shape.triangles)  # same size (unit sphere), turned into the studio's axes
+    cams_studio = np.stack([camera_to_studio(m, np.vstack([np.hstack([rot, np.zeros((3, 1))]), [0, 0, 0, 1]])) for m in cams])
+    t = time.perf_counter()
+    truth, truth_alpha = render_on_shape(opts, torus_studio, np.array(seg_material)[part], cams_studio, intr, spp=args.spp)
+    truth *= capture_radiance_scale(record)
+    truth_s = time.perf_counter() - t
+    again, _ = render_on_shape(opts, torus_studio, np.array(seg_material)[part], cams_studio, intr, spp=args.spp, seed=opts.seed + 1)
+    again *= capture_radiance_scale(record)
+    caster = MeshRaycaster(shape)
+    frames = []
+    for k, m in enumerate(cams):
+        px, _ = read_exr(args.demo / "export" / "frames" / f"{k:04d}.exr")
+        b = caster.buffers(m, intr.fl_x, intr.fl_y, intr.cx, intr.cy, intr.w, intr.h, supersample=1)
+        part_px = np.where(b.triangle_id >= 0, part[np.maximum(b.triangle_id, 0)], -1)
+        frames.append((px[..., :3], px[..., 3], part_px))
+    constants = {}
+    for seg in range(len(export["models"])):
+        vals = [truth[k][(fp == seg) & (a > INTERIOR) & (truth_alpha[k] > INTERIOR)] for k, (_, a, fp) in enumerate(frames)]
+        vals = [v for v in vals if len(v)]
+        constants[seg] = np.concatenate(vals).mean(0) if vals else np.zeros(3, np.float32)
+    per_region = {}
+    for seg in range(len(export["models"])):
+        ours, base, floor = [], [], []
+        for k, (rad, a, fp) in enumerate(frames):
+            mask = (fp == seg) & (a > INTERIOR) & (truth_alpha[k] > INTERIOR)
+            r = region_scores(truth[k], rad, mask, constants[seg])
+            if r is not None:
+                ours.append(r[0])
+                base.append(r[1])
+                floor.append(region_scores(truth[k], again[k], mask, constants[seg])[0])
+        per_region[f"segment {seg}"] = {"material": names[seg_material[seg]], "purity": purity[seg], "frames": len(ours),
+                                        "export": statistics.mean(ours) if ours else None, "constant": statistics.mean(base) if base else None,
+                                        "noise_floor": statistics.mean(floor) if floor else None}
+        if ours:
+            per_region[f"segment {seg}"]["ratio"] = statistics.mean(ours) / statistics.mean(base)
+    whole = [dssim(truth[k], np.where((truth_alpha[k] > INTERIOR)[..., None] & (a > INTERIOR)[..., None], rad, truth[k]),
+                   ((truth_alpha[k] > INTERIOR) & (a > INTERIOR)).astype(np.float32)) for k, (rad, a, _) in enumerate(frames)]
+    # side by side for one frame: truth | export | constant colours (one display exposure)
+    k = 0
+    rad, a, fp = frames[k]
+    flat = truth[k].copy()
+    for seg, c in constants.items():
+        flat[(fp == seg) & (a > INTERIOR)] = c
+    scale = exposure_scale_for(truth[k], truth_alpha[k] > 0.5)
+    out_png = (args.out or BENCH) / "export_truth.png"
+    write_png(out_png, display_srgb8(np.concatenate([truth[k], np.where(a[..., None] > 0.5, rad, truth[k]), flat], 1), scale))
+    res = {"command": command_line("export_truth", argv if argv is not None else __import__("sys").argv[1:]),
+           "machine": machine_info(), "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+           "demo": str(args.demo), "photos": str(args.photos), "spp": args.spp, "frames": len(frames), "resolution": intr.w,
+           "capture_to_studio": residual, "segment_material": [names[m] for m in seg_material], "confusion": confusion.tolist(),
+           "per_region": per_region, "whole_object_export_dssim": float(np.mean([w for w in whole if w is not None])),
+           "truth_seconds": truth_s, "seconds": time.perf_counter() - t_start, "target_ratio": TARGET_RATIO}
+    out_json = (args.out or RESULTS) / "export_truth.json"
+    out_json.parent.mkdir(parents=True, exist_ok=True)
+    out_json.write_text(json.dumps(res, indent=1, default=float))
+    write_markdown(res, (args.out or BENCH) / "export_truth.md")
+    log(f"wrote {out_json}")
+    return 0
+
+
+def write_markdown(res: dict, path: Path) -> None:
+    r = res["capture_to_studio"]
+    lines = ["# The demo's export against the truth (issue 29)", "",
+             f"Command (from the repository root): `{res['command']}` (after `make demo DEMO_OUT={res['demo']}`)", "",
+             f"Machine: {res['machine']['cpu_model']} ({res['machine']['nproc']} cores); {res['date']}. Truth: Mitsuba, "
+             f"{res['spp']} spp, {res['frames']} frames of {res['resolution']} px, rendered in {res['truth_seconds']:.0f} s; the whole "
+             f"bench took {res['seconds']:.0f} s.", "",
+             f"The capture's world against the studio's: camera centres {r['centre_rms']:.4f} RMS "
+             f"(studio units, object radius 1), orientations {r['rotation_median_deg']:.3f} deg median, {r['rotation_max_deg']:.3f} deg at most.", "",
+             "DSSIM against the truth on each material region of the torus (interior pixels; elsewhere both images are the truth), "
+             "mean over the frames. Constant colour: the region painted with its mean truth colour. Target: export at most "
+             f"{res['target_ratio']}x the constant colour.", "",
+             "Noise floor: a second truth render with another seed against the first (what path-tracing noise alone costs).", "",
+             "| segment | its material (purity in the photos) | frames | export | constant colour | ratio | noise floor |",
+             "|---|---|---:|---:|---:|---:|---:|"]
+    for name, d in res["per_region"].items():
+        if d["export"] is None:
+            lines.append(f"| {name} | {d['material']} ({d['purity']:.0%}) | 0 | | | | |")
+            continue
+        lines.append(f"| {name} | {d['material']} ({d['purity']:.0%}) | {d['frames']} | {d['export']:.4f} | {d['constant']:.4f} | "
+                     f"x{d['ratio']:.2f} | {d['noise_floor']:.4f} |")
+    lines += ["", f"Whole torus: export DSSIM {res['whole_object_export_dssim']:.4f}.", "",
+              "`export_truth.png`: the first frame, truth | export | constant colours."]
+    path.write_text("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

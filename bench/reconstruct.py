@@ -327,32 +327,52 @@ REFINED_MODES = ("visual-hull", "dense")
 """the geometry part's modes run with the true cameras (after ``auto``, which registers the photos)"""
 
 
+def geometry_object(obj: str, meshes: Path = DATA.parent / "meshes"):
+    """The geometry part's object ``obj``: a shared mesh (:data:`GEOMETRY_MESHES`) in the unit
+    sphere, the bumpy blob, or a sphere of radius 0.8."""
+    from damcap.common.mesh import load_mesh, normalise_to_unit_sphere
+    from damcap.common.shapes import bumpy_blob, sphere_mesh as icosphere_mesh
+
+    if obj in GEOMETRY_MESHES:  # a shared mesh, its bounding sphere at the origin with radius 1 (the blob's size)
+        return normalise_to_unit_sphere(load_mesh(meshes / GEOMETRY_MESHES[obj]))
+    return bumpy_blob() if obj == "blob" else icosphere_mesh(np.zeros(3), 0.8, 5)
+
+
+def geometry_cameras(photos_n: int = 36) -> np.ndarray:
+    """(photos_n, 4, 4) the geometry sets' true cameras: rings at 10, 35 and 60 deg, 3.2 radii away."""
+    from damcap.synth.photos import orbit_cameras
+
+    return orbit_cameras(photos_n, 3.2, (10.0, 35.0, 60.0), jitter_deg=3, seed=1)
+
+
+def geometry_photos(obj: str, cache: Path = CACHE, photos_n: int = 36, photo_size: int = 320, fresh: bool = False,
+                    meshes: Path = DATA.parent / "meshes") -> Path:
+    """The geometry part's photo set of ``obj`` (textured object, no background, masks, true
+    cameras on rings at 10, 35 and 60 deg), rendered into the cache once; its folder."""
+    from damcap.synth.photos import default_intrinsics, write_photo_set
+
+    root = cache / "geometry" / obj
+    photos = root / "photos"
+    if fresh and root.exists():
+        shutil.rmtree(root)
+    if not (photos / "transforms.json").is_file():
+        log(f"geometry {obj}: rendering {photos_n} photos")
+        write_photo_set(photos, geometry_object(obj, meshes), geometry_cameras(photos_n), default_intrinsics(photo_size), seed=2)
+    return photos
+
+
 def part_geometry(fresh: bool, cache: Path = CACHE, objects: tuple[str, ...] = ("blob", "sphere"), photos_n: int = 36,
                   photo_size: int = 320, capture_size: int = 256, modes: tuple[str, ...] = ("auto",) + GEOMETRY_MODES,
                   meshes: Path = DATA.parent / "meshes", refine: bool = False) -> dict:
-    from damcap.common.mesh import load_mesh, normalise_to_unit_sphere
-    from damcap.common.shapes import sphere_mesh as icosphere_mesh
     from damcap.reconstruct.pipeline import ReconstructOptions, reconstruct_capture
-    from damcap.common.mesh import Mesh
-    from damcap.common.shapes import bumpy_blob
-    from damcap.synth.photos import default_intrinsics, orbit_cameras, write_photo_set
 
     import open3d as o3d
 
     out = {}
     for obj in objects:
         root = cache / "geometry" / obj
-        photos = root / "photos"
-        if obj in GEOMETRY_MESHES:  # a shared mesh, its bounding sphere at the origin with radius 1 (the blob's size)
-            mesh: Mesh = normalise_to_unit_sphere(load_mesh(meshes / GEOMETRY_MESHES[obj]))
-        else:
-            mesh = bumpy_blob() if obj == "blob" else icosphere_mesh(np.zeros(3), 0.8, 5)
-        cams = orbit_cameras(photos_n, 3.2, (10.0, 35.0, 60.0), jitter_deg=3, seed=1)
-        if fresh and root.exists():
-            shutil.rmtree(root)
-        if not (photos / "transforms.json").is_file():
-            log(f"geometry {obj}: rendering {photos_n} photos")
-            write_photo_set(photos, mesh, cams, default_intrinsics(photo_size), seed=2)
+        photos = geometry_photos(obj, cache, photos_n, photo_size, fresh, meshes)
+        mesh, cams = geometry_object(obj, meshes), geometry_cameras(photos_n)
         gt_path = root / "gt_mesh.ply"
         m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices.astype(np.float64)),
                                       o3d.utility.Vector3iVector(mesh.triangles))

@@ -62,7 +62,10 @@ from bench.common import CACHE, REPO, RESULTS, command_line, log, machine_info, 
 REPORT = Path(__file__).with_name("registration_gt.md")
 RESULT = RESULTS / "registration_gt.json"
 WORK = CACHE / "registration_gt"
-SCENES = ("herz-jesus-p8", "castle-p19", "cape", "fox", "turntable", "orbit")
+SCENES = ("herz-jesus-p8", "castle-p19", "cape", "fox", "turntable", "orbit", "bunny", "dragon", "armadillo")
+GEOMETRY_SETS = ("bunny", "dragon", "armadillo")
+"""bench/reconstruct's geometry sets of the shared meshes (:func:`bench.reconstruct.geometry_photos`:
+36 photos of 320 px of the textured object alone, masks, true cameras)"""
 METHODS = ("damcap reconstruct", "damcap", "damcap refined pp", "pycolmap incremental", "pycolmap global", "pycolmap masked")
 #: what each scene's reference cameras are
 REFERENCES = {"strecha": "Strecha ground truth (gt_cameras, K scaled from 3072x2048)",
@@ -70,7 +73,9 @@ REFERENCES = {"strecha": "Strecha ground truth (gt_cameras, K scaled from 3072x2
               "fox": ("instant-ngp's transforms.json (colmap2nerf: COLMAP with an OPENCV camera and a refined principal "
                       "point): a reference, not ground truth"),
               "turntable": "the renderer's cameras, in the object's frame (ground truth)",
-              "orbit": "the renderer's cameras (ground truth)"}
+              "orbit": "the renderer's cameras (ground truth)",
+              "bunny": "the renderer's cameras (ground truth)", "dragon": "the renderer's cameras (ground truth)",
+              "armadillo": "the renderer's cameras (ground truth)"}
 #: the rendered sets: an object in a textured room, photographed while it turns before a (2 deg
 #: shaky) camera, or by a camera orbiting it; ground-truth cameras and masks from the renderer
 RENDERED = {"turntable": dict(views=36, size=800, motion="turntable"), "orbit": dict(views=24, size=800, motion="orbit")}
@@ -97,6 +102,11 @@ def scene_paths(scene: str, data: Path) -> tuple[Path, str]:
     if scene in RENDERED:
         root = rendered_set(scene)
         return root / "images", str(root / "transforms.json")
+    if scene in GEOMETRY_SETS:
+        from bench.reconstruct import geometry_photos
+
+        root = geometry_photos(scene)
+        return root / "images", str(root / "transforms.json")
     root = data / "real" / "strecha" / scene
     return root / "images", f"strecha:{root / 'gt_cameras'}"
 
@@ -105,6 +115,10 @@ def scene_masks(scene: str, data: Path) -> Path | None:
     """The scene's object masks folder, or None (Strecha and the fox have none)."""
     if scene == "cape":
         return data / "real" / "mold_gold_cape" / "masks"
+    if scene in GEOMETRY_SETS:
+        from bench.reconstruct import geometry_photos
+
+        return geometry_photos(scene) / "masks"
     return rendered_set(scene) / "masks" if scene in RENDERED else None
 
 
@@ -310,11 +324,24 @@ def target_verdict(row: dict, min_fraction: float = 0.95, max_median_deg: float 
     return head + (": " + ", ".join(missed) if missed else ": met")
 
 
+WRONG_DEG = 5.0
+"""a registration whose median rotation error is above this is wrong, not a registration: plain
+pycolmap's best row is chosen among the others first (GLOMAP registers every photo of the mesh
+sets, 35 to 89 deg off)"""
+
+
 def best_pycolmap(rows: list[dict]) -> dict | None:
-    """Plain pycolmap's best row of a scene: the most photos registered, then the lowest median."""
+    """Plain pycolmap's best row of a scene: the most photos registered, then the lowest median,
+    among rows that are not wrong (:data:`WRONG_DEG`) when there are such rows.
+
+    >>> rows = [{"method": "pycolmap global", "registered": 36, "errors": {"rot_sim_median_deg": 35.0}},
+    ...         {"method": "pycolmap incremental", "registered": 33, "errors": {"rot_sim_median_deg": 2.0}}]
+    >>> best_pycolmap(rows)["method"]
+    'pycolmap incremental'
+    """
     cands = [r for r in rows if r["method"] in ("pycolmap incremental", "pycolmap global", "pycolmap masked")]
-    return min(cands, key=lambda r: (-r["registered"], r.get("errors", {}).get("rot_sim_median_deg", float("inf"))),
-               default=None)
+    median = lambda r: r.get("errors", {}).get("rot_sim_median_deg", float("inf"))  # noqa: E731
+    return min(cands, key=lambda r: (not median(r) <= WRONG_DEG, -r["registered"], median(r)), default=None)
 
 
 def _num(v, fmt: str) -> str:
@@ -335,7 +362,7 @@ def row_cells(row: dict) -> list[str]:
     ppt = f"({i['pp_err_px'][0]:+.1f}, {i['pp_err_px'][1]:+.1f})" if i else "-"
     est = (f"({pp['offset_px'][0]:+.1f}, {pp['offset_px'][1]:+.1f}) +- ({pp['sd_px'][0]:.1f}, {pp['sd_px'][1]:.1f})"
            if pp else "-")
-    reg = f"{row['registered']}/{row['photos']}" + (f" ({row['error'][:60]})" if row.get("error") else "")
+    reg = f"{row['registered']}/{row['photos']}" + (f" ({row['error'].split(': ', 1)[-1][:90]})" if row.get("error") else "")
     mapping = row.get("stage_wall_s", {}).get("mapping")
     wall = f"{row['wall_s']:.1f}" + (f" ({mapping:.1f})" if mapping is not None else "")
     sc = row.get("self_check")

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import re
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -583,6 +584,28 @@ def wants_masked_features(registered: int, photos: int, check: SelfCheck | None)
     return registered < 0.95 * photos or (check is not None and bool(check.flagged))
 
 
+def both_failed(whole: DamcapError, masked: DamcapError) -> DamcapError:
+    """One error for a registration whose two candidates (whole photos, features inside the
+    masks) both failed: the one that registered more photos, then how the other ended.
+
+    >>> w = DamcapError("P: only 12 of 36 photos have cameras, at least 18 are needed (...). Unregistered, e.g. ...")
+    >>> m = DamcapError("P: only 2 of 36 photos have cameras, at least 18 are needed (...). Unregistered, e.g. ...")
+    >>> str(both_failed(w, m)).endswith("With features inside the masks instead: only 2 of 36 photos have cameras.")
+    True
+    """
+    def registered(e: DamcapError) -> int:
+        m = re.search(r"only (\d+) of \d+ photos have cameras", str(e))
+        return int(m.group(1)) if m else -1
+
+    def short(e: DamcapError) -> str:
+        text = str(e).split(": ", 1)[-1]
+        return text.split(", at least")[0].split(" (")[0].rstrip(".")
+
+    best, other, how = (whole, masked, "features inside the masks") if registered(whole) >= registered(masked) else \
+        (masked, whole, "the whole photos")
+    return DamcapError(f"{str(best).rstrip('.')}. With {how} instead: {short(other)}.")
+
+
 def _choose_cameras(photos_dir: Path, names: list[str], work: Path, opts: ReconstructOptions, masks: dict[str, Path] | None,
                     object_fraction: float | None, known: Registration | None, progress: StageProgress, log: Callable[[str], None],
                     seconds: dict[str, float]) -> tuple[CheckedCameras, list[dict[str, Any]]]:
@@ -614,7 +637,7 @@ def _choose_cameras(photos_dir: Path, names: list[str], work: Path, opts: Recons
     except DamcapError as e:
         tried.append({"features": "inside the masks", "error": str(e)})
         if first is None:
-            raise
+            raise both_failed(error, e) from None  # type: ignore[arg-type]
         return first, tried
     tried.append(second.brief())
     if first is None or second.agreeing() > first.agreeing():

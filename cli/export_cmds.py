@@ -11,11 +11,12 @@ import typer
 
 from damcap.common.errors import DamcapError
 
-from damcap.cli.app import command
+from damcap.cli.app import command, progress_bar
 from damcap.cli.options import parse_int
 from damcap.cli.paths import Interrupted, Output, Terminated, check_paths, file_out, folder_out, holds, staged_folder
 
 if TYPE_CHECKING:
+    from damcap.export.capture_export import CaptureExportOptions
     from damcap.export.turntable import ExportOptions, OrbitOptions
     from damcap.export.viewer import ViewerCamera
 
@@ -256,3 +257,27 @@ def view(
                 httpd.serve_forever()
             except KeyboardInterrupt as e:
                 raise Interrupted(f"{output} is kept; the server stopped", isinstance(e, Terminated)) from None
+
+
+@command("export-capture", opts="damcap.export.capture_export:CaptureExportOptions")
+def export_capture_cmd(
+    capture: Path = typer.Argument(..., help="capture folder"),
+    output: Path = typer.Option(..., "-o", "--output", help="output folder (a new one, or this command's earlier output)"),
+    *,
+    opts: CaptureExportOptions,
+) -> None:
+    """The capture for other tools: a nerfstudio dataset (PNG frames, masks, transforms.json with
+    train/val/test lists, the surface as points.ply) or a COLMAP text model of the undistorted
+    capture (sparse/0 + images/, what 3D Gaussian splatting tools start from)."""
+    from damcap.common.capture_folder import read_capture
+    from damcap.export.capture_export import export_capture
+
+    opts.validate()
+    record = "transforms.json" if opts.format == "nerfstudio" else "sparse/0/images.txt"
+    check_paths([capture], [folder_out(output, replaces=holds(record))])
+    cap = read_capture(capture)
+    bar = progress_bar(len(cap.frames), "export-capture")
+    with staged_folder(output, replace=True) as stage:
+        summary = export_capture(cap, stage, opts, progress=lambda k, n: bar(k, n, {}))
+    typer.echo(f"wrote {summary['frames']} frames and {summary['points']} surface points to {output} as a {opts.format} "
+               f"{'dataset' if opts.format == 'nerfstudio' else 'model'} (one display exposure for all frames: x{summary['exposure_scale']:.4g})")

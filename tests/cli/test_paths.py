@@ -55,6 +55,7 @@ COMMANDS = {
     "shape": (lambda i, o: ["shape", "sphere", o], "file", ".obj", None),
     "export": (lambda i, o: ["export", i / "m.dam", "--mesh", i / "mesh.obj", "-o", o], "folder", "", None),
     "export-onnx": (lambda i, o: ["export", i / "m.dam", "--format", "onnx", "-o", o], "file", ".onnx", None),
+    "export-capture": (lambda i, o: ["export-capture", i / "cap", "-o", o], "folder", "", "cap"),
     "view": (lambda i, o: ["view", i / "m.dam", "-o", o], "file", ".html", None),
     "segment": (lambda i, o: ["segment", i / "cap", "-o", o], "folder", "", "cap"),
     "segment-labels": (lambda i, o: ["segment-labels", i / "seg", "--mesh", i / "mesh.obj", "-o", o], "file", ".npy", "seg"),

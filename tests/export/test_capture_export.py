@@ -1,0 +1,95 @@
+"""export-capture: a capture as a nerfstudio dataset and as a COLMAP model, read back as those tools read them."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from damcap.common.capture_folder import read_capture, read_frame
+from damcap.common.exr import read_image_u8
+from damcap.export.capture_export import CaptureExportOptions, cam_from_world_opencv, export_capture, mask_u8
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    from damcap.synth.closed_form import ClosedFormOptions, make_closed_form_capture
+
+    root = tmp_path_factory.mktemp("cap") / "blob"
+    make_closed_form_capture(root, ClosedFormOptions(shape="blob", views=6, train_views=4, resolution=48, seed=3))
+    return read_capture(root)
+
+
+def inside_mask(mask: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Whether pixel coordinates (x right, y down, pixel centres at +0.5) land on the mask or
+    within one pixel of it (silhouette pixels are sampled at 48 px)."""
+    from scipy.ndimage import binary_dilation
+
+    mask = binary_dilation(mask > 0, iterations=1)
+    i, j = np.floor(v).astype(int), np.floor(u).astype(int)
+    ok = (i >= 0) & (i < mask.shape[0]) & (j >= 0) & (j < mask.shape[1])
+    out = np.zeros(len(u), bool)
+    out[ok] = mask[i[ok], j[ok]] > 0
+    return out
+
+
+def test_nerfstudio_dataset_is_what_its_dataparser_reads(capture, tmp_path):
+    """Every key nerfstudio's dataparser needs, all three split lists naming frames, 8-bit frames
+    and masks of the camera's size, and a coloured point cloud in the frames' world: each point
+    projects (OpenGL pose, pinhole intrinsics) onto the object's mask in every frame."""
+    import open3d as o3d
+
+    out = tmp_path / "ns"
+    summary = export_capture(capture, out, CaptureExportOptions(points=500))
+    doc = json.loads((out / "transforms.json").read_text())
+    assert summary["frames"] == 6 and summary["points"] == 500
+    assert doc["camera_model"] == "PINHOLE" and {"fl_x", "fl_y", "cx", "cy", "w", "h"} <= set(doc)
+    names = {f["file_path"] for f in doc["frames"]}
+    for split in ("train", "val", "test"):
+        assert doc[f"{split}_filenames"] and set(doc[f"{split}_filenames"]) <= names
+    assert len(doc["train_filenames"]) == 4 and doc["val_filenames"] == doc["test_filenames"]
+    pcd = o3d.io.read_point_cloud(str(out / doc["ply_file_path"]))
+    pts = np.asarray(pcd.points)
+    assert len(pts) == 500 and pcd.has_colors()
+    for f in doc["frames"]:
+        img, mask = read_image_u8(out / f["file_path"]), read_image_u8(out / f["mask_path"])
+        assert img.dtype == np.uint8 and img.shape == (doc["h"], doc["w"], 3) and mask.shape[:2] == (doc["h"], doc["w"])
+        assert set(np.unique(mask)) <= {0, 255}
+        cam = np.linalg.inv(np.array(f["transform_matrix"]))  # OpenGL: the camera looks down -z
+        p = pts @ cam[:3, :3].T + cam[:3, 3]
+        u = doc["cx"] + doc["fl_x"] * p[:, 0] / -p[:, 2]
+        v = doc["cy"] - doc["fl_y"] * p[:, 1] / -p[:, 2]
+        assert inside_mask(mask[..., 0] if mask.ndim == 3 else mask, u, v).mean() > 0.995
+
+
+def test_colmap_model_reads_back_with_pycolmap_and_projects_onto_the_masks(capture, tmp_path):
+    """pycolmap reads the model: one PINHOLE camera per intrinsics, the capture's camera centres,
+    and every surface point projects onto the object's mask through COLMAP's own camera model."""
+    import pycolmap
+
+    out = tmp_path / "colmap"
+    export_capture(capture, out, CaptureExportOptions(format="colmap", points=300))
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    assert len(rec.images) == 6 and len(rec.points3D) == 300 and len(rec.cameras) == 1
+    cam = next(iter(rec.cameras.values()))
+    assert cam.model.name == "PINHOLE"
+    pts = np.array([p.xyz for p in rec.points3D.values()])
+    frames = {f.file_path.split("/")[-1].rsplit(".", 1)[0] + ".png": f for f in capture.frames}
+    for img in rec.images.values():
+        f = frames[img.name]
+        np.testing.assert_allclose(img.projection_center(), f.world_from_cam[:3, 3], atol=1e-9)
+        assert (out / "images" / img.name).is_file()
+        uv = np.array([cam.img_from_cam(img.cam_from_world() * p) for p in pts])
+        mask = mask_u8(read_frame(capture, f, with_weights=False).coverage)
+        assert inside_mask(mask, uv[:, 0], uv[:, 1]).mean() > 0.995
+
+
+def test_opencv_pose_of_an_opengl_camera():
+    """A camera at (0, 0, 2) looking at the origin down -z (OpenGL) sees the origin 2 ahead on
+    its +z (OpenCV), and a point up (+y) in the world lies up in the image (-y in OpenCV)."""
+    m = np.eye(4)
+    m[:3, 3] = [0, 0, 2]
+    pose = cam_from_world_opencv(m)
+    assert np.allclose(pose[:3, :3] @ [0, 1, 0], [0, -1, 0])
+    assert np.allclose(pose[:3, :3] @ [0, 0, 0] + pose[:3, 3], [0, 0, 2])

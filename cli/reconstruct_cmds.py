@@ -39,7 +39,8 @@ def stage_progress():
 
 @command(opts="damcap.reconstruct.pipeline:ReconstructOptions")
 def reconstruct(
-    photos: Path = typer.Argument(..., help="folder of JPEG/PNG photos of one object"),
+    photos: Path = typer.Argument(..., help="folder of JPEG/PNG photos of one object, or a nerfstudio / instant-ngp dataset "
+                                  "(transforms.json: its cameras and masks are used) or a COLMAP project (images/ + sparse/0)"),
     output: Path = typer.Option(..., "-o", "--output", help="capture folder to write (new, or a previous reconstruct output to resume)"),
     masks: Optional[Path] = typer.Option(None, "--masks", help="folder of object masks, same base names as the photos (white = object)"),
     poses: Optional[str] = typer.Option(None, "--poses", help="known cameras: transforms.json | poses_bounds.npy | colmap:DIR | strecha:DIR (Strecha et al.'s .camera files) (default: COLMAP registration)"),
@@ -48,8 +49,15 @@ def reconstruct(
     given: frozenset[str],
 ) -> None:
     """Photos -> capture folder: cameras (COLMAP or known poses), geometry, linear radiance, buffers, split."""
+    from damcap.reconstruct.datasets import dataset_inputs
     from damcap.reconstruct.pipeline import WORK_FOLDER, reconstruct_capture
 
+    check_paths([photos], [folder_out(output)])
+    found = dataset_inputs(photos)
+    if found.kind != "photos":
+        ours = [flag for flag, value in (("--poses", poses), ("--masks", masks)) if value is not None]
+        photos, poses, masks = found.photos, poses if poses is not None else found.poses, masks if masks is not None else found.masks
+        typer.echo(f"input: {found.describe()}" + (f"; {' and '.join(ours)} from the command line instead" if ours else ""))
     # every input, the pose file (or COLMAP folder), the mesh and the response curve included, is
     # checked against the output before reconstruct_capture prepares (clears) the output folder
     prefix = next((p for p in ("colmap:", "strecha:") if poses is not None and poses.startswith(p)), "")

@@ -93,3 +93,45 @@ def test_opencv_pose_of_an_opengl_camera():
     pose = cam_from_world_opencv(m)
     assert np.allclose(pose[:3, :3] @ [0, 1, 0], [0, -1, 0])
     assert np.allclose(pose[:3, :3] @ [0, 0, 0] + pose[:3, 3], [0, 0, 2])
+
+
+def test_an_exported_nerfstudio_dataset_reconstructs_with_its_own_cameras_and_masks(capture, tmp_path, capsys):
+    """damcap reconstruct DATASET reads what export-capture wrote (a nerfstudio dataset): its
+    cameras (no registration) and its masks, and writes the same cameras again."""
+    from damcap.cli.main import main
+
+    ns = tmp_path / "ns"
+    export_capture(capture, ns, CaptureExportOptions(points=0))
+    assert main(["reconstruct", str(ns), "-o", str(tmp_path / "again"), "--geometry", "visual-hull"]) == 0
+    assert "input: nerfstudio dataset" in capsys.readouterr().out
+    again = read_capture(tmp_path / "again")
+    source = json.loads((tmp_path / "again" / "transforms.json").read_text())["damcap_source"]
+    assert source["poses"].endswith("transforms.json") and source["masks"].endswith("masks") and len(again.frames) == 6
+    # the same cameras, up to the similarity reconstruct normalises every capture by
+    from damcap.reconstruct.normalize import umeyama_similarity
+
+    before = np.stack([f.world_from_cam for f in capture.frames])
+    after = np.stack([f.world_from_cam for f in again.frames])
+    t = umeyama_similarity(before[:, :3, 3], after[:, :3, 3])
+    s = np.cbrt(np.linalg.det(t[:3, :3]))
+    moved = before[:, :3, 3] @ t[:3, :3].T + t[:3, 3]
+    assert np.abs(moved - after[:, :3, 3]).max() < 1e-4 * s
+    np.testing.assert_allclose(np.einsum("ij,njk->nik", t[:3, :3] / s, before[:, :3, :3]), after[:, :3, :3], atol=1e-5)
+
+
+def test_an_exported_colmap_model_reconstructs_with_its_cameras(capture, tmp_path, capsys):
+    """damcap reconstruct PROJECT reads a COLMAP project (images/ + sparse/0) as known cameras (a
+    --masks on the command line joins them)."""
+    from damcap.cli.main import main
+
+    export_capture(capture, tmp_path / "colmap", CaptureExportOptions(format="colmap", points=0))
+    export_capture(capture, tmp_path / "ns", CaptureExportOptions(points=0))  # for its masks
+    assert main(["reconstruct", str(tmp_path / "colmap"), "-o", str(tmp_path / "again"), "--masks", str(tmp_path / "ns" / "masks"),
+                 "--geometry", "visual-hull"]) == 0
+    assert "input: colmap dataset" in capsys.readouterr().out
+    again = read_capture(tmp_path / "again")
+    d_before = np.linalg.norm(capture.frames[0].world_from_cam[:3, 3] - capture.frames[1].world_from_cam[:3, 3])
+    d_after = np.linalg.norm(again.frames[0].world_from_cam[:3, 3] - again.frames[1].world_from_cam[:3, 3])
+    d2_before = np.linalg.norm(capture.frames[0].world_from_cam[:3, 3] - capture.frames[2].world_from_cam[:3, 3])
+    d2_after = np.linalg.norm(again.frames[0].world_from_cam[:3, 3] - again.frames[2].world_from_cam[:3, 3])
+    assert d_after / d_before == pytest.approx(d2_after / d2_before, rel=1e-5)  # the same cameras up to a similarity

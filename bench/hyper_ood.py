@@ -128,7 +128,7 @@ def write_markdown(res: dict, path: Path) -> None:
         lines += ["", "## Out-of-distribution error against training compute", "",
                   "Predict alone, mean novel-view DSSIM over all captures above, for snapshots of the predictors' training runs and "
                   "the predictors themselves (their best validation step). Total steps count the steps of the predictor a run "
-                  "started from (`train-hyper --init`); every step is one batch of 64 scenes.", "",
+                  "started from (`train-hyper --init`).", "",
                   "| model | run step | total steps | mean DSSIM |", "|---|---:|---:|---:|"]
         points = [(name, d["step"], d["total"]) for name, d in res["snapshots"].items()]
         runs = {name.rsplit(".step", 1)[0] for name in res["snapshots"]}  # predictors whose run has snapshots

@@ -15,6 +15,7 @@ from damcap.cli.paths import beside, check_paths, file_out, folder_out, staged_f
 if TYPE_CHECKING:
     from damcap.capture.hdr import HdrOptions
     from damcap.capture.linearize import LinearizeOptions
+    from damcap.capture.video import VideoFrameOptions
 
 
 @command(opts="damcap.capture.hdr:HdrOptions")
@@ -61,3 +62,25 @@ def linearize(
     scales = [r["scale"] for r in record["photos"]]
     typer.echo(f"wrote {len(files)} linear EXR(s) to {output} (reference exposure {record['reference_exposure']:.4g}, "
                f"scales {min(scales):.3g} .. {max(scales):.3g}); record: {output / 'linearize.json'}")
+
+
+@command("frames", opts="damcap.capture.video:VideoFrameOptions")
+def frames(
+    video: Path = typer.Argument(..., help="video of the object (MP4, MOV, ...; anything FFmpeg decodes)"),
+    output: Path = typer.Option(..., "-o", "--output", help="folder of photos to write (the input of damcap reconstruct)"),
+    *,
+    opts: VideoFrameOptions,
+) -> None:
+    """Video -> photos: the sharpest frame of each of --count equal stretches of the video (JPEG),
+    and frames.json recording which frame each photo is."""
+    from damcap.capture.video import extract_frames
+    from damcap.cli.paths import holds
+
+    opts.validate()
+    check_paths([video], [folder_out(output, replaces=holds("frames.json"))])
+    if not video.is_file():
+        raise DamcapError(f"{video}: video file not found")
+    with staged_folder(output, replace=True) as stage:
+        record = extract_frames(video, stage, opts)
+    typer.echo(f"wrote {record['count']} photos of {record['frames_decoded']} frames to {output} (frames.json says which); "
+               f"next: damcap reconstruct {output} -o CAPTURE")

@@ -1,0 +1,60 @@
+"""Photos from a video: the sharpest frame of each stretch, written as JPEGs with a record."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from damcap.capture.video import VideoFrameOptions, extract_frames, pick_frames
+from damcap.common.errors import DamcapError
+from damcap.common.exr import read_image_u8
+
+
+@pytest.fixture(scope="module")
+def video(tmp_path_factory):
+    """40 frames of a texture sliding sideways; every 4th frame (1, 5, 9, ...) sharp, the others blurred."""
+    import cv2
+
+    from damcap.export.video import H264Writer
+
+    rng = np.random.default_rng(0)
+    tex = cv2.resize((rng.random((50, 100, 3)) * 255).astype(np.uint8), (400, 200), interpolation=cv2.INTER_NEAREST)
+    path = tmp_path_factory.mktemp("video") / "turn.mp4"
+    writer = H264Writer(path, 24)
+    for k in range(40):
+        frame = np.roll(tex, 5 * k, axis=1)[:, :320]
+        writer.write(frame if k % 4 == 1 else cv2.GaussianBlur(frame, (0, 0), 3))
+    writer.close()
+    return path
+
+
+def test_the_sharp_frames_of_each_stretch_are_kept(video, tmp_path):
+    record = extract_frames(video, tmp_path / "photos", VideoFrameOptions(count=10))
+    assert record["frames_decoded"] == 40 and [p["frame"] for p in record["photos"]] == list(range(1, 40, 4))
+    names = sorted(p.name for p in (tmp_path / "photos").glob("*.jpg"))
+    assert names == [f"frame_{k:05d}.jpg" for k in range(1, 40, 4)]
+    assert read_image_u8(tmp_path / "photos" / names[0]).shape == (200, 320, 3)
+    assert json.loads((tmp_path / "photos" / "frames.json").read_text())["count"] == 10
+    times = [p["time_s"] for p in record["photos"]]
+    assert times == sorted(times) and times[1] - times[0] == pytest.approx(4 / 24, abs=1e-3)
+
+
+def test_photos_are_downscaled_to_max_side(video, tmp_path):
+    extract_frames(video, tmp_path / "small", VideoFrameOptions(count=3, max_side=160))
+    assert read_image_u8(next((tmp_path / "small").glob("*.jpg"))).shape == (100, 160, 3)
+
+
+def test_pick_frames_spreads_over_the_video():
+    assert pick_frames(np.ones(100), 4) == [0, 25, 50, 75]
+    assert pick_frames(np.arange(10.0), 2) == [4, 9]
+
+
+def test_what_is_not_a_video_is_refused_in_one_line(tmp_path):
+    bad = tmp_path / "notes.mp4"
+    bad.write_text("not a video")
+    with pytest.raises(DamcapError, match="notes.mp4: cannot read a video here"):
+        extract_frames(bad, tmp_path / "out", VideoFrameOptions())
+    with pytest.raises(DamcapError, match="video file not found"):
+        extract_frames(tmp_path / "missing.mp4", tmp_path / "out", VideoFrameOptions())

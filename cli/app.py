@@ -35,11 +35,88 @@ def build_app(selected: str | None = None) -> typer.Typer:
     return app
 
 
-def progress_bar(total: int, desc: str):
-    """A tqdm bar as a ``progress(step, steps, stats)`` callback (silent when not a terminal)."""
-    from tqdm import tqdm
+LOG_PROGRESS_EVERY_S = 30.0
+"""where output is not a terminal (a log file, CI), a long stage prints one progress line this often"""
 
-    bar = tqdm(total=total, desc=desc, unit="step", dynamic_ncols=True, leave=False, disable=None)
+
+class LineProgress:
+    """tqdm's stand-in where stderr is not a terminal: a stage that runs longer than
+    :data:`LOG_PROGRESS_EVERY_S` prints one line to stdout that often (done / total, elapsed, time
+    left) and one when it ends; a shorter stage prints nothing. The subset of tqdm's interface
+    damcap's commands use: ``n``, ``total``, ``update``, ``refresh``, ``set_postfix``,
+    ``set_postfix_str``, ``close`` and iteration.
+
+    >>> t = iter([0.0, 10.0, 31.0, 45.0, 62.0, 70.0])
+    >>> bar = LineProgress(4, "fit", clock=lambda: next(t), echo=print)
+    >>> for _ in range(4):
+    ...     bar.update()
+    fit: 2/4 steps (50%), 31 s, about 31 s left
+    fit: 4/4 steps (100%), 62 s
+    >>> bar.close()
+    """
+
+    def __init__(self, total: int | None, desc: str, unit: str = "step", iterable=None, clock=None, echo=None) -> None:
+        import time
+
+        self.total, self.desc, self.unit, self.n, self._iterable = total, desc, unit, 0, iterable
+        self._clock = clock or time.monotonic
+        self._echo = echo or (lambda line: typer.echo(line))
+        self._start = self._last = self._clock()
+        self._postfix, self._closed, self._printed_n = "", False, None
+
+    def _line(self, now: float) -> str:
+        total = f"/{self.total}" if self.total else ""
+        pct = f" ({100 * self.n / self.total:.0f}%)" if self.total else ""
+        elapsed = now - self._start
+        left = (f", about {elapsed * (self.total - self.n) / self.n:.0f} s left"
+                if self.total and 0 < self.n < self.total else "")
+        return f"{self.desc}: {self.n}{total} {self.unit}s{pct}, {elapsed:.0f} s{left}" + (f" ({self._postfix})" if self._postfix else "")
+
+    def refresh(self) -> None:
+        now = self._clock()
+        done = self.total is not None and self.n >= self.total
+        if now - self._last >= LOG_PROGRESS_EVERY_S or (done and now - self._start >= LOG_PROGRESS_EVERY_S and self._printed_n != self.n):
+            self._echo(self._line(now))
+            self._last, self._printed_n = now, self.n
+
+    def update(self, k: int = 1) -> None:
+        self.n += k
+        self.refresh()
+
+    def set_postfix(self, values: dict | None = None, refresh: bool = True, **kw) -> None:
+        self._postfix = ", ".join(f"{k} {v}" for k, v in {**(values or {}), **kw}.items())
+        if refresh:
+            self.refresh()
+
+    def set_postfix_str(self, text: str, refresh: bool = True) -> None:
+        self._postfix = text
+        if refresh:
+            self.refresh()
+
+    def close(self) -> None:
+        self._closed = True
+
+    def __iter__(self):
+        for item in self._iterable:
+            yield item
+            self.update()
+
+
+def make_bar(total: int | None, desc: str, unit: str = "step", iterable=None, leave: bool = False):
+    """A tqdm bar on a terminal, a :class:`LineProgress` elsewhere (logs get progress lines)."""
+    import sys
+
+    if sys.stderr.isatty():
+        from tqdm import tqdm
+
+        return tqdm(iterable, total=total, desc=desc, unit=unit, dynamic_ncols=True, leave=leave)
+    return LineProgress(total, desc, unit, iterable)
+
+
+def progress_bar(total: int, desc: str):
+    """A ``progress(step, steps, stats)`` callback: a tqdm bar on a terminal, progress lines in a
+    log (:func:`make_bar`)."""
+    bar = make_bar(total, desc)
 
     def update(step: int, steps: int, stats: dict) -> None:
         bar.n = step

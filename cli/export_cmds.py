@@ -57,6 +57,8 @@ def export(
         target: Output = file_out(output if output.suffix == ".onnx" else output / "model.onnx")  # type: ignore[assignment]
     elif opts.format == "glsl":
         target = file_out(output if output.suffix in (".glsl", ".frag") else output / "dam.glsl")  # type: ignore[assignment]
+    elif opts.format == "matcap":
+        target = folder_out(output, replaces=holds("matcap.json"))  # type: ignore[assignment]
     else:
         target = folder_out(output, replaces=holds("export.json"))  # type: ignore[assignment]
     check_paths([*models, mesh, labels], [target])
@@ -78,11 +80,43 @@ def export(
         write_text_atomic(path, "".join(glsl_source(d, prefix=f"dam{k}" if len(dams) > 1 else "dam") for k, d in enumerate(dams)))
         typer.echo(f"wrote {path}")
         return
+    if opts.format == "matcap":
+        if len(dams) != 1:
+            raise DamcapError("--format matcap takes one model")
+        with staged_folder(output, replace=True) as stage:
+            _export_matcap(dams[0], loaded[0][1], models[0], stage, orbit)
+        typer.echo(f"wrote {output}/matcap.exr (linear), matcap.png (sRGB) and matcap.json ({orbit.resolution} px, seen from "
+                   f"elevation {orbit.elevation_deg:g} deg, azimuth {orbit.azimuth0_deg:g} deg)")
+        return
     if mesh is None:
         raise DamcapError("--format frames needs --mesh SHAPE.obj|ply")
     with staged_folder(output, replace=True) as stage:  # frames, PNGs, video and export.json move into OUTPUT at the end
         _export_frames(dams, [meta for _, meta in loaded], models, mesh, labels, stage, orbit, opts)
     typer.echo(f"wrote {orbit.views} frames to {output} (frames/*.exr linear, display/*.png sRGB{', turntable.mp4' if opts.video else ''})")
+
+
+def _export_matcap(dam, meta: dict, model_path: Path, output: Path, orbit: OrbitOptions) -> None:
+    from damcap.appearance.dam_file import recorded_up
+    from damcap.common.atomic import write_json_atomic
+    from damcap.common.cameras import orbit_world_from_cam
+    from damcap.common.capture_folder import RADIANCE_CHANNELS
+    from damcap.common.colour import display_srgb8, exposure_scale_for
+    from damcap.common.exr import write_exr, write_png
+    from damcap.export.matcap import render_matcap
+    from damcap.export.turntable import orbit_up
+
+    orbit.validate()
+    up, up_source, _ = orbit_up(orbit.up, [recorded_up(meta)])
+    cam = orbit_world_from_cam(1, orbit.distance, orbit.elevation_deg, orbit.azimuth0_deg, up)[0]
+    rad, cover = render_matcap(dam, orbit.resolution, cam)
+    scale = exposure_scale_for(rad, cover > 0.5)
+    write_exr(output / "matcap.exr", np.concatenate([rad, cover[..., None]], -1), RADIANCE_CHANNELS + ("A",), dtype="float")
+    write_png(output / "matcap.png", np.concatenate([display_srgb8(rad, scale), np.round(cover * 255).astype(np.uint8)[..., None]], -1))
+    write_json_atomic(output / "matcap.json", {
+        "model": str(model_path.resolve()), "resolution": orbit.resolution, "exposure_scale": scale,
+        # the one view the matcap is exact for: pixels look back along view_dir_world
+        "view_dir_world": cam[:3, 2].tolist(), "world_from_cam": cam.tolist(), "up_world": up.tolist(), "up_source": up_source,
+        "projection": "orthographic: pixel (x, y) of the unit disk shows camera-space normal (x, y, sqrt(1 - x^2 - y^2))"})
 
 
 def _export_onnx(dam, path: Path) -> None:
@@ -138,7 +172,7 @@ def _surface_factors_on_shape(dams, model_paths, mesh_path, vertices):
 
 
 def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, export_opts) -> None:
-    from tqdm import tqdm
+    from damcap.cli.app import make_bar
 
     from damcap.common.atomic import atomic_path, write_json_atomic
     from damcap.common.capture_folder import RADIANCE_CHANNELS
@@ -179,7 +213,7 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
 
             tmp_video = video_ctx.__enter__()
             writer = H264Writer(tmp_video, fps)
-        for k, (m, buf, rad) in enumerate(tqdm(render_orbit(dams, shape, part, opts, spatial["capture_from_render"], up), total=views, desc="export", leave=False, disable=None)):
+        for k, (m, buf, rad) in enumerate(make_bar(views, "export", "frame", render_orbit(dams, shape, part, opts, spatial["capture_from_render"], up))):
             if scale is None:  # one exposure for the whole turntable, from the first frame
                 scale = exposure_scale_for(rad, buf.coverage > 0.5)
             write_exr(output / "frames" / f"{k:04d}.exr", np.concatenate([rad, buf.coverage[..., None]], -1), RADIANCE_CHANNELS + ("A",), dtype="float")

@@ -15,8 +15,9 @@ if TYPE_CHECKING:
 
 
 def stage_progress():
-    """A ``(stage, done, total)`` callback: one tqdm bar per stage (silent when not a terminal)."""
-    from tqdm import tqdm
+    """A ``(stage, done, total)`` callback: one bar per stage (:func:`~damcap.cli.app.make_bar`:
+    progress lines in a log)."""
+    from damcap.cli.app import make_bar
 
     state: dict = {"stage": None, "bar": None}
 
@@ -25,7 +26,7 @@ def stage_progress():
             if state["bar"] is not None:
                 state["bar"].close()
             state["stage"] = stage
-            state["bar"] = tqdm(total=total, desc=stage, unit="step", dynamic_ncols=True, leave=False, disable=None)
+            state["bar"] = make_bar(total, stage)
         bar = state["bar"]
         bar.total = total
         bar.n = done

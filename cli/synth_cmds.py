@@ -68,7 +68,7 @@ def synth_set(
     """Render the synthetic corpus: resumable, parallel, with a held-out part listed in corpus.json.
     With --shard I/N, only shard I of N (for N processes or a job array sharing OUT); corpus.json
     is then written by one final run without --shard after every shard has finished."""
-    from tqdm import tqdm
+    from damcap.cli.app import make_bar
 
     from damcap.synth.corpus import make_corpus
 
@@ -86,7 +86,7 @@ def synth_set(
     def on_capture(entry, finished: int, total: int) -> None:
         nonlocal bar
         if bar is None:
-            bar = tqdm(total=total, desc=label, unit="capture", dynamic_ncols=True, disable=None)
+            bar = make_bar(total, label, "capture", leave=True)
         bar.n = finished
         bar.set_postfix_str(f"{entry.name}: {entry.status}", refresh=True)
 

@@ -51,9 +51,10 @@ class OrbitOptions:
 class ExportOptions:
     """What ``damcap export`` writes (the orbit's cameras are :class:`OrbitOptions`)."""
 
-    format: Literal["frames", "onnx", "glsl"] = "frames"
-    """'frames' (linear EXR + sRGB PNG per orbit view), 'onnx' (the DAM as an ONNX model) or
-    'glsl' (the DAM as a fragment-shader function)"""
+    format: Literal["frames", "onnx", "glsl", "matcap"] = "frames"
+    """'frames' (linear EXR + sRGB PNG per orbit view), 'onnx' (the DAM as an ONNX model),
+    'glsl' (the DAM as a fragment-shader function) or 'matcap' (the DAM on a sphere seen from the
+    orbit's first view, orthographic: EXR + PNG for any matcap shader)"""
     video: bool = False
     """frames: also write an MP4 turntable"""
     fps: int = field(default=24, metadata=in_range(1, 1000))

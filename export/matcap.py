@@ -27,8 +27,8 @@ def matcap_normals(size: int) -> tuple[np.ndarray, np.ndarray]:
         bool: the pixel centre lies in the disk.
 
     >>> n, inside = matcap_normals(2)
-    >>> inside.all(), np.round(n[0, 1], 3).tolist()  # top-right pixel centre (0.5, 0.5)
-    (np.True_, [0.5, 0.5, 0.707])
+    >>> bool(inside.all()), np.round(n[0, 1], 3).tolist()  # top-right pixel centre (0.5, 0.5)
+    (True, [0.5, 0.5, 0.707])
     """
     c = (np.arange(size) + 0.5) / size * 2 - 1
     x, y = np.meshgrid(c, -c)

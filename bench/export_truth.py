@@ -42,11 +42,10 @@ from damcap.appearance.metrics import dssim
 from damcap.common.capture_folder import Intrinsics, read_capture
 from damcap.common.exr import read_exr, write_png
 from damcap.common.colour import display_srgb8, exposure_scale_for
-from damcap.common.mesh import Mesh, file_vertex_order, load_mesh, normalise_to_unit_sphere
+from damcap.common.mesh import Mesh
 from damcap.common.raycast import MeshRaycaster
-from damcap.export.labels import read_vertex_labels
-from damcap.export.turntable import parts_from_vertex_labels
-from damcap.reconstruct.normalize import umeyama_similarity
+from damcap.export.turntable import shape_and_parts
+from damcap.reconstruct.normalize import similarity_scale, umeyama_similarity
 from damcap.synth.studio import StudioOptions, capture_radiance_scale, render_on_shape, studio_object
 
 from bench.common import BENCH, RESULTS, command_line, log, machine_info
@@ -68,7 +67,7 @@ def studio_from_capture(capture_c2w: np.ndarray, studio_c2w: np.ndarray) -> tupl
         units) and camera orientations (median and largest angle, degrees).
     """
     t = umeyama_similarity(capture_c2w[:, :3, 3], studio_c2w[:, :3, 3])
-    s = float(np.cbrt(np.linalg.det(t[:3, :3])))
+    s = similarity_scale(t)
     rot = t[:3, :3] / s
     centres = capture_c2w[:, :3, 3] @ t[:3, :3].T + t[:3, 3]
     angles = []
@@ -79,16 +78,18 @@ def studio_from_capture(capture_c2w: np.ndarray, studio_c2w: np.ndarray) -> tupl
                "rotation_median_deg": float(np.median(angles)), "rotation_max_deg": float(np.max(angles))}
 
 
-def camera_to_studio(c2w: np.ndarray, studio_from_capture: np.ndarray) -> np.ndarray:
-    """A capture-world camera (OpenGL axes) in the studio world: rotated and moved, not scaled."""
-    s = float(np.cbrt(np.linalg.det(studio_from_capture[:3, :3])))
+def camera_to_studio(c2w: np.ndarray, studio_from_capture: np.ndarray, move_centre: bool = True) -> np.ndarray:
+    """A capture-world camera (OpenGL axes) in the studio world: turned by the similarity's
+    rotation; its centre mapped by the similarity (``move_centre``) or only turned (a camera of
+    the export, whose unit-sphere frame differs from the capture's by the rotation alone)."""
+    rot = studio_from_capture[:3, :3] / similarity_scale(studio_from_capture)
     out = np.eye(4)
-    out[:3, :3] = studio_from_capture[:3, :3] / s @ c2w[:3, :3]
-    out[:3, 3] = studio_from_capture[:3, :3] @ c2w[:3, 3] + studio_from_capture[:3, 3]
+    out[:3, :3] = rot @ c2w[:3, :3]
+    out[:3, 3] = studio_from_capture[:3, :3] @ c2w[:3, 3] + studio_from_capture[:3, 3] if move_centre else rot @ c2w[:3, 3]
     return out
 
 
-def segment_materials(demo: Path, photos: Path, studio_from_capture: np.ndarray, opts: StudioOptions) -> tuple[list[int], np.ndarray]:
+def segment_materials(demo: Path, studio_from_capture: np.ndarray, opts: StudioOptions) -> tuple[list[int], np.ndarray]:
     """Each segment's studio material: (material index per segment, confusion counts (segments, materials))."""
     cap = read_capture(demo / "capture")
     mesh, normals, face_label = studio_object(opts)
@@ -108,17 +109,6 @@ def segment_materials(demo: Path, photos: Path, studio_from_capture: np.ndarray,
     if counts is None:
         raise SystemExit(f"{demo / 'segmentation'}: no weights/*.exr for the capture's training frames")
     return [int(k) for k in counts.argmax(1)], counts
-
-
-def export_parts(export: dict) -> tuple[Mesh, np.ndarray]:
-    """The export's shape as it rendered it (unit sphere) and its part per triangle, as ``damcap export`` derives them."""
-    raw = load_mesh(export["mesh"])
-    shape = normalise_to_unit_sphere(raw)
-    if not export["labels"]:
-        return shape, np.zeros(len(shape.triangles), np.int64)
-    order, n_file = file_vertex_order(export["mesh"], raw.vertices)
-    labels = read_vertex_labels(Path(export["labels"]), n_file, len(export["models"]))
-    return shape, parts_from_vertex_labels(shape.triangles, labels[order])
 
 
 def region_scores(truth: np.ndarray, pred: np.ndarray, mask: np.ndarray, constant: np.ndarray) -> tuple[float, float] | None:
@@ -149,9 +139,9 @@ def main(argv: list[str] | None = None) -> int:
     sim, residual = studio_from_capture(np.stack([a for a, _ in pairs]), np.stack([b for _, b in pairs]))
     log(f"capture -> studio: {len(pairs)} cameras, centre RMS {residual['centre_rms']:.4f}, rotation median {residual['rotation_median_deg']:.3f} deg")
     export = json.loads((args.demo / "export" / "export.json").read_text())
-    shape, part = export_parts(export)
+    _, shape, part = shape_and_parts(export["mesh"], Path(export["labels"]) if export["labels"] else None, len(export["models"]))
     if export["labels"]:
-        seg_material, confusion = segment_materials(args.demo, args.photos, sim, opts)
+        seg_material, confusion = segment_materials(args.demo, sim, opts)
     elif len(names) == 1:  # one DAM of a one-material set
         seg_material, confusion = [0], np.ones((1, 1), np.int64)
     else:
@@ -161,10 +151,9 @@ def main(argv: list[str] | None = None) -> int:
     i = export["intrinsics"]
     intr = Intrinsics(i["fl_x"], i["fl_y"], i["cx"], i["cy"], int(i["w"]), int(i["h"]))
     cams = np.array(export["world_from_cam"], np.float64)
-    s = float(np.cbrt(np.linalg.det(sim[:3, :3])))
-    rot = sim[:3, :3] / s
+    rot = sim[:3, :3] / similarity_scale(sim)
     torus_studio = Mesh(shape.vertices @ rot.T, shape.triangles)  # same size (unit sphere), turned into the studio's axes
-    cams_studio = np.stack([camera_to_studio(m, np.vstack([np.hstack([rot, np.zeros((3, 1))]), [0, 0, 0, 1]])) for m in cams])
+    cams_studio = np.stack([camera_to_studio(m, sim, move_centre=False) for m in cams])
     t = time.perf_counter()
     truth, truth_alpha = render_on_shape(opts, torus_studio, np.array(seg_material)[part], cams_studio, intr, spp=args.spp)
     truth *= capture_radiance_scale(record)

@@ -62,7 +62,7 @@ class LineProgress:
         self._clock = clock or time.monotonic
         self._echo = echo or (lambda line: typer.echo(line))
         self._start = self._last = self._clock()
-        self._postfix, self._closed, self._printed_n = "", False, None
+        self._postfix, self._printed_n = "", None
 
     def _line(self, now: float) -> str:
         total = f"/{self.total}" if self.total else ""
@@ -94,7 +94,7 @@ class LineProgress:
             self.refresh()
 
     def close(self) -> None:
-        self._closed = True
+        """Nothing to tear down (tqdm's interface)."""
 
     def __iter__(self):
         for item in self._iterable:

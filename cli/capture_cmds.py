@@ -10,7 +10,7 @@ import typer
 from damcap.common.errors import DamcapError
 
 from damcap.cli.app import command
-from damcap.cli.paths import beside, check_paths, file_out, folder_out, staged_folder
+from damcap.cli.paths import beside, check_paths, file_out, folder_out, holds, staged_folder
 
 if TYPE_CHECKING:
     from damcap.capture.hdr import HdrOptions
@@ -74,12 +74,9 @@ def frames(
     """Video -> photos: the sharpest frame of each of --count equal stretches of the video (JPEG),
     and frames.json recording which frame each photo is."""
     from damcap.capture.video import extract_frames
-    from damcap.cli.paths import holds
 
     opts.validate()
     check_paths([video], [folder_out(output, replaces=holds("frames.json"))])
-    if not video.is_file():
-        raise DamcapError(f"{video}: video file not found")
     with staged_folder(output, replace=True) as stage:
         record = extract_frames(video, stage, opts)
     typer.echo(f"wrote {record['count']} photos of {record['frames_decoded']} frames to {output} (frames.json says which); "

@@ -33,12 +33,6 @@ def _load_mesh(mesh: Optional[Path]):
     return normalise_to_unit_sphere(load_mesh(mesh))
 
 
-def _vertex_labels(path: Path, n_vertices: int, parts: int) -> np.ndarray:
-    from damcap.export.labels import read_vertex_labels
-
-    return read_vertex_labels(path, n_vertices, parts)
-
-
 @command(opts="damcap.export.turntable:ExportOptions", orbit="damcap.export.turntable:OrbitOptions")
 def export(
     models: List[Path] = typer.Argument(..., help="model file(s) (.dam); several = one per mesh part"),
@@ -180,23 +174,15 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
     from damcap.common.version import damcap_version
     from damcap.common.colour import display_srgb8, exposure_scale_for
     from damcap.appearance.dam_file import recorded_up
-    from damcap.export.turntable import orbit_intrinsics, orbit_up, parts_from_vertex_labels, render_orbit
+    from damcap.export.turntable import orbit_intrinsics, orbit_up, render_orbit, shape_and_parts
 
     opts.validate()
     views, video, fps = opts.views, export_opts.video, export_opts.fps
-    from damcap.common.mesh import file_vertex_order, load_mesh, normalise_to_unit_sphere, unit_sphere_transform
+    from damcap.common.mesh import unit_sphere_transform
 
-    raw = load_mesh(mesh_path)  # read once: rendered centred and scaled, textured in its own frame
-    shape = normalise_to_unit_sphere(raw)
+    raw, shape, part = shape_and_parts(mesh_path, labels, len(dams))  # read once: rendered centred and scaled, textured in its own frame
     centre, radius = unit_sphere_transform(raw.vertices)
     centre = [float(x) for x in centre]
-    if labels is not None:  # labels follow the file's vertex order, which load_mesh does not keep for every format
-        order, n_file = file_vertex_order(mesh_path, raw.vertices)
-        part = parts_from_vertex_labels(shape.triangles, _vertex_labels(labels, n_file, len(dams))[order])
-    elif len(dams) == 1:
-        part = np.zeros(len(shape.triangles), np.int64)
-    else:
-        part = shape.triangle_groups.astype(np.int64)
     if part.max() >= len(dams):
         raise DamcapError(f"{labels or mesh_path}: part {int(part.max())} has no model; give {int(part.max()) + 1} .dam files (one per part)")
     dams, spatial = _surface_factors_on_shape(dams, model_paths, mesh_path, raw.vertices)

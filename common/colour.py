@@ -104,3 +104,31 @@ def preview_gamma(radiance_scaled: np.ndarray, gamma: float = PREVIEW_GAMMA) -> 
     0.4586564
     """
     return np.clip(radiance_scaled, 0, 1) ** (1 / gamma)
+
+
+_COLOUR_NAMES = {"lin_rec709": "ITU-R BT.709", "acescg": "ACEScg"}
+
+
+def working_from_rec709(colorspace: str) -> np.ndarray:
+    """(3, 3) matrix from linear Rec.709 to a working space (CAT02 adaptation D65 -> ACES white).
+
+    Raises:
+        DamcapError: an unknown colour space name.
+
+    >>> working_from_rec709("lin_rec709").tolist() == np.eye(3).tolist()
+    True
+    >>> bool(np.allclose(working_from_rec709("acescg").sum(axis=1), 1.0, atol=1e-3))
+    True
+    """
+    from damcap.common.capture_folder import COLORSPACES
+    from damcap.common.errors import DamcapError
+
+    if colorspace not in COLORSPACES:
+        raise DamcapError(f"--colorspace must be one of {', '.join(COLORSPACES)}, got {colorspace!r}")
+    if colorspace == "lin_rec709":
+        return np.eye(3)
+    import colour
+
+    src = colour.RGB_COLOURSPACES[_COLOUR_NAMES["lin_rec709"]]
+    dst = colour.RGB_COLOURSPACES[_COLOUR_NAMES[colorspace]]
+    return np.asarray(colour.matrix_RGB_to_RGB(src, dst, chromatic_adaptation_transform="CAT02"), dtype=np.float64)

@@ -32,7 +32,7 @@ import numpy as np
 
 from damcap.common.atomic import write_json_atomic
 from damcap.common.capture_folder import Capture, FrameData, Intrinsics, read_frame
-from damcap.common.colour import display_srgb8, exposure_scale_for
+from damcap.common.colour import display_srgb8, exposure_scale_for, working_from_rec709
 from damcap.common.errors import DamcapError
 from damcap.common.exr import write_png
 from damcap.common.validate import SEED, check_ranges, in_range
@@ -62,12 +62,11 @@ class CaptureExportOptions:
 
 
 def rec709_of(radiance_lin: np.ndarray, colorspace: str) -> np.ndarray:
-    """(..., 3) linear radiance in ``colorspace`` (``lin_rec709`` or ``acescg``) as linear Rec.709."""
+    """(..., 3) linear radiance in ``colorspace`` (``lin_rec709`` or ``acescg``) as linear Rec.709
+    (the inverse of the conversion the capture stage applied, :func:`~damcap.common.colour.working_from_rec709`)."""
     if colorspace == "lin_rec709":
         return radiance_lin
-    import colour
-
-    return colour.RGB_to_RGB(radiance_lin, colour.RGB_COLOURSPACES["ACEScg"], colour.RGB_COLOURSPACES["ITU-R BT.709"]).astype(np.float32)
+    return (radiance_lin @ np.linalg.inv(working_from_rec709(colorspace)).T).astype(np.float32)
 
 
 def mask_u8(coverage: np.ndarray) -> np.ndarray:
@@ -94,7 +93,8 @@ def _png_name(frame_path: str) -> str:
 
 
 def _frames(capture: Capture, progress: Callable[[int, int], None] | None):
-    """Yield (k, frame, data) reading each frame once."""
+    """Yield (k, frame, data), reading the frames one at a time (an export reads them twice: once
+    for the one display exposure, once to write them, rather than holding every frame in memory)."""
     for k, f in enumerate(capture.frames):
         if progress:
             progress(k, len(capture.frames))
@@ -199,7 +199,8 @@ def _write_nerfstudio(capture: Capture, out: Path, points: np.ndarray, colours: 
     if len(points):
         _write_points(out / "points.ply", points, colours)
         doc["ply_file_path"] = "points.ply"
-    norm = capture.extra.get("damcap_source", {}).get("norm_from_input_world") if isinstance(capture.extra.get("damcap_source"), dict) else None
+    source = capture.extra.get("damcap_source")
+    norm = source.get("norm_from_input_world") if isinstance(source, dict) else None
     if norm is not None:
         doc["damcap_norm_from_input_world"] = norm
     doc["damcap_exported_from"] = str(capture.root.resolve())

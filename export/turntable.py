@@ -135,6 +135,33 @@ def parts_from_vertex_labels(triangles: np.ndarray, vertex_labels: np.ndarray) -
     return np.where(b == c, b, a).astype(np.int64)
 
 
+def shape_and_parts(mesh_path, labels_path, models: int) -> tuple:
+    """The shape ``damcap export`` renders and each triangle's part (model index).
+
+    Args:
+        mesh_path: the mesh file.
+        labels_path: per-vertex labels in the file's vertex order (:func:`.labels.read_vertex_labels`),
+            or None: one part with one model, else the OBJ material groups.
+        models: how many models there are.
+
+    Returns:
+        (the mesh as read, the mesh in the unit sphere, (T,) int64 part per triangle).
+    """
+    from damcap.common.mesh import file_vertex_order, load_mesh, normalise_to_unit_sphere
+    from damcap.export.labels import read_vertex_labels
+
+    raw = load_mesh(mesh_path)
+    shape = normalise_to_unit_sphere(raw)
+    if labels_path is not None:  # labels follow the file's vertex order, which load_mesh does not keep for every format
+        order, n_file = file_vertex_order(mesh_path, raw.vertices)
+        part = parts_from_vertex_labels(shape.triangles, read_vertex_labels(labels_path, n_file, models)[order])
+    elif models == 1:
+        part = np.zeros(len(shape.triangles), np.int64)
+    else:
+        part = shape.triangle_groups.astype(np.int64)
+    return raw, shape, part
+
+
 def shade_buffers(models: list[DeepAppearanceMap], buffers: SurfaceBuffers, camera_centre_world: np.ndarray, triangle_part: np.ndarray,
                   capture_from_render: tuple[np.ndarray, float] | None = None) -> np.ndarray:
     """Evaluate each pixel's DAM: (H, W, 3) float32 linear radiance, 0 on background.

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import re
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -385,16 +384,23 @@ def _needs_points(opts: ReconstructOptions, has_masks: bool) -> bool:
     return mode in ("auto", "sphere", "dense") or (mode == "mesh" and opts.mesh_align == "icp")
 
 
+class TooFewCameras(DamcapError):
+    """A registration with fewer cameras than reconstruct needs (its counts kept for the caller)."""
+
+    def __init__(self, message: str, registered: int, photos: int) -> None:
+        super().__init__(message)
+        self.registered, self.photos = registered, photos
+
+
 def _check_enough(reg: Registration, n_photos: int, opts: ReconstructOptions, photos_dir: Path) -> None:
     need = max(opts.min_registered, int(np.ceil(opts.min_registered_fraction * n_photos)), 2)
     if len(reg.photos) < need:
         why = "; ".join(f"{k}: {v}" for k, v in list(sorted(reg.unregistered.items()))[:4])
-        raise DamcapError(
+        raise TooFewCameras(
             f"{photos_dir}: only {len(reg.photos)} of {n_photos} photos have cameras, at least {need} are needed "
             f"(--min-registered {opts.min_registered}, --min-registered-fraction {opts.min_registered_fraction}). "
             f"Unregistered, e.g. {why}. Photos need overlap (about 60% between neighbours) and texture; "
-            "--masks keeps features on the object"
-        )
+            "--masks keeps features on the object", len(reg.photos), n_photos)
 
 
 @dataclass
@@ -588,18 +594,18 @@ def both_failed(whole: DamcapError, masked: DamcapError) -> DamcapError:
     """One error for a registration whose two candidates (whole photos, features inside the
     masks) both failed: the one that registered more photos, then how the other ended.
 
-    >>> w = DamcapError("P: only 12 of 36 photos have cameras, at least 18 are needed (...). Unregistered, e.g. ...")
-    >>> m = DamcapError("P: only 2 of 36 photos have cameras, at least 18 are needed (...). Unregistered, e.g. ...")
+    >>> w = TooFewCameras("P: only 12 of 36 photos have cameras, at least 18 are needed (...). Unregistered, e.g. ...", 12, 36)
+    >>> m = TooFewCameras("P: only 2 of 36 photos have cameras, at least 18 are needed (...). Unregistered, e.g. ...", 2, 36)
     >>> str(both_failed(w, m)).endswith("With features inside the masks instead: only 2 of 36 photos have cameras.")
     True
     """
     def registered(e: DamcapError) -> int:
-        m = re.search(r"only (\d+) of \d+ photos have cameras", str(e))
-        return int(m.group(1)) if m else -1
+        return e.registered if isinstance(e, TooFewCameras) else -1
 
     def short(e: DamcapError) -> str:
-        text = str(e).split(": ", 1)[-1]
-        return text.split(", at least")[0].split(" (")[0].rstrip(".")
+        if isinstance(e, TooFewCameras):
+            return f"only {e.registered} of {e.photos} photos have cameras"
+        return str(e).split(": ", 1)[-1].split(" (")[0].rstrip(".")
 
     best, other, how = (whole, masked, "features inside the masks") if registered(whole) >= registered(masked) else \
         (masked, whole, "the whole photos")

@@ -166,7 +166,7 @@ def env_scale(opts: StudioOptions) -> float:
     return 1.0 / mean
 
 
-def studio_scene(opts: StudioOptions, mesh: Mesh, normals: np.ndarray, face_material: np.ndarray) -> Any:
+def studio_scene(opts: StudioOptions, mesh: Mesh, normals: np.ndarray, face_material: np.ndarray, env_multiplier: float) -> Any:
     """The Mitsuba scene of a studio set with ``mesh`` as its object: face f is made of material
     ``opts.material_names()[face_material[f]]``, the board lies under the mesh's lowest point
     (world y) and the environment map is normalised as for the photos.
@@ -176,10 +176,10 @@ def studio_scene(opts: StudioOptions, mesh: Mesh, normals: np.ndarray, face_mate
         mesh: the object, scene units (the set's objects fit in the unit sphere).
         normals: (V, 3) vertex normals.
         face_material: (F,) int index into the set's materials; a material no face uses is left out.
+        env_multiplier: the environment map's scale (:func:`env_scale`).
 
     Raises:
-        DamcapError: an unreadable or black environment map (:func:`env_scale`), or an index
-            outside the materials.
+        DamcapError: an index outside the materials.
     """
     from damcap.synth.mitsuba_render import Board, EnvLight, build_scene
 
@@ -189,7 +189,7 @@ def studio_scene(opts: StudioOptions, mesh: Mesh, normals: np.ndarray, face_mate
     used = [k for k in range(len(names)) if (face_material == k).any()]
     board = Board(float(mesh.vertices[:, 1].min()), opts.board_size, board_albedo(opts.board_size, opts.board_saturation, opts.seed))
     return build_scene([submesh(mesh, normals, face_material == k) for k in used], [STUDIO_MATERIALS[names[k]] for k in used],
-                       EnvLight(str(Path(opts.env).resolve()), opts.env_rotation_deg, env_scale(opts)), opts.max_depth, board)
+                       EnvLight(str(Path(opts.env).resolve()), opts.env_rotation_deg, env_multiplier), opts.max_depth, board)
 
 
 def render_on_shape(opts: StudioOptions, mesh: Mesh, face_material: np.ndarray, world_from_cam: np.ndarray, intr: Intrinsics,
@@ -216,7 +216,7 @@ def render_on_shape(opts: StudioOptions, mesh: Mesh, face_material: np.ndarray, 
     select_variant("auto")
     set_render_threads(os.cpu_count() or 2)
     normals = vertex_normals_area_weighted(mesh.vertices, mesh.triangles, SYNTH_NORMAL_EPS, SYNTH_ISOLATED_NORMAL)
-    scene = studio_scene(opts, mesh, normals, np.asarray(face_material, np.int64))
+    scene = studio_scene(opts, mesh, normals, np.asarray(face_material, np.int64), env_scale(opts))
     passes = pass_sample_counts(spp or opts.spp, intr.w, intr.h)
     seed = opts.seed if seed is None else seed
     out = [render_view(scene, m, intr, passes, [seed * 100_003 + 7 * k + j for j in range(len(passes))])
@@ -250,7 +250,8 @@ def make_studio_photos(out: str | os.PathLike, opts: StudioOptions, progress: Ca
         raise DamcapError(f"{opts.object}: the region(s) of {', '.join(empty)} got no faces (mesh too coarse?); try another --seed")
     select_variant("auto")
     set_render_threads(os.cpu_count() or 2)
-    scene = studio_scene(opts, mesh, normals, labels)
+    env_multiplier = env_scale(opts)
+    scene = studio_scene(opts, mesh, normals, labels, env_multiplier)
     cams = orbit_cameras(opts.views, opts.distance, (opts.elevation_deg,), jitter_deg=opts.jitter_deg, seed=opts.seed)
     intr = default_intrinsics(opts.size)
     exposures = exposure_series(opts.views, opts.seed)
@@ -278,7 +279,7 @@ def make_studio_photos(out: str | os.PathLike, opts: StudioOptions, progress: Ca
         if progress:
             progress(k + 1, opts.views)
     write_json_atomic(out / "transforms.json", {"camera_model": "OPENCV", **intr.to_json(), "frames": frames,
-                                                "damcap_studio": _record(opts, mesh, labels, env_scale(opts), float(gain), median_factor)})
+                                                "damcap_studio": _record(opts, mesh, labels, env_multiplier, float(gain), median_factor)})
     marker.unlink()
     gain_file.unlink(missing_ok=True)
     return photos

@@ -563,10 +563,14 @@ def train_hyper(
     per_rank = opts.batch_size // world
     n_scenes = round(per_rank * opts.procedural) if train else per_rank
     corpus_part = corpus_loader(train, per_rank - n_scenes, opts, rank, start, pin=device.type == "cuda")
+    def validate() -> tuple[float, float, float]:
+        """(corpus L1, scenes L1, the L1 the best step is chosen by)."""
+        v_corpus, v_scenes = validation_l1(net, val), validation_scenes_l1(net, val_scenes)
+        return v_corpus, v_scenes, held_out_l1(v_corpus if val else None, v_scenes if val_scenes else None)
+
     t0 = time.perf_counter()
     if rank == 0 and init_record and start == 0 and (val or val_scenes):  # the start is a candidate: never worse than --init
-        v_corpus, v_scenes = validation_l1(net, val), validation_scenes_l1(net, val_scenes)
-        best_val = held_out_l1(v_corpus if val else None, v_scenes if val_scenes else None)
+        v_corpus, v_scenes, best_val = validate()
         curve.append({"step": 0, "train_l1": math.nan, "val_l1": best_val, "val_corpus_l1": v_corpus, "val_scenes_l1": v_scenes, "seconds": 0.0})
         say(f"step 0 (--init {init_record['file']}): validation L1 {best_val:.4f}")
     running = None
@@ -588,8 +592,7 @@ def train_hyper(
         running = lv if running is None else 0.95 * running + 0.05 * lv
         stats = {"loss": running}
         if rank == 0 and (done % opts.eval_every == 0 or done == opts.steps):
-            v_corpus, v_scenes = validation_l1(net, val), validation_scenes_l1(net, val_scenes)
-            vl = held_out_l1(v_corpus if val else None, v_scenes if val_scenes else None)
+            v_corpus, v_scenes, vl = validate()
             curve.append({"step": done, "train_l1": running, "val_l1": vl, "val_corpus_l1": v_corpus, "val_scenes_l1": v_scenes,
                           "seconds": elapsed_before + time.perf_counter() - t0})
             if not (val or val_scenes) or vl < best_val:  # a NaN (diverged) validation never replaces the best

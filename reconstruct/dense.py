@@ -47,6 +47,7 @@ from damcap.reconstruct.geometry import (
     GeometryResult,
     clean_surface,
     carve,
+    fuse_poisson,
     grid_box,
     hull_box,
     project_points,
@@ -620,30 +621,6 @@ def fuse_tsdf(depths: list[np.ndarray], intrinsics: list[Intrinsics], world_from
     if "positions" not in tm.vertex or tm.triangle.indices.shape[0] == 0:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int32)
     return tm.vertex.positions.cpu().numpy().astype(np.float64), tm.triangle.indices.cpu().numpy().astype(np.int32)
-
-
-def fuse_poisson(points_world: np.ndarray, normals_world: np.ndarray, depth: int, density_quantile: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
-    """Screened Poisson surface (Kazhdan & Hoppe 2013, Open3D) of oriented points, its least
-    supported vertices (lowest ``density_quantile`` of density) removed.
-
-    Args:
-        points_world: (P, 3).
-        normals_world: (P, 3) unit, outward.
-        depth: octree depth.
-        density_quantile: fraction of the least dense vertices removed.
-
-    Returns:
-        vertices (V, 3) float64, triangles (T, 3) int32.
-    """
-    import open3d as o3d
-
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points_world, np.float64)))
-    pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals_world, np.float64))
-    mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=depth, linear_fit=True)
-    dens = np.asarray(dens)
-    if density_quantile > 0 and len(dens):
-        mesh.remove_vertices_by_mask(dens < np.quantile(dens, density_quantile))
-    return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.triangles, np.int32)
 
 
 def keep_inside_silhouettes(vertices: np.ndarray, triangles: np.ndarray, masks: list[np.ndarray], world_from_cams: np.ndarray,

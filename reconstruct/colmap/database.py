@@ -29,7 +29,8 @@ def pair_inliers(db_path: Path, names: list[str]) -> dict[tuple[int, int], int]:
 
 
 def unregistered_reasons(names: list[str], registered: set[str], keypoints: dict[str, int],
-                         best_inliers: dict[str, int], other_models: dict[str, int], min_num_inliers: int) -> dict[str, str]:
+                         best_inliers: dict[str, int], other_models: dict[str, int], min_num_inliers: int,
+                         features_masked: bool = False) -> dict[str, str]:
     """Why each photo outside the kept model has no camera, as one short sentence each.
 
     Args:
@@ -39,6 +40,8 @@ def unregistered_reasons(names: list[str], registered: set[str], keypoints: dict
         best_inliers: name -> most verified matches with any other photo.
         other_models: name -> size of the other (smaller) model it was registered in.
         min_num_inliers: verified matches a pair needs.
+        features_masked: features were restricted to the object by masks, so the matches cannot
+            lie on the background.
     """
     out = {}
     for n in names:
@@ -51,8 +54,12 @@ def unregistered_reasons(names: list[str], registered: set[str], keypoints: dict
             out[n] = f"no photo shares enough verified matches with it (best {inl} < {min_num_inliers}); too little overlap"
         elif n in other_models:
             out[n] = f"registered only in a separate model of {other_models[n]} photos that does not connect to the main one"
+        elif features_masked:
+            out[n] = (f"its pose could not be estimated (best pair {inl} verified matches, all on the object, but too few "
+                      "of them on points the model had triangulated; more overlap with the registered photos helps)")
         else:
-            out[n] = f"its pose could not be estimated (best pair {inl} verified matches; the matches may be on moving background)"
+            out[n] = (f"its pose could not be estimated (best pair {inl} verified matches, but they do not fit the registered "
+                      "cameras; if the object turned in front of the background, give --masks)")
     return out
 
 

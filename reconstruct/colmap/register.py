@@ -488,7 +488,7 @@ def _register_once(photo_dir: Path, names: list[str], work_dir: Path, opts: SfmO
     seconds["mapping"] = time.perf_counter() - t0
     keypoints, best_inliers = database_summary(db_path, names)
     if not recs:
-        reasons = unregistered_reasons(names, set(), keypoints, best_inliers, {}, opts.min_num_inliers)
+        reasons = unregistered_reasons(names, set(), keypoints, best_inliers, {}, opts.min_num_inliers, bool(masks))
         worst = sorted(reasons.items())[:3]
         raise DamcapError(
             f"{photo_dir}: COLMAP could not register the photos (no initial pair among {n} photos; e.g. "
@@ -517,7 +517,8 @@ def _register_once(photo_dir: Path, names: list[str], work_dir: Path, opts: SfmO
     rec.write_binary(str(model_dir))
     reg = registration_of_reconstruction(rec, names, "sfm", str(model_dir))
     registered = {p.name for p in reg.photos}
-    reg.unregistered = unregistered_reasons(names, registered, keypoints, best_inliers, others, opts.min_num_inliers)
+    reg.unregistered = unregistered_reasons(names, registered, keypoints, best_inliers, others, opts.min_num_inliers,
+                                           bool(masks))
     rep = SfmReport(photos=n, registered=len(registered), points=int(rec.num_points3D()),
                     mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()), pairs=n_pairs,
                     pairing=pairing, seconds={k: round(v, 2) for k, v in seconds.items()},

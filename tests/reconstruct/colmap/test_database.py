@@ -14,4 +14,7 @@ def test_unregistered_reasons_each_branch():
     assert "too few features (10)" in reasons["b.jpg"]
     assert "best 3 < 15" in reasons["c.jpg"]
     assert "separate model of 4 photos" in reasons["d.jpg"]
-    assert "could not be estimated" in reasons["e.jpg"]
+    assert "could not be estimated" in reasons["e.jpg"] and "--masks" in reasons["e.jpg"]
+    masked = unregistered_reasons(names, {"a.jpg"}, keypoints={n: 900 for n in names}, best_inliers={n: 100 for n in names},
+                                  other_models={}, min_num_inliers=15, features_masked=True)
+    assert "all on the object" in masked["e.jpg"] and "--masks" not in masked["e.jpg"]  # no background to blame

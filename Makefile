@@ -4,12 +4,12 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
 STAMP := $(VENV)/.installed
-APT_PACKAGES := libusb-1.0-0 libllvm19 libgomp1 chromium
+APT_PACKAGES := libusb-1.0-0 libllvm19 libgomp1 chromium libjs-three
 
 .PHONY: demo test wheel-check bench export-truth tables system venv clean
 
 # System packages the stack needs (open3d: libusb; mitsuba llvm_ad_rgb: libLLVM 19; the viewer's
-# browser test: chromium).
+# browser test: chromium; the glTF and three.js exports' browser tests: three.js r111 with its GLTFLoader).
 system:
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -n "$$missing" ]; then \

@@ -53,6 +53,10 @@ def export(
         target = file_out(output if output.suffix in (".glsl", ".frag") else output / "dam.glsl")  # type: ignore[assignment]
     elif opts.format == "matcap":
         target = folder_out(output, replaces=holds("matcap.json"))  # type: ignore[assignment]
+    elif opts.format == "glb":
+        target = file_out(output if output.suffix == ".glb" else output / "model.glb")  # type: ignore[assignment]
+    elif opts.format == "threejs":
+        target = file_out(output if output.suffix in (".js", ".mjs") else output / "dam_material.js")  # type: ignore[assignment]
     else:
         target = folder_out(output, replaces=holds("export.json"))  # type: ignore[assignment]
     check_paths([*models, mesh, labels], [target])
@@ -82,8 +86,17 @@ def export(
         typer.echo(f"wrote {output}/matcap.exr (linear), matcap.png (sRGB) and matcap.json ({orbit.resolution} px, seen from "
                    f"elevation {orbit.elevation_deg:g} deg, azimuth {orbit.azimuth0_deg:g} deg)")
         return
+    if opts.format == "threejs":
+        if len(dams) != 1:
+            raise DamcapError("--format threejs takes one model (one material per file; export each part's model)")
+        _export_threejs(dams[0].dam_alone() if dams[0].has_surface_factors else dams[0], loaded[0][1], models[0], target.path, orbit)
+        return
     if mesh is None:
-        raise DamcapError("--format frames needs --mesh SHAPE.obj|ply")
+        raise DamcapError(f"--format {opts.format} needs --mesh SHAPE.obj|ply")
+    if opts.format == "glb":
+        _export_glb([d.dam_alone() if d.has_surface_factors else d for d in dams], [meta for _, meta in loaded], models,
+                    mesh, labels, target.path, orbit)
+        return
     with staged_folder(output, replace=True) as stage:  # frames, PNGs, video and export.json move into OUTPUT at the end
         _export_frames(dams, [meta for _, meta in loaded], models, mesh, labels, stage, orbit, opts)
     typer.echo(f"wrote {orbit.views} frames to {output} (frames/*.exr linear, display/*.png sRGB{', turntable.mp4' if opts.video else ''})")
@@ -111,6 +124,69 @@ def _export_matcap(dam, meta: dict, model_path: Path, output: Path, orbit: Orbit
         # the one view the matcap is exact for: pixels look back along view_dir_world
         "view_dir_world": cam[:3, 2].tolist(), "world_from_cam": cam.tolist(), "up_world": up.tolist(), "up_source": up_source,
         "projection": "orthographic: pixel (x, y) of the unit disk shows camera-space normal (x, y, sqrt(1 - x^2 - y^2))"})
+
+
+def _first_view_exposure(dams, shape, part, orbit: OrbitOptions, up) -> float:
+    """The exposure of ``damcap view`` and the export's PNGs: the display key at the 95th percentile
+    of a 128 px render of the orbit's first view."""
+    from dataclasses import replace
+
+    from damcap.common.colour import exposure_scale_for
+    from damcap.export.turntable import render_orbit
+
+    small = replace(orbit, views=1, resolution=128, supersample=1)
+    _, buf, rad = next(render_orbit(dams, shape, part, small, up_world=up))
+    return exposure_scale_for(rad, buf.coverage > 0.5)
+
+
+def _export_glb(dams, metas, model_paths, mesh_path: Path, labels, path: Path, orbit: OrbitOptions) -> None:
+    from damcap.appearance.dam_file import recorded_up
+    from damcap.common.atomic import atomic_path
+    from damcap.common.cameras import orbit_world_from_cam
+    from damcap.export.gltf import glb_bytes, gltf_from_world, split_parts, vertex_radiance
+    from damcap.export.turntable import orbit_up, shape_and_parts
+
+    orbit.validate()
+    _, shape, part = shape_and_parts(mesh_path, labels, len(dams))
+    if part.max() >= len(dams):
+        raise DamcapError(f"{labels or mesh_path}: part {int(part.max())} has no model; give {int(part.max()) + 1} .dam files (one per part)")
+    up, up_source, up_note = orbit_up(orbit.up, [recorded_up(m) for m in metas])
+    if up_note:
+        typer.echo(f"note: {up_note}", err=True)
+    cam = orbit_world_from_cam(1, orbit.distance, orbit.elevation_deg, orbit.azimuth0_deg, up)[0]
+    scale = _first_view_exposure(dams, shape, part, orbit, up)
+    parts = split_parts(shape, part, len(dams))
+    colours = [vertex_radiance(d, p.positions, p.normals, cam[:3, 3]) * scale for d, p in zip(dams, parts)]
+    values = np.concatenate([c.ravel() for c in colours])
+    clipped = float((values > 1.0).mean()) if values.size else 0.0
+    extras = {"damcap": {
+        "what": "linear radiance of the DAM(s) seen from the camera 'baked_view', times exposure_scale, clipped to [0, 1], per vertex",
+        "models": [str(m.resolve()) for m in model_paths], "mesh": str(mesh_path.resolve()), "exposure_scale": scale,
+        "clipped_fraction": clipped, "up_world": up.tolist(), "up_source": up_source,
+        "view": {"elevation_deg": orbit.elevation_deg, "azimuth_deg": orbit.azimuth0_deg, "distance": orbit.distance,
+                 "fov_deg": orbit.fov_deg},
+        "world": "the mesh centred and scaled into the unit sphere (as damcap export renders it), turned so that up is +y"}}
+    data = glb_bytes(parts, colours, gltf_from_world(up), cam, orbit.fov_deg, extras)
+    with atomic_path(path) as staged:
+        staged.write_bytes(data)
+    typer.echo(f"wrote {path} ({sum(len(p.triangles) for p in parts)} triangles, radiance baked for elevation "
+               f"{orbit.elevation_deg:g} deg, azimuth {orbit.azimuth0_deg:g} deg; exposure x{scale:.4g}, "
+               f"{clipped:.1%} of the colour values clipped at 1)")
+
+
+def _export_threejs(dam, meta: dict, model_path: Path, path: Path, orbit: OrbitOptions) -> None:
+    from damcap.appearance.dam_file import recorded_up
+    from damcap.common.atomic import write_text_atomic
+    from damcap.export.gltf import gltf_from_world
+    from damcap.export.threejs import threejs_module
+    from damcap.export.turntable import orbit_up
+
+    orbit.validate()
+    up, _, _ = orbit_up(orbit.up, [recorded_up(meta)])
+    shape = _load_mesh(None)
+    scale = _first_view_exposure([dam], shape, np.zeros(len(shape.triangles), np.int64), orbit, up)
+    write_text_atomic(path, threejs_module(dam, scale, gltf_from_world(up)[:3, :3].T, note=f"Model: {model_path.name}."))
+    typer.echo(f"wrote {path} (import {{ damcapMaterial }} from it; exposure x{scale:.4g} on a sphere seen from the orbit's first view)")
 
 
 def _export_onnx(dam, path: Path) -> None:

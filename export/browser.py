@@ -38,10 +38,19 @@ def _run(args: list[str], timeout_s: float) -> subprocess.CompletedProcess:
     return p
 
 
-def screenshot(page: str | os.PathLike, png: str | os.PathLike, size: int, fragment: str = "", timeout_s: float = 120) -> None:
-    """Load ``page`` (a local HTML file) at size x size and save a PNG screenshot."""
+def three_js_dir() -> Path | None:
+    """Debian's three.js (package ``libjs-three``: ``three.min.js`` and ``examples/js``), or None."""
+    p = Path("/usr/share/javascript/three")
+    return p if (p / "three.min.js").is_file() else None
+
+
+def screenshot(page: str | os.PathLike, png: str | os.PathLike, size: int, fragment: str = "", timeout_s: float = 120,
+               virtual_time_ms: int = 0) -> None:
+    """Load ``page`` (a local HTML file) at size x size and save a PNG screenshot (``virtual_time_ms``:
+    let the page's timers and promises run this long first, for pages that draw asynchronously)."""
     url = Path(page).resolve().as_uri() + (f"#{fragment}" if fragment else "")
-    _run([f"--window-size={size},{size}", f"--screenshot={Path(png).resolve()}", url], timeout_s)
+    wait = [f"--virtual-time-budget={virtual_time_ms}"] if virtual_time_ms else []
+    _run([f"--window-size={size},{size}", *wait, f"--screenshot={Path(png).resolve()}", url], timeout_s)
     if not Path(png).is_file():
         raise DamcapError(f"chromium wrote no screenshot for {page}")
 
@@ -54,3 +63,11 @@ def frame_rate(page: str | os.PathLike, size: int, frames: int = 30, timeout_s: 
     if not m:
         raise DamcapError(f"the viewer reported no frame rate (WebGL 2 unavailable?): {p.stdout[-300:]}")
     return float(m.group(1))
+
+
+def page_title(page: str | os.PathLike, size: int, virtual_time_ms: int = 5000, timeout_s: float = 120) -> str:
+    """The page's ``<title>`` after it ran ``virtual_time_ms`` of virtual time (how a test page reports)."""
+    url = Path(page).resolve().as_uri()
+    p = _run([f"--window-size={size},{size}", f"--virtual-time-budget={virtual_time_ms}", "--dump-dom", url], timeout_s)
+    m = re.search(r"<title>(.*?)</title>", p.stdout, re.S)
+    return m.group(1) if m else ""

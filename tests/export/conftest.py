@@ -33,3 +33,16 @@ def browser():
         if os.environ.get("CI", "").lower() == "true":
             pytest.fail("chromium is required under CI (make test installs it)")
         pytest.skip("chromium not installed")
+
+
+@pytest.fixture(scope="session")
+def three_js(browser):
+    """Debian's three.js r111 (three.min.js, examples/js/loaders/GLTFLoader.js)."""
+    from damcap.export.browser import three_js_dir
+
+    found = three_js_dir()
+    if found is None:
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail("three.js is required under CI (make test installs Debian's libjs-three)")
+        pytest.skip("three.js (libjs-three) not installed")
+    return found

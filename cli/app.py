@@ -129,6 +129,28 @@ def progress_bar(total: int, desc: str):
     return update
 
 
+def stage_progress():
+    """A ``(stage, done, total)`` callback: one bar per stage (:func:`make_bar`: progress lines
+    in a log)."""
+    state: dict = {"stage": None, "bar": None}
+
+    def update(stage: str, done: int, total: int) -> None:
+        if stage != state["stage"]:
+            if state["bar"] is not None:
+                state["bar"].close()
+            state["stage"] = stage
+            state["bar"] = make_bar(total, stage)
+        bar = state["bar"]
+        bar.total = total
+        bar.n = done
+        bar.refresh()
+        if done >= total:
+            bar.close()
+            state["stage"], state["bar"] = None, None
+
+    return update
+
+
 def refuse_input_overlap(out: Path, *inputs: Path) -> None:
     """Outputs never land on or inside an input (inputs are never modified): the file-output case
     of :func:`damcap.cli.paths.check_paths`, which every writing command uses.

@@ -7,35 +7,11 @@ from typing import TYPE_CHECKING, Optional
 
 import typer
 
-from damcap.cli.app import command
+from damcap.cli.app import command, stage_progress
 from damcap.cli.paths import check_paths, folder_out, on_interrupt
 
 if TYPE_CHECKING:
     from damcap.reconstruct.pipeline import ReconstructOptions
-
-
-def stage_progress():
-    """A ``(stage, done, total)`` callback: one bar per stage (:func:`~damcap.cli.app.make_bar`:
-    progress lines in a log)."""
-    from damcap.cli.app import make_bar
-
-    state: dict = {"stage": None, "bar": None}
-
-    def update(stage: str, done: int, total: int) -> None:
-        if stage != state["stage"]:
-            if state["bar"] is not None:
-                state["bar"].close()
-            state["stage"] = stage
-            state["bar"] = make_bar(total, stage)
-        bar = state["bar"]
-        bar.total = total
-        bar.n = done
-        bar.refresh()
-        if done >= total:
-            bar.close()
-            state["stage"], state["bar"] = None, None
-
-    return update
 
 
 @command(opts="damcap.reconstruct.pipeline:ReconstructOptions")

@@ -37,7 +37,8 @@ def _options_record(opts, predictor: Optional[Path]) -> dict:
 
 def run_table1(corpora: list[Path], out: Path, predictor_path: Optional[Path], fresh: bool, opts) -> None:
     """``--table1``: ``opts`` is the TableOptions of the command line."""
-    from damcap.paper.tables import plot_table1, summarise, table1_markdown, table1_rows
+    from damcap.cli.app import make_bar, stage_progress
+    from damcap.paper.tables import heldout_entries, plot_table1, summarise, table1_markdown, table1_rows
     from damcap.common.atomic import write_json_atomic, write_text_atomic
     from damcap.common.version import damcap_version
 
@@ -63,12 +64,18 @@ def run_table1(corpora: list[Path], out: Path, predictor_path: Optional[Path], f
     header = {"damcap_version": damcap_version(), "command": _command(), "corpora": [str(c.resolve()) for c in corpora],
               "options": record, "metric": "DSSIM (capture-format.md)"}
 
+    total = len(heldout_entries(corpora))
+    captures = make_bar(total, "Table 1", "capture")
+    captures.n = sum(1 for _, e in heldout_entries(corpora) if e["name"] in done)
+
     def save(row) -> None:
         rows.append(row)
         write_json_atomic(json_path, {**header, "captures": list(done.values()) + [r.as_json() for r in rows]})
+        captures.update()
 
     all_rows = table1_rows(corpora, opts, _predictor(predictor_path), log=lambda m: typer.echo(m, err=True),
-                           done=done, on_capture=save)
+                           done=done, on_capture=save, progress=stage_progress())
+    captures.close()
     write_json_atomic(json_path, {**header, "table": summarise(all_rows), "captures": [r.as_json() for r in all_rows]})
     md = table1_markdown(all_rows, header["command"])
     plots = plot_table1(all_rows, out)
@@ -80,6 +87,7 @@ def run_table1(corpora: list[Path], out: Path, predictor_path: Optional[Path], f
 def run_table2(capture: Path, out: Path, predictor_path: Optional[Path], materials: str, opts) -> None:
     """``--table2``: ``opts`` is the TableOptions of the command line."""
     from damcap.appearance.evaluate import plot_sorted_dssim
+    from damcap.cli.app import stage_progress
     from damcap.paper.tables import false_colour_figure, table2_markdown, table2_rows
     from damcap.appearance.views import load_views
     from damcap.common.atomic import write_json_atomic, write_text_atomic
@@ -99,7 +107,7 @@ def run_table2(capture: Path, out: Path, predictor_path: Optional[Path], materia
     if not test:
         raise DamcapError(f"{capture}: the capture has no test split; Table 2 scores novel views")
     row, seg = table2_rows(train, test, opts, _predictor(predictor_path), capture.name, materials,
-                           log=lambda m: typer.echo(m, err=True))
+                           log=lambda m: typer.echo(m, err=True), progress=stage_progress())
     out.mkdir(parents=True, exist_ok=True)
     figure = out / "table2_materials.png"
     false_colour_figure(seg, train, figure)

@@ -93,13 +93,26 @@ def _both(train: list[ViewData], test: list[ViewData], models: dict, baselines: 
     return {m: {"same": same[m], "novel": novel[m]} for m in novel}
 
 
-def representation_rows(train: list[ViewData], test: list[ViewData], opts: TableOptions) -> tuple[dict, Any, float]:
+StageProgress = Callable[[str, int, int], None]
+"""``progress(stage, done, total)``: which stage runs and how far it is (the CLI draws bars / log lines)"""
+
+
+def _steps(progress: StageProgress | None, stage: str) -> Callable[[int, int, dict[str, float]], None] | None:
+    """A training loop's ``progress(step, steps, stats)`` reported as ``stage``."""
+    if progress is None:
+        return None
+    return lambda step, steps, stats: progress(stage, step, steps)
+
+
+def representation_rows(train: list[ViewData], test: list[ViewData], opts: TableOptions,
+                        progress: StageProgress | None = None) -> tuple[dict, Any, float]:
     """SGD fit vs RM++ and RM. Returns (scores, the fitted model, fit seconds)."""
-    fit = fit_dam(samples_of(train), opts.fit)
+    fit = fit_dam(samples_of(train), opts.fit, progress=_steps(progress, "fit"))
     return _both(train, test, {"DAM (SGD fit)": fit.model}, baselines=True), fit.model, fit.seconds
 
 
-def learning_to_learn_rows(train: list[ViewData], test: list[ViewData], net, fitted, opts: TableOptions) -> tuple[dict, dict]:
+def learning_to_learn_rows(train: list[ViewData], test: list[ViewData], net, fitted, opts: TableOptions,
+                           progress: StageProgress | None = None) -> tuple[dict, dict]:
     """The predictor alone and refined K steps, next to an SGD fit of the same DAM architecture:
     ``fitted`` when the predictor's architecture is the fit's, else a fit of the predictor's (the
     paper compares a predicted DAM with the same DAM fitted; the shipped predictor emits leaky-ReLU
@@ -118,7 +131,7 @@ def learning_to_learn_rows(train: list[ViewData], test: list[ViewData], net, fit
     models = {}
     if fitted is not None:
         if predicted.arch != fitted.arch:
-            fitted = fit_dam(samples, opts.fit.for_architecture(predicted.arch)).model
+            fitted = fit_dam(samples, opts.fit.for_architecture(predicted.arch), progress=_steps(progress, "fit (predictor's DAM)")).model
         models["DAM (SGD fit)"] = fitted
     models["predicted"] = predicted
     seconds, train_l1 = {"predict": predict_s}, {}
@@ -152,13 +165,14 @@ def _lit(view: ViewData, scale: float) -> np.ndarray:
     return chromaticity_features(rad.reshape(-1, 3), scale)[1].reshape(rad.shape[:-1])
 
 
-def segmentation_rows(train: list[ViewData], test: list[ViewData], opts: TableOptions, materials: int | None = None) -> tuple[dict, dict, dict]:
+def segmentation_rows(train: list[ViewData], test: list[ViewData], opts: TableOptions, materials: int | None = None,
+                      progress: StageProgress | None = None) -> tuple[dict, dict, dict]:
     """Ours vs the k-means baseline with n materials (``materials`` or ``opts.segment.materials``).
 
     Returns (scores, extra: IoUs and seconds, the two models by name).
     """
     seg_opts = opts.segment if materials is None else SegmentOptions(**{**asdict(opts.segment), "materials": materials})
-    models = {"ours": segment_materials(train, seg_opts),
+    models = {"ours": segment_materials(train, seg_opts, _steps(progress, "segment")),
               "k-means": kmeans_baseline(train, seg_opts.materials, steps=opts.kmeans_steps, seed=seg_opts.seed, encoding=seg_opts.encoding)}
     scores: dict[str, dict[str, MethodScores]] = {}
     extra: dict[str, Any] = {"seconds": {}, "iou_train": {}, "iou_train_lit": {}, "iou_test_carried": {}}
@@ -192,9 +206,10 @@ def heldout_entries(corpora: list[Path]) -> list[tuple[Path, dict]]:
 
 def table1_rows(corpora: list[Path], opts: TableOptions, predictor, tasks: tuple[str, ...] = TASKS,
                 log: Callable[[str], None] = lambda m: None, done: dict[str, dict] | None = None,
-                on_capture: Callable[[CaptureRows], None] | None = None) -> list[CaptureRows]:
+                on_capture: Callable[[CaptureRows], None] | None = None, progress: StageProgress | None = None) -> list[CaptureRows]:
     """Every row of Table 1 for every held-out capture (``done``: rows already computed, by
-    capture name, reused as they are: the evaluation resumes)."""
+    capture name, reused as they are: the evaluation resumes; ``progress``: each capture's
+    training loops, by stage)."""
     from damcap.common.capture_folder import read_capture
 
     from damcap.appearance.views import load_views
@@ -212,18 +227,19 @@ def table1_rows(corpora: list[Path], opts: TableOptions, predictor, tasks: tuple
         cap = read_capture(path)
         train, test = load_views(cap, "train"), load_views(cap, "test")
         row = CaptureRows(name, entry.get("light_kind", "env"), m)
+        each = None if progress is None else (lambda stage, k, n, _name=name: progress(f"{_name}: {stage}", k, n))
         t0 = time.perf_counter()
         if m == 1:
-            scores, fitted, fit_s = representation_rows(train, test, opts)
+            scores, fitted, fit_s = representation_rows(train, test, opts, each)
             row.extra["fit_seconds"] = fit_s
             if "representation" in wanted:
                 row.scores["representation"] = scores
             if "learning-to-learn" in wanted and predictor is not None:
-                l2l, extra = learning_to_learn_rows(train, test, predictor, fitted, opts)
+                l2l, extra = learning_to_learn_rows(train, test, predictor, fitted, opts, each)
                 row.scores["learning-to-learn"] = l2l
                 row.extra["learning-to-learn"] = extra
         else:
-            scores, extra, _ = segmentation_rows(train, test, opts, materials=m)
+            scores, extra, _ = segmentation_rows(train, test, opts, materials=m, progress=each)
             row.scores["segmentation"] = scores
             row.extra["segmentation"] = extra
         row.extra["seconds"] = time.perf_counter() - t0
@@ -349,30 +365,32 @@ def plot_table1(rows: list[CaptureRows], folder: Path) -> list[Path]:
 
 
 def table2_rows(train: list[ViewData], test: list[ViewData], opts: TableOptions, predictor, name: str,
-                materials: int | str = "auto", log: Callable[[str], None] = lambda m: None) -> tuple[CaptureRows, Any]:
+                materials: int | str = "auto", log: Callable[[str], None] = lambda m: None,
+                progress: StageProgress | None = None) -> tuple[CaptureRows, Any]:
     """All three tasks on one (real) capture. ``materials``: n for the segmentation, or 'auto'
-    (:func:`.segment.choose_materials` on the test split). Returns (rows, our segmentation)."""
+    (:func:`.segment.choose_materials` on the test split); ``progress``: the training loops, by
+    stage. Returns (rows, our segmentation)."""
     from damcap.appearance.segment.choose import choose_materials
 
     row = CaptureRows(name, "real", 0)
     t = time.perf_counter()
-    scores, fitted, fit_s = representation_rows(train, test, opts)
+    scores, fitted, fit_s = representation_rows(train, test, opts, progress)
     row.scores["representation"] = scores
     row.extra["fit_seconds"] = fit_s
     log(f"fit and baselines: {time.perf_counter() - t:.0f} s")
     if predictor is not None:
         t = time.perf_counter()
-        row.scores["learning-to-learn"], row.extra["learning-to-learn"] = learning_to_learn_rows(train, test, predictor, fitted, opts)
+        row.scores["learning-to-learn"], row.extra["learning-to-learn"] = learning_to_learn_rows(train, test, predictor, fitted, opts, progress)
         log(f"predictor: {time.perf_counter() - t:.0f} s")
     t = time.perf_counter()
     if materials == "auto":
-        choice = choose_materials(train, test, opts.segment, log=log)
+        choice = choose_materials(train, test, opts.segment, log=log, progress=_steps(progress, "segment (--materials auto)"))
         n = choice.materials
         row.extra["materials_auto"] = {"chosen": n, "curve": choice.curve, "margin": choice.margin}
         log(f"--materials auto chose n = {n}")
     else:
         n = int(materials)
-    scores, extra, models = segmentation_rows(train, test, opts, materials=n)
+    scores, extra, models = segmentation_rows(train, test, opts, materials=n, progress=progress)
     row.materials = n
     row.scores["segmentation"] = scores
     row.extra["segmentation"] = extra

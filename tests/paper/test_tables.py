@@ -48,9 +48,22 @@ def predictor():
     return load_predictor(shipped_predictor_path())[0]
 
 
+PROGRESS: list[tuple[str, int, int]] = []
+
+
 @pytest.fixture(scope="module")
 def rows(corpus, predictor):
-    return table1_rows([corpus], FAST, predictor)
+    return table1_rows([corpus], FAST, predictor, progress=lambda *a: PROGRESS.append(a))
+
+
+def _finished_stages(calls: list[tuple[str, int, int]]) -> set[str]:
+    return {stage for stage, done, total in calls if done == total and total > 0}
+
+
+def test_table1_reports_each_captures_training_loops(rows):
+    assert {"sphere_dir_m1: fit", "torus_env_m1: fit", "torus_env_m2: segment"} <= _finished_stages(PROGRESS)
+    steps = [done for stage, done, _ in PROGRESS if stage == "torus_env_m1: fit"]
+    assert steps == sorted(steps) and len(steps) > 2  # step by step, in order
 
 
 def test_table1_has_every_row_of_the_heldout_captures(rows, predictor):
@@ -102,8 +115,11 @@ def test_rows_round_trip_through_json_and_resume_skips_done_captures(corpus, row
 
 def test_table2_covers_all_three_tasks(corpus, predictor):
     cap = read_capture(corpus / "captures" / "torus_env_m2")
-    row, seg = table2_rows(load_views(cap, "train"), load_views(cap, "test"), FAST, predictor, "torus_env_m2", materials="2")
+    calls: list[tuple[str, int, int]] = []
+    row, seg = table2_rows(load_views(cap, "train"), load_views(cap, "test"), FAST, predictor, "torus_env_m2", materials="2",
+                           progress=lambda *a: calls.append(a))
     assert set(row.scores) == {"representation", "learning-to-learn", "segmentation"}
+    assert {"fit", "segment"} <= _finished_stages(calls)
     assert seg.materials == 2 and row.materials == 2
     md = table2_markdown(row, "damcap evaluate --table2 C --out D", "table2_materials.png")
     assert "paper, on its own real spheres" in md and "| segmentation | ours (estimated weights) |" in md

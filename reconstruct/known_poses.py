@@ -41,9 +41,9 @@ def _checked(path: Path, what: str, m: np.ndarray) -> np.ndarray:
 def _ngp_camera(path: Path, where: str, obj: dict[str, Any], base: dict[str, Any], size: tuple[int, int]) -> PhotoCamera:
     """Intrinsics of one frame: the frame's keys over the file's shared keys, scaled to the photo."""
     v = {**base, **{k: obj[k] for k in obj if k != "transform_matrix"}}
-    model = str(v.get("camera_model", "OPENCV"))
-    if "FISHEYE" in model.upper() or model.upper() == "EQUIRECTANGULAR":
-        raise DamcapError(f"{path}: {where}: camera_model {model} is not supported (pinhole/OpenCV cameras only)")
+    model = str(v.get("camera_model", "OPENCV")).upper()
+    if model not in ("OPENCV", "PINHOLE", "OPENCV_FISHEYE"):
+        raise DamcapError(f"{path}: {where}: camera_model {model} is not supported (nerfstudio's OPENCV, PINHOLE or OPENCV_FISHEYE)")
     def num(key: str, default: float) -> float:  # finite in float32 (camera math runs in float32 buffers)
         value = v.get(key, default)
         return finite_in(default if value is None else value, "float32", f"'{key}'", f"{path}: {where}")
@@ -66,12 +66,18 @@ def _ngp_camera(path: Path, where: str, obj: dict[str, Any], base: dict[str, Any
         raise DamcapError(f"{path}: {where}: no focal length (need fl_x or camera_angle_x)")
     cx = num("cx", w_file / 2)
     cy = num("cy", h_file / 2)
-    if num("k4", 0.0) != 0.0:
-        raise DamcapError(f"{path}: {where}: k4 is a fisheye coefficient; only OpenCV pinhole distortion is supported")
-    dist = (num("k1", 0.0), num("k2", 0.0), num("p1", 0.0), num("p2", 0.0), num("k3", 0.0), 0.0, 0.0, 0.0)
     if not (fx > 0 and fy > 0):
         raise DamcapError(f"{path}: {where}: invalid intrinsics {dict(w=w_file, h=h_file, fl_x=fx, fl_y=fy, cx=cx, cy=cy)}")
-    cam = PhotoCamera(round(w_file), round(h_file), fx, fy, cx, cy, dist)
+    if model == "OPENCV_FISHEYE":  # nerfstudio's fisheye: k1..k4 of OpenCV's (and COLMAP's) equidistant model
+        if num("p1", 0.0) or num("p2", 0.0):
+            raise DamcapError(f"{path}: {where}: p1/p2 are not parameters of camera_model OPENCV_FISHEYE (k1..k4 are)")
+        params = (fx, fy, cx, cy, num("k1", 0.0), num("k2", 0.0), num("k3", 0.0), num("k4", 0.0))
+        cam = PhotoCamera(round(w_file), round(h_file), fx, fy, cx, cy, model="OPENCV_FISHEYE", params=params)
+    else:
+        if num("k4", 0.0) != 0.0:
+            raise DamcapError(f"{path}: {where}: k4 is a fisheye coefficient; give camera_model OPENCV_FISHEYE for a fisheye")
+        dist = (num("k1", 0.0), num("k2", 0.0), num("p1", 0.0), num("p2", 0.0), num("k3", 0.0), 0.0, 0.0, 0.0)
+        cam = PhotoCamera(round(w_file), round(h_file), fx, fy, cx, cy, dist)
     if (cam.width, cam.height) != tuple(size):
         if abs(size[0] / cam.width - size[1] / cam.height) > 0.01:
             raise DamcapError(f"{path}: {where}: intrinsics are for {cam.width}x{cam.height} but the photo is "

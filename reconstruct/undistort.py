@@ -1,13 +1,18 @@
 """Photo cameras with lens distortion, and resampling a photo once into a pinhole image.
 
-A :class:`PhotoCamera` holds COLMAP's camera models in one general form: focal lengths,
-principal point and OpenCV's distortion coefficients (k1, k2, p1, p2, k3, k4, k5, k6; COLMAP's
-``FULL_OPENCV``, of which SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL and OPENCV are special
-cases). Image coordinates put pixel (i, j)'s centre at (j + 0.5, i + 0.5), as COLMAP and the
-capture contract do; OpenCV puts it at (j, i), which :func:`undistort_maps` accounts for.
+A :class:`PhotoCamera` holds a photo's camera in COLMAP's terms: the pinhole part (focal lengths,
+principal point) and either OpenCV's distortion coefficients (k1, k2, p1, p2, k3, k4, k5, k6;
+COLMAP's ``FULL_OPENCV``, of which SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL and OPENCV are
+special cases) or, for COLMAP's other models (the fisheyes, FOV, thin prism, division), the
+model's name and parameter vector. Where each pinhole pixel samples the photo is computed by
+pycolmap's implementation of the model (``Camera.img_from_cam``), so every model COLMAP knows is
+undistorted the same way. Image coordinates put pixel (i, j)'s centre at (j + 0.5, i + 0.5), as
+COLMAP and the capture contract do; OpenCV puts it at (j, i), which :func:`undistort_maps`
+accounts for.
 
 Undistortion and resizing happen together, in one resampling of the photo (box-filtered first
-when it shrinks by more than ``AREA_PRESHRINK``).
+when it shrinks by more than ``AREA_PRESHRINK``). The pinhole keeps the photo's focal length and
+principal point, so a wide fisheye loses what lies beyond the pinhole's field of view.
 """
 
 from __future__ import annotations
@@ -29,6 +34,8 @@ COLMAP_MODEL_PARAMS: dict[str, tuple[str, ...]] = {
     "FULL_OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
 }
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+#: COLMAP models that have no pinhole image (a panorama): refused
+NON_PINHOLE_MODELS = ("EQUIRECTANGULAR",)
 #: a photo shrinking by a factor below this is box-filtered (cv2.INTER_AREA) before remapping
 AREA_PRESHRINK = 0.75
 
@@ -44,61 +51,82 @@ class PhotoCamera:
     cx: float
     cy: float
     distortion: tuple[float, ...] = (0.0,) * 8
-    """(k1, k2, p1, p2, k3, k4, k5, k6), OpenCV's / COLMAP FULL_OPENCV's order"""
+    """(k1, k2, p1, p2, k3, k4, k5, k6), OpenCV's / COLMAP FULL_OPENCV's order (when ``model`` is '')"""
+    model: str = ""
+    """'' for the OpenCV family above, else a COLMAP model outside it (e.g. 'OPENCV_FISHEYE')"""
+    params: tuple[float, ...] = ()
+    """that model's COLMAP parameter vector (its focal lengths and principal point are fx, fy, cx, cy)"""
 
     @property
     def is_pinhole(self) -> bool:
-        return not any(self.distortion)
+        return not self.model and not any(self.distortion)
+
+    def colmap(self) -> tuple[str, list[float]]:
+        """(COLMAP model name, parameters) of this camera."""
+        if self.model:
+            return self.model, list(self.params)
+        return "FULL_OPENCV", [self.fx, self.fy, self.cx, self.cy, *self.distortion]
 
     def scaled(self, width: int, height: int) -> "PhotoCamera":
         """The same camera for the photo resized to ``width`` x ``height`` (distortion unchanged)."""
         sx, sy = width / self.width, height / self.height
-        return replace(self, width=width, height=height, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy)
+        out = replace(self, width=width, height=height, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy)
+        if self.model:
+            cam = colmap_camera(self)
+            cam.rescale(int(width), int(height))
+            out = replace(out, params=tuple(float(v) for v in cam.params))
+        return out
 
-    def to_json(self) -> dict[str, float | int]:
-        d: dict[str, float | int] = {"w": self.width, "h": self.height, "fl_x": self.fx, "fl_y": self.fy, "cx": self.cx, "cy": self.cy}
-        d.update({k: v for k, v in zip(DISTORTION_KEYS, self.distortion) if v})
+    def to_json(self) -> dict:
+        d: dict = {"w": self.width, "h": self.height, "fl_x": self.fx, "fl_y": self.fy, "cx": self.cx, "cy": self.cy}
+        if self.model:
+            d.update({"camera_model": self.model, "colmap_params": list(self.params)})
+        else:
+            d.update({k: v for k, v in zip(DISTORTION_KEYS, self.distortion) if v})
         return d
+
+
+def colmap_camera(camera: PhotoCamera):
+    """The camera as a ``pycolmap.Camera`` (its model implements the projection)."""
+    from damcap.reconstruct.colmap.database import import_pycolmap
+
+    pycolmap = import_pycolmap()
+    model, params = camera.colmap()
+    return pycolmap.Camera(model=model, width=int(camera.width), height=int(camera.height), params=params)
 
 
 def camera_from_colmap(model: str, width: int, height: int, params: np.ndarray | tuple[float, ...]) -> PhotoCamera:
     """A :class:`PhotoCamera` from a COLMAP camera model name and parameter vector.
 
     Raises:
-        DamcapError: a model damcap cannot undistort (fisheye and others), or wrong parameter count.
+        DamcapError: a model with no pinhole image (a panorama) or unknown to pycolmap, or the
+            wrong parameter count.
     """
-    names = COLMAP_MODEL_PARAMS.get(model)
-    if names is None:
-        raise DamcapError(f"camera model {model!r} is not supported; use one of {', '.join(COLMAP_MODEL_PARAMS)}")
     p = [float(v) for v in params]
-    if len(p) != len(names):
-        raise DamcapError(f"camera model {model} needs {len(names)} parameters ({', '.join(names)}), got {len(p)}")
-    v = dict(zip(names, p))
-    fx = v.get("fx", v.get("f"))
-    fy = v.get("fy", v.get("f"))
-    dist = tuple(v.get(k, 0.0) for k in DISTORTION_KEYS)
-    return PhotoCamera(int(width), int(height), float(fx), float(fy), v["cx"], v["cy"], dist)  # type: ignore[arg-type]
+    names = COLMAP_MODEL_PARAMS.get(model)
+    if names is not None:
+        if len(p) != len(names):
+            raise DamcapError(f"camera model {model} needs {len(names)} parameters ({', '.join(names)}), got {len(p)}")
+        v = dict(zip(names, p))
+        fx = v.get("fx", v.get("f"))
+        fy = v.get("fy", v.get("f"))
+        dist = tuple(v.get(k, 0.0) for k in DISTORTION_KEYS)
+        return PhotoCamera(int(width), int(height), float(fx), float(fy), v["cx"], v["cy"], dist)  # type: ignore[arg-type]
+    if model in NON_PINHOLE_MODELS:
+        raise DamcapError(f"camera model {model} has no pinhole image (a panorama); damcap needs perspective photos")
+    from damcap.reconstruct.colmap.database import import_pycolmap
 
-
-def distort_normalized(x: np.ndarray, y: np.ndarray, distortion: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """OpenCV's (and COLMAP FULL_OPENCV's) distortion of normalised image coordinates.
-
-    Args:
-        x, y: (...) undistorted normalised coordinates (x right, y down, z = 1 plane).
-        distortion: (k1, k2, p1, p2, k3, k4, k5, k6).
-
-    Returns:
-        (xd, yd): distorted normalised coordinates, same shape.
-
-    >>> [round(float(a), 6) for a in distort_normalized(np.array(0.5), np.array(0.0), (0.1,) + (0.0,) * 7)]
-    [0.5125, 0.0]
-    """
-    k1, k2, p1, p2, k3, k4, k5, k6 = distortion
-    r2 = x * x + y * y
-    radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return xd, yd
+    pycolmap = import_pycolmap()
+    try:
+        cam = pycolmap.Camera(model=model, width=int(width), height=int(height), params=p)
+    except Exception:  # noqa: BLE001 (pycolmap raises several types for an unknown name)
+        cam = None
+    if cam is None or cam.model.name != model:
+        raise DamcapError(f"camera model {model!r} is not a COLMAP camera model")
+    if not cam.verify_params():
+        raise DamcapError(f"camera model {model} needs the parameters {cam.params_info}, got {len(p)}")
+    return PhotoCamera(int(width), int(height), float(cam.focal_length_x), float(cam.focal_length_y), float(cam.principal_point_x),
+                       float(cam.principal_point_y), model=model, params=tuple(p))
 
 
 def pinhole_for(camera: PhotoCamera, max_size: int | None = None) -> Intrinsics:
@@ -125,10 +153,13 @@ def undistort_maps(camera: PhotoCamera, target: Intrinsics) -> tuple[np.ndarray,
     j, i = np.meshgrid(np.arange(target.w, dtype=np.float64) + 0.5, np.arange(target.h, dtype=np.float64) + 0.5)
     x = (j - target.cx) / target.fl_x
     y = (i - target.cy) / target.fl_y
-    if not camera.is_pinhole:
-        x, y = distort_normalized(x, y, camera.distortion)
-    u = camera.fx * x + camera.cx
-    v = camera.fy * y + camera.cy
+    if camera.is_pinhole:
+        u, v = camera.fx * x + camera.cx, camera.fy * y + camera.cy
+    else:
+        rays = np.stack([x.ravel(), y.ravel(), np.ones(x.size)], 1)
+        uv = np.asarray(colmap_camera(camera).img_from_cam(rays, check_cheirality=False), np.float64).reshape(target.h, target.w, 2)
+        uv[~np.isfinite(uv)] = -1e6  # no image of that ray: outside the photo (black)
+        u, v = uv[..., 0], uv[..., 1]
     return (u - 0.5).astype(np.float32), (v - 0.5).astype(np.float32)
 
 

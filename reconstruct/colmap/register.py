@@ -43,6 +43,7 @@ from damcap.common.errors import DamcapError
 
 from damcap.reconstruct.poses import Registration
 from damcap.reconstruct.colmap.model import image_observations, registration_of_reconstruction
+from damcap.reconstruct.undistort import colmap_camera
 from damcap.reconstruct.colmap.database import database_summary, pair_inliers, read_descriptors, import_pycolmap, unregistered_reasons, write_colmap_masks
 from damcap.reconstruct.colmap.pairs import exhaustive_pairs, retrieval_pairs, ring_pairs, transitive_pairs, vlad_similarity
 from damcap.reconstruct.colmap.principal_point import adjust_principal_point, photos_support_offset
@@ -569,8 +570,8 @@ def triangulate_known(photo_dir: str | Path, registration: Registration, work_di
         images = {im.name: im for im in db.read_all_images()}
         for p in registration.photos:
             c, im = p.camera, images[p.name]
-            cam = pycolmap.Camera.create_from_model_name(im.camera_id, "FULL_OPENCV", c.fx, c.width, c.height)
-            cam.params = [c.fx, c.fy, c.cx, c.cy, *c.distortion]
+            cam = colmap_camera(c)
+            cam.camera_id = im.camera_id
             db.update_camera(cam)
             rec.add_camera_with_trivial_rig(cam)
             img = pycolmap.Image(name=p.name, camera_id=im.camera_id, image_id=im.image_id)

@@ -32,6 +32,23 @@ def test_transforms_json_round_trip(tmp_path):
     assert reg.stats["pose_entries_without_photo"] == 1
 
 
+def test_transforms_json_fisheye_is_colmaps_opencv_fisheye(tmp_path):
+    cams = _cameras(2)
+    frames = [{"file_path": f"images/IMG_{k:02d}", "transform_matrix": cams[k].tolist()} for k in range(2)]
+    doc = {"camera_model": "OPENCV_FISHEYE", "fl_x": 40.0, "fl_y": 41.0, "cx": 32.0, "cy": 24.0, "w": 128, "h": 96,
+           "k1": 0.05, "k2": -0.01, "k3": 0.002, "k4": -0.001, "frames": frames}
+    path = tmp_path / "transforms.json"
+    path.write_text(json.dumps(doc))
+    cam = load_known_poses(str(path), _sizes(2)).photos[0].camera  # the photos are 64 x 48: half the file's size
+    assert cam.model == "OPENCV_FISHEYE" and cam.params == (20.0, 20.5, 16.0, 12.0, 0.05, -0.01, 0.002, -0.001)
+    path.write_text(json.dumps({**doc, "p1": 0.01}))
+    with pytest.raises(DamcapError, match="p1/p2 are not parameters of camera_model OPENCV_FISHEYE"):
+        load_known_poses(str(path), _sizes(2))
+    path.write_text(json.dumps({**doc, "camera_model": "EQUIRECTANGULAR"}))
+    with pytest.raises(DamcapError, match="camera_model EQUIRECTANGULAR is not supported"):
+        load_known_poses(str(path), _sizes(2))
+
+
 def test_transforms_json_angle_and_scaling(tmp_path):
     # instant-ngp / Blender style: camera_angle_x only, file at 2x the photos' resolution
     cams = _cameras(2)

@@ -20,6 +20,7 @@ from damcap.reconstruct.poses import (
     RegisteredPhoto,
     Registration,
     finish_registration,
+    nearest_facing_camera,
     orthonormalize_rotation,
     photos_by_stem,
     world_from_cam_of_llff,
@@ -132,8 +133,31 @@ def read_transforms_json(path: str | os.PathLike, photo_sizes: dict[str, tuple[i
         if m.shape != (4, 4):
             raise DamcapError(f"{path}: {where}: transform_matrix has shape {m.shape}, expected 4x4")
         found[name] = RegisteredPhoto(name, _checked(path, where, m), _ngp_camera(path, where, fr, base, photo_sizes[name]))
-    return finish_registration("transforms.json", path, found, list(photo_sizes), f"no frame in {path.name}",
-                   {"pose_entries_without_photo": ignored})
+    reg = finish_registration("transforms.json", path, found, list(photo_sizes), f"no frame in {path.name}",
+                              {"pose_entries_without_photo": ignored})
+    if doc.get("ply_file_path") and reg.photos:
+        ply = path.parent / str(doc["ply_file_path"])
+        reg.points_world = read_point_cloud(ply, f"{path}: ply_file_path")
+        reg.points_seen_from = nearest_facing_camera(reg.points_world, reg.world_from_cams)
+        reg.stats["points_from"] = str(ply)
+    return reg
+
+
+def read_point_cloud(path: Path, where: str) -> np.ndarray:
+    """(P, 3) float64 points of a point-cloud file (PLY and the formats Open3D reads).
+
+    Raises:
+        DamcapError: the file is missing, unreadable, or holds no finite point.
+    """
+    import open3d as o3d
+
+    if not path.is_file():
+        raise DamcapError(f"{where}: {path} not found; restore it or remove the key (the points seed the geometry)")
+    pts = np.asarray(o3d.io.read_point_cloud(str(path)).points, np.float64)
+    pts = pts[np.isfinite(pts).all(1)]
+    if len(pts) == 0:
+        raise DamcapError(f"{where}: {path} holds no readable point (a PLY point cloud with x, y, z expected)")
+    return pts
 
 
 def read_llff_poses_bounds(path: str | os.PathLike, photo_sizes: dict[str, tuple[int, int]]) -> Registration:

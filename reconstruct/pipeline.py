@@ -509,6 +509,9 @@ def _cameras(photos_dir: Path, names: list[str], work: Path, opts: ReconstructOp
     reg = _registration(photos_dir, names, work, opts, masks, known, progress, object_fraction)
     seconds["registration"] = seconds.get("registration", 0.0) + time.perf_counter() - t0
     _check_enough(reg, len(names), opts, photos_dir)
+    if reg.stats.get("points_from") or reg.stats.get("points_without_track"):
+        log(f"{len(reg.points_world)} points of the dataset's point cloud ({reg.stats.get('points_from', 'COLMAP points without a track')}) "
+            "are the sparse points: no feature matching")
     if len(reg.points_world) == 0 and _needs_points(opts, masks is not None):
         t0 = time.perf_counter()
         log("known poses without sparse points: matching features and triangulating them with the poses held fixed")

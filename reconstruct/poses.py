@@ -93,6 +93,32 @@ def registration_without(reg: Registration, names: set[str]) -> Registration:
     return replace(reg, photos=[reg.photos[k] for k in keep], points_world=points, points_seen_from=seen[seen >= 0])
 
 
+def nearest_facing_camera(points_world: np.ndarray, world_from_cams: np.ndarray) -> np.ndarray:
+    """For points that come without observations (a dataset's point cloud), the camera each one is
+    taken to be seen from: the nearest camera that has it in front (OpenGL axes: camera z < 0),
+    else the nearest camera.
+
+    Args:
+        points_world: (P, 3).
+        world_from_cams: (N, 4, 4) OpenGL camera-to-world.
+
+    Returns:
+        (P,) int64 camera index.
+
+    >>> cams = np.stack([np.eye(4), np.diag([-1.0, 1, -1, 1])]); cams[:, 2, 3] = [2.0, -2.0]
+    >>> nearest_facing_camera(np.array([[0.0, 0, 1], [0.0, 0, -1]]), cams).tolist()  # both see both; nearest wins
+    [0, 1]
+    """
+    pts = np.asarray(points_world, np.float64)
+    cams = np.asarray(world_from_cams, np.float64)
+    if len(pts) == 0 or len(cams) == 0:
+        return np.zeros(len(pts), np.int64)
+    rel = pts[:, None, :] - cams[None, :, :3, 3]  # (P, N, 3)
+    z_cam = np.einsum("pnk,nk->pn", rel, cams[:, :3, 2])
+    dist = np.linalg.norm(rel, axis=2)
+    return np.argmin(np.where(z_cam < 0, dist, dist + 1e12), axis=1).astype(np.int64)
+
+
 def world_from_cam_of_colmap(cam_from_world_cv: np.ndarray) -> np.ndarray:
     """OpenGL camera-to-world from COLMAP's world-to-camera.
 

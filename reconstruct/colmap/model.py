@@ -11,7 +11,7 @@ import numpy as np
 from damcap.common.errors import DamcapError
 
 from damcap.reconstruct.undistort import camera_from_colmap
-from damcap.reconstruct.poses import RegisteredPhoto, Registration, photos_by_stem, finish_registration, world_from_cam_of_colmap
+from damcap.reconstruct.poses import RegisteredPhoto, Registration, photos_by_stem, finish_registration, nearest_facing_camera, world_from_cam_of_colmap
 
 
 def image_observations(rec: Any) -> dict[int, np.ndarray]:
@@ -67,14 +67,20 @@ def registration_of_reconstruction(rec: Any, photo_names: list[str], source: str
         id_to_name[image_id] = name
     reg = finish_registration(source, Path(where), found, photo_names, "", {})
     index = {p.name: k for k, p in enumerate(reg.photos)}
-    pts, seen = [], []
+    pts, seen, trackless = [], [], []
     for _, p3d in rec.points3D.items():
+        if len(p3d.track.elements) == 0:  # a model written without observations (a 3DGS tool's, damcap's export)
+            trackless.append(p3d.xyz)
         for el in p3d.track.elements:
             n = id_to_name.get(el.image_id)
             if n is not None:
                 pts.append(p3d.xyz)
                 seen.append(index[n])
                 break
+    if trackless and reg.photos:
+        pts.extend(trackless)
+        seen.extend(nearest_facing_camera(np.asarray(trackless, np.float64), reg.world_from_cams).tolist())
+        reg.stats["points_without_track"] = len(trackless)
     if pts:
         reg.points_world = np.asarray(pts, dtype=np.float64)
         reg.points_seen_from = np.asarray(seen, dtype=np.int64)

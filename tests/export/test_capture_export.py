@@ -196,3 +196,23 @@ def test_a_fisheye_dataset_reconstructs_to_the_pinhole_frames(capture, tmp_path)
     right, wrong = error("fish"), error("fish-read-as-pinhole")
     assert right[0] < 0.05 and right[1] < 0.01, right  # measured 0.031 (two resamplings), 0.0006
     assert right[0] < 0.5 * wrong[0] and right[1] < 0.1 * wrong[1], (right, wrong)  # measured 0.086, 0.088
+
+
+@pytest.mark.parametrize("fmt", ["nerfstudio", "colmap"])
+def test_the_datasets_point_cloud_seeds_the_geometry(capture, tmp_path, capsys, fmt):
+    """The points an exported dataset carries (nerfstudio's ply_file_path, COLMAP points without
+    tracks) are reconstruct's sparse points: Poisson meshes them, no features are matched, and
+    the surface covers the capture's silhouettes."""
+    from damcap.cli.main import main
+
+    export_capture(capture, tmp_path / "ds", CaptureExportOptions(format=fmt, points=3000))
+    assert main(["reconstruct", str(tmp_path / "ds"), "-o", str(tmp_path / "again"), "--geometry", "poisson",
+                 "--capture-size", "48"]) == 0
+    out = capsys.readouterr().out
+    assert "are the sparse points: no feature matching" in out and "triangulating" not in out, out
+    again = read_capture(tmp_path / "again")
+    ious = []
+    for a, b in zip(capture.frames, again.frames):
+        ca, cb = read_frame(capture, a).coverage > 0.5, read_frame(again, b).coverage > 0.5
+        ious.append((ca & cb).sum() / (ca | cb).sum())
+    assert min(ious) > 0.85, ious

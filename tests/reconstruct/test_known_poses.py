@@ -288,3 +288,20 @@ def test_strecha_real_herz_jesus_cameras_face_one_scene(shared_data):
         u, v = _project_damcap(p.camera, p.world_from_cam, focus)
         depth = -(np.linalg.inv(p.world_from_cam) @ np.append(focus, 1.0))[2]
         assert depth > 0 and 0 < u < p.camera.width and 0 < v < p.camera.height
+
+
+def test_transforms_json_ply_file_path_gives_the_sparse_points(tmp_path):
+    import open3d as o3d
+
+    cams = _cameras(2)
+    doc = {"fl_x": 70.0, "w": 64, "h": 48, "ply_file_path": "sparse_pc.ply",
+           "frames": [{"file_path": f"images/IMG_{k:02d}", "transform_matrix": cams[k].tolist()} for k in range(2)]}
+    path = tmp_path / "transforms.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(DamcapError, match="ply_file_path: .*sparse_pc.ply not found"):
+        load_known_poses(str(path), _sizes(2))
+    pts = np.random.default_rng(0).normal(size=(50, 3))
+    o3d.io.write_point_cloud(str(tmp_path / "sparse_pc.ply"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)))
+    reg = load_known_poses(str(path), _sizes(2))
+    np.testing.assert_allclose(reg.points_world, pts)
+    assert reg.points_seen_from.shape == (50,) and set(reg.points_seen_from.tolist()) <= {0, 1}

@@ -6,8 +6,10 @@ scores every frame's sharpness (variance of the Laplacian of its grey image, dow
 :func:`pick_frames`: the video is cut into ``count`` windows of consecutive frames and the
 sharpest frame of each window is kept, so the photos spread over the whole video (the camera's
 path) and motion blur is avoided where a window has a sharper frame. ``frames.json`` records the
-video, each photo's frame index, time and sharpness. A video has no EXIF exposure: ``reconstruct``
-then treats the photos as sharing one exposure (as it says).
+video, each photo's frame index, time and sharpness. Frames are turned upright as the video's
+display matrix says (phones store portrait video as rotated landscape frames), as players show
+them. A video has no EXIF exposure: ``reconstruct`` then treats the photos as sharing one exposure
+(as it says).
 """
 
 from __future__ import annotations
@@ -86,8 +88,21 @@ def _open(path: Path) -> Any:
     return container
 
 
+def upright(rgb: np.ndarray, rotation_deg: float) -> np.ndarray:
+    """A decoded frame turned as its display matrix says (a phone filming upright stores the
+    sensor's landscape frames and a rotation): ``rotation_deg`` counter-clockwise, FFmpeg's
+    ``av_display_rotation_get`` (PyAV's ``VideoFrame.rotation``), rounded to quarter turns.
+
+    >>> img = np.zeros((2, 4), np.uint8); img[:, 0] = 1  # landscape, the left column marked
+    >>> upright(img, -90).tolist()  # turned clockwise: portrait, the mark on top
+    [[1, 1], [0, 0], [0, 0], [0, 0]]
+    """
+    turns = int(round(rotation_deg / 90.0)) % 4
+    return np.ascontiguousarray(np.rot90(rgb, turns)) if turns else rgb
+
+
 def _frames(path: Path) -> Any:
-    """Yield (index, time_s, (H, W, 3) uint8 RGB) of every decoded frame."""
+    """Yield (index, time_s, (H, W, 3) uint8 RGB upright, display rotation deg) of every decoded frame."""
     import av
 
     container = _open(path)
@@ -96,7 +111,9 @@ def _frames(path: Path) -> Any:
         k = 0
         try:
             for frame in container.decode(stream):
-                yield k, float(frame.time) if frame.time is not None else float("nan"), frame.to_ndarray(format="rgb24")
+                rotation = float(frame.rotation or 0.0)
+                yield (k, float(frame.time) if frame.time is not None else float("nan"),
+                       upright(frame.to_ndarray(format="rgb24"), rotation), rotation)
                 k += 1
         except av.FFmpegError as e:
             if k == 0:
@@ -132,8 +149,9 @@ def extract_frames(video: str | os.PathLike, out: str | os.PathLike, opts: Video
     video, out = Path(video), Path(out)
     if not video.is_file():
         raise DamcapError(f"{video}: video file not found")
-    scores, times = [], []
-    for k, t, rgb in _frames(video):
+    scores, times, rotations = [], [], set()
+    for k, t, rgb, rotation in _frames(video):
+        rotations.add(rotation)
         gray = cv2.cvtColor(_resized(rgb, SCORE_SIDE), cv2.COLOR_RGB2GRAY)
         scores.append(sharpness(gray))
         times.append(t)
@@ -145,7 +163,7 @@ def extract_frames(video: str | os.PathLike, out: str | os.PathLike, opts: Video
     wanted = set(chosen)
     out.mkdir(parents=True, exist_ok=True)
     photos = []
-    for k, _, rgb in _frames(video):
+    for k, _, rgb, _ in _frames(video):
         if k in wanted:
             name = f"frame_{k:05d}.jpg"
             write_image_u8(out / name, _resized(rgb, opts.max_side), {"Compression": f"jpeg:{opts.quality}"})
@@ -156,6 +174,8 @@ def extract_frames(video: str | os.PathLike, out: str | os.PathLike, opts: Video
             break
     median = float(np.median(scores))
     record = {"video": str(video.resolve()), "frames_decoded": len(scores), "count": len(photos), "options": {"count": opts.count,
-              "max_side": opts.max_side, "quality": opts.quality}, "median_sharpness": median, "photos": photos}
+              "max_side": opts.max_side, "quality": opts.quality}, "median_sharpness": median,
+              # the display matrix's rotation (counter-clockwise degrees), applied to every photo
+              "display_rotation_deg": sorted(rotations), "photos": photos}
     write_json_atomic(out / "frames.json", record)
     return record

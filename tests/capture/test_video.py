@@ -58,3 +58,26 @@ def test_what_is_not_a_video_is_refused_in_one_line(tmp_path):
         extract_frames(bad, tmp_path / "out", VideoFrameOptions())
     with pytest.raises(DamcapError, match="video file not found"):
         extract_frames(tmp_path / "missing.mp4", tmp_path / "out", VideoFrameOptions())
+
+
+def test_a_phone_video_is_turned_upright_as_its_display_matrix_says(tmp_path):
+    """Phones store portrait video as landscape frames plus a rotation: the photos are upright."""
+    import av
+
+    path = tmp_path / "portrait.mp4"
+    with av.open(str(path), "w") as c:
+        s = c.add_stream("libx264", rate=10)
+        s.width, s.height, s.pix_fmt = 64, 32, "yuv420p"
+        s.set_display_rotation(-90)  # as a phone held upright records: turn clockwise to show
+        img = np.zeros((32, 64, 3), np.uint8)
+        img[:, :16] = 255  # the sensor's left edge
+        for _ in range(3):
+            for packet in s.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
+                c.mux(packet)
+        for packet in s.encode():
+            c.mux(packet)
+    record = extract_frames(path, tmp_path / "photos", VideoFrameOptions(count=2))
+    assert record["display_rotation_deg"] == [-90.0]
+    photo = read_image_u8(tmp_path / "photos" / record["photos"][0]["photo"])
+    assert photo.shape == (64, 32, 3)  # portrait
+    assert photo[:12].mean() > 200 and photo[20:].mean() < 50  # the sensor's left edge is on top

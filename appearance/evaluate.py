@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -43,15 +44,27 @@ def rm_source_spread(per_source: dict[str, float]) -> dict | None:
     return {"n": len(finite), "min": finite[0], "median": float(np.median(finite)), "max": finite[-1], "scores": finite}
 
 
-def evaluate_split(train: list[ViewData], targets: list[ViewData], models: dict[str, DeepAppearanceMap], baselines: bool = True) -> dict[str, MethodScores]:
-    """DSSIM of every model and of RM / RM++ on ``targets``, with ``train`` as the baselines' sources."""
+def evaluate_split(train: list[ViewData], targets: list[ViewData], models: dict[str, DeepAppearanceMap], baselines: bool = True,
+                   progress: Callable[[str, int, int], None] | None = None, split: str = "") -> dict[str, MethodScores]:
+    """DSSIM of every model and of RM / RM++ on ``targets``, with ``train`` as the baselines' sources
+    (``progress(stage, done, total)``: each model's frames, then each baseline; stages named
+    after ``split``)."""
+    say = progress or (lambda stage, done, total: None)
+    where = f"{split}: " if split else ""
     out: dict[str, MethodScores] = {}
     for name, model in models.items():
-        out[name] = MethodScores({t.name: score_view(t, render_frame(model, t.data, t.centre_world)) for t in targets})
+        scores = {}
+        for k, t in enumerate(targets):
+            scores[t.name] = score_view(t, render_frame(model, t.data, t.centre_world))
+            say(f"{where}{name}", k + 1, len(targets))
+        out[name] = MethodScores(scores)
     if baselines and len(train) >= 2:
+        say(f"{where}RM++ and RM", 0, 2)
         preds = rm_plus_plus(train, targets)
         out["RM++"] = MethodScores({t.name: score_view(t, p) for t, p in zip(targets, preds)})
+        say(f"{where}RM++ and RM", 1, 2)
         preds, chosen, per_source = rm_oracle(train, targets, score_view)
+        say(f"{where}RM++ and RM", 2, 2)
         sp = rm_source_spread(per_source)
         spread = f"; best of {sp['n']} single sources, which score {sp['min']:.3f}-{sp['max']:.3f} (median {sp['median']:.3f})" if sp else ""
         out["RM"] = MethodScores({t.name: score_view(t, p) for t, p in zip(targets, preds)}, note=f"source {chosen}{spread}",

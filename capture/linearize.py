@@ -14,7 +14,7 @@ import shutil
 import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal, Sequence
+from typing import Callable, Literal, Sequence
 
 import numpy as np
 
@@ -161,8 +161,10 @@ def list_photos(folder: str | os.PathLike) -> list[Path]:
     return photos
 
 
-def linearize_files(photos: Sequence[Path], out_dir: Path, opts: LinearizeOptions) -> dict:
-    """Linearise every photo into ``out_dir/<stem>.exr`` (R, G, B, clipped) and return the record.
+def linearize_files(photos: Sequence[Path], out_dir: Path, opts: LinearizeOptions,
+                    progress: Callable[[str, int, int], None] | None = None) -> dict:
+    """Linearise every photo into ``out_dir/<stem>.exr`` (R, G, B, clipped) and return the record
+    (``progress(stage, done, total)`` after each photo).
 
     Raises:
         DamcapError: unreadable photos, missing exposure metadata (names --ignore-exposure),
@@ -186,7 +188,7 @@ def linearize_files(photos: Sequence[Path], out_dir: Path, opts: LinearizeOption
     # read: a bad photo late in the list leaves no partial set of EXRs behind
     stage = Path(tempfile.mkdtemp(prefix=".linearize-", dir=out_dir))
     try:
-        records = _linearize_into(photos, exposures, factors, ref, stage, opts)
+        records = _linearize_into(photos, exposures, factors, ref, stage, opts, progress)
         for rec in records:
             os.replace(stage / rec["output"], out_dir / rec["output"])
     except BaseException:
@@ -202,7 +204,7 @@ def linearize_files(photos: Sequence[Path], out_dir: Path, opts: LinearizeOption
 
 
 def _linearize_into(photos: Sequence[Path], exposures: list[Exposure], factors: np.ndarray, ref: float, out_dir: Path,
-                    opts: LinearizeOptions) -> list[dict]:
+                    opts: LinearizeOptions, progress: Callable[[str, int, int], None] | None = None) -> list[dict]:
     """Write every photo's EXR into ``out_dir``; the per-photo records."""
     from damcap.common.exr import write_exr
 
@@ -232,6 +234,8 @@ def _linearize_into(photos: Sequence[Path], exposures: list[Exposure], factors: 
                               "damcap:reference_exposure": ref, "damcap:source": path.name})
         records.append({"file": path.name, "output": out.name, "exposure": exp.to_json(), "factor": float(h),
                         "scale": ref / float(h), "colorspace": colorspace, "clipped_fraction": float(clipped.mean())})
+        if progress:
+            progress("linearize", len(records), len(photos))
     return records
 
 

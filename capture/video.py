@@ -123,6 +123,17 @@ def _frames(path: Path) -> Any:
         container.close()
 
 
+def _frame_count(path: Path, _cache: dict = {}) -> int:  # noqa: B006 (a per-process cache)
+    """Frames the container says the video has (0 when it does not say)."""
+    if path not in _cache:
+        container = _open(path)
+        try:
+            _cache[path] = int(container.streams.video[0].frames or 0)
+        finally:
+            container.close()
+    return _cache[path]
+
+
 def _resized(rgb: np.ndarray, max_side: int) -> np.ndarray:
     import cv2
 
@@ -134,8 +145,12 @@ def _resized(rgb: np.ndarray, max_side: int) -> np.ndarray:
 
 
 def extract_frames(video: str | os.PathLike, out: str | os.PathLike, opts: VideoFrameOptions,
-                   progress: Callable[[str, int], None] | None = None) -> dict[str, Any]:
+                   progress: Callable[[str, int, int], None] | None = None) -> dict[str, Any]:
     """Write the chosen frames of ``video`` into ``out`` as ``frame_NNNNN.jpg`` and ``frames.json``.
+
+    Args:
+        progress: ``progress(stage, done, total)`` ('scoring' every decoded frame, total 0 when the
+            container does not say; 'writing' the chosen ones).
 
     Returns:
         the record written to ``frames.json``.
@@ -156,7 +171,7 @@ def extract_frames(video: str | os.PathLike, out: str | os.PathLike, opts: Video
         scores.append(sharpness(gray))
         times.append(t)
         if progress:
-            progress("scoring", k + 1)
+            progress("scoring", k + 1, _frame_count(video))
     if len(scores) < 2:
         raise DamcapError(f"{video}: {len(scores)} frame(s) decoded; a capture needs at least 2")
     chosen = pick_frames(scores, opts.count)
@@ -169,7 +184,7 @@ def extract_frames(video: str | os.PathLike, out: str | os.PathLike, opts: Video
             write_image_u8(out / name, _resized(rgb, opts.max_side), {"Compression": f"jpeg:{opts.quality}"})
             photos.append({"photo": name, "frame": k, "time_s": times[k], "sharpness": scores[k]})
             if progress:
-                progress("writing", len(photos))
+                progress("writing", len(photos), len(chosen))
         if k >= chosen[-1]:
             break
     median = float(np.median(scores))

@@ -35,7 +35,7 @@ def build_app(selected: str | None = None) -> typer.Typer:
     return app
 
 
-LOG_PROGRESS_EVERY_S = 30.0
+LOG_PROGRESS_EVERY_S = 10.0
 """where output is not a terminal (a log file, CI), a long stage prints one progress line this often"""
 
 
@@ -46,12 +46,12 @@ class LineProgress:
     damcap's commands use: ``n``, ``total``, ``update``, ``refresh``, ``set_postfix``,
     ``set_postfix_str``, ``close`` and iteration.
 
-    >>> t = iter([0.0, 10.0, 31.0, 45.0, 62.0, 70.0])
+    >>> t = iter([0.0, 4.0, 11.0, 15.0, 22.0, 25.0])
     >>> bar = LineProgress(4, "fit", clock=lambda: next(t), echo=print)
     >>> for _ in range(4):
     ...     bar.update()
-    fit: 2/4 steps (50%), 31 s, about 31 s left
-    fit: 4/4 steps (100%), 62 s
+    fit: 2/4 steps (50%), 11 s, about 11 s left
+    fit: 4/4 steps (100%), 22 s
     >>> bar.close()
     """
 
@@ -134,7 +134,8 @@ def stage_progress():
     in a log)."""
     state: dict = {"stage": None, "bar": None}
 
-    def update(stage: str, done: int, total: int) -> None:
+    def update(stage: str, done: int, total: int | None) -> None:
+        total = total if total and total > 0 else None  # unknown: a count without percentage
         if stage != state["stage"]:
             if state["bar"] is not None:
                 state["bar"].close()
@@ -144,7 +145,7 @@ def stage_progress():
         bar.total = total
         bar.n = done
         bar.refresh()
-        if done >= total:
+        if total is not None and done >= total:
             bar.close()
             state["stage"], state["bar"] = None, None
 

@@ -197,8 +197,10 @@ def render(
     names = frame_output_names([f.file_path for f in frames], ".exr")  # unique: images/0004 and images2/0004 never collide
     if "render.json" in names:
         raise DamcapError(f"{capture}: a frame would be written as render.json; rename the frame")
+    from damcap.cli.app import make_bar
+
     with staged_folder(output, replace=True) as stage:
-        for f, name in zip(frames, names):
+        for f, name in make_bar(len(frames), "render", "frame", list(zip(frames, names))):
             img = render_frame(dam, read_frame(cap, f, with_weights=False), f.camera_centre_world)
             if not np.isfinite(img).all():  # load_dam's overflow check probes directions; this is the frame's own
                 raise DamcapError(f"{model}: the model's radiance overflows float32 (inf or NaN) on frame {f.file_path}")
@@ -281,7 +283,11 @@ def evaluate(
     cap = read_capture(capture)
     train = load_views(cap, "train")
     test = load_views(cap, "test")
-    results = {"train": evaluate_split(train, train, models), "test": evaluate_split(train, test, models)}
+    from damcap.cli.app import stage_progress
+
+    progress = stage_progress()
+    results = {"train": evaluate_split(train, train, models, progress=progress, split="same view"),
+               "test": evaluate_split(train, test, models, progress=progress, split="novel view")}
     if kmeans is not None:
         from damcap.appearance.segment.kmeans_baseline import kmeans_baseline
 

@@ -49,6 +49,7 @@ def linearize(
 ) -> None:
     """Undo each photo's tone curve and divide out its exposure (EXIF), so radiance compares across photos."""
     from damcap.capture.linearize import linearize_files, list_photos
+    from damcap.cli.app import stage_progress
     from damcap.common.atomic import write_json_atomic
     from damcap.common.version import damcap_version
 
@@ -56,7 +57,7 @@ def linearize(
     check_paths([photos], [folder_out(output)])
     files = list_photos(photos)
     with staged_folder(output) as stage:  # the EXRs move into OUTPUT together, at the end
-        record = linearize_files(files, stage, opts)  # its warnings: one line each (cli.main)
+        record = linearize_files(files, stage, opts, progress=stage_progress())  # its warnings: one line each (cli.main)
         record = {"damcap_version": damcap_version(), "photos_folder": str(photos.resolve()), **record}
         write_json_atomic(stage / "linearize.json", record)
     scales = [r["scale"] for r in record["photos"]]
@@ -74,10 +75,11 @@ def frames(
     """Video -> photos: the sharpest frame of each of --count equal stretches of the video (JPEG),
     and frames.json recording which frame each photo is."""
     from damcap.capture.video import extract_frames
+    from damcap.cli.app import stage_progress
 
     opts.validate()
     check_paths([video], [folder_out(output, replaces=holds("frames.json"))])
     with staged_folder(output, replace=True) as stage:
-        record = extract_frames(video, stage, opts)
+        record = extract_frames(video, stage, opts, progress=stage_progress())
     typer.echo(f"wrote {record['count']} photos of {record['frames_decoded']} frames to {output} (frames.json says which); "
                f"next: damcap reconstruct {output} -o CAPTURE")

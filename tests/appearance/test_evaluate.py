@@ -43,8 +43,10 @@ def test_evaluate_split_scores_each_model_and_the_baselines(views):
     train, test = views
     arch = DamArchitecture()
     zero = DeepAppearanceMap(arch, radiance_scale=1.0, weights_flat=torch.zeros(arch.num_weights))
-    res = evaluate_split(train, test, {"zero": zero})
+    calls: list[tuple[str, int, int]] = []
+    res = evaluate_split(train, test, {"zero": zero}, progress=lambda *a: calls.append(a), split="novel view")
     assert list(res) == ["zero", "RM++", "RM"]
+    assert calls == [("novel view: zero", k + 1, len(test)) for k in range(len(test))] + [("novel view: RM++ and RM", k, 2) for k in range(3)]
     assert set(res["zero"].per_frame) == {t.name for t in test}
     for t in test:
         assert res["zero"].per_frame[t.name] == pytest.approx(score_view(t, render_frame(zero, t.data, t.centre_world)), abs=1e-9)

@@ -28,6 +28,12 @@ $(STAMP): constraints.txt pyproject.toml setup.py
 	@$(PY) -c "import torch; assert torch.__version__.startswith('2.13.0'), torch.__version__"
 	@touch $(STAMP)
 
+# nerfstudio's dataparser for the export test, in its own folder (tests/nerfstudio-reader.txt says why)
+NS_READER := $(VENV)/nerfstudio-reader
+$(NS_READER)/.installed: tests/nerfstudio-reader.txt $(STAMP)
+	$(PIP) install -q --no-deps --target $(NS_READER) -r tests/nerfstudio-reader.txt
+	@touch $@
+
 venv: system $(STAMP)
 
 DAMCAP := $(VENV)/bin/damcap
@@ -65,7 +71,7 @@ demo: venv
 	@echo "                     display/*.png sRGB, turntable.mp4 (H.264)"
 	@echo "  viewer.html        model.dam on the torus in the browser (WebGL)"
 
-test: venv
+test: venv $(NS_READER)/.installed
 	$(PY) -m pytest -q
 
 # The wheel as users get it: build, install into a scratch venv, run damcap from outside the tree

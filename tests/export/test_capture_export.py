@@ -63,6 +63,57 @@ def test_nerfstudio_dataset_is_what_its_dataparser_reads(capture, tmp_path):
         assert inside_mask(mask[..., 0] if mask.ndim == 3 else mask, u, v).mean() > 0.995
 
 
+NERFSTUDIO_LOAD = """
+import json, sys
+from pathlib import Path
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+from PIL import Image
+# nerfstudio's own normalisation off: its cameras are then the file's
+parser = NerfstudioDataParserConfig(data=Path(sys.argv[1]), orientation_method="none", center_method="none",
+                                    auto_scale_poses=False, scale_factor=1.0, load_3D_points=True).setup()
+out = {}
+for split in ("train", "val", "test"):
+    o = parser.get_dataparser_outputs(split)
+    c = o.cameras
+    out[split] = {"images": [p.name for p in o.image_filenames], "masks": [p.name for p in (o.mask_filenames or [])],
+                  "camera_to_worlds": c.camera_to_worlds.tolist(), "fx": c.fx.ravel().tolist(), "fy": c.fy.ravel().tolist(),
+                  "cx": c.cx.ravel().tolist(), "cy": c.cy.ravel().tolist(), "points": len(o.metadata["points3D_xyz"]),
+                  "pil_modes": sorted({Image.open(p).mode for p in o.image_filenames})}
+print("NERFSTUDIO " + json.dumps(out))
+"""
+
+
+def test_nerfstudios_own_dataparser_loads_the_export(capture, tmp_path):
+    """nerfstudio 1.1.5's NerfstudioDataParser (installed by make test beside the venv, see
+    tests/nerfstudio-reader.txt) reads the export: every split, its masks, 8-bit RGB frames through
+    PIL, the point cloud, and the capture's cameras to 1e-6."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    reader = Path(sys.prefix) / "nerfstudio-reader"
+    if not (reader / ".installed").is_file():
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(f"{reader}: nerfstudio's dataparser is required under CI (make test installs it)")
+        pytest.skip("nerfstudio's dataparser not installed (make test installs it)")
+    export_capture(capture, tmp_path / "ns", CaptureExportOptions(points=500))
+    p = subprocess.run([sys.executable, "-c", NERFSTUDIO_LOAD, str(tmp_path / "ns")], capture_output=True, text=True, timeout=300,
+                       env={**os.environ, "PYTHONPATH": str(reader)})
+    assert p.returncode == 0, p.stderr[-2000:]
+    got = json.loads(p.stdout.split("NERFSTUDIO ", 1)[1])
+    by_name = {f.file_path.split("/")[-1].rsplit(".", 1)[0] + ".png": f for f in capture.frames}
+    split_of = {"train": "train", "val": "test", "test": "test"}
+    for split, o in got.items():
+        want = {f.file_path.split("/")[-1].rsplit(".", 1)[0] + ".png" for f in capture.split(split_of[split])}
+        assert sorted(o["images"]) == sorted(want), split
+        assert o["masks"] == o["images"] and o["pil_modes"] == ["RGB"] and o["points"] == 500
+        for name, c2w, fx, fy, cx, cy in zip(o["images"], o["camera_to_worlds"], o["fx"], o["fy"], o["cx"], o["cy"]):
+            f = by_name[name]
+            np.testing.assert_allclose(np.array(c2w), f.world_from_cam[:3, :4], atol=1e-6)
+            np.testing.assert_allclose([fx, fy, cx, cy], [f.intrinsics.fl_x, f.intrinsics.fl_y, f.intrinsics.cx, f.intrinsics.cy], atol=1e-4)
+
+
 def test_colmap_model_reads_back_with_pycolmap_and_projects_onto_the_masks(capture, tmp_path):
     """pycolmap reads the model: one PINHOLE camera per intrinsics, the capture's camera centres,
     and every surface point projects onto the object's mask through COLMAP's own camera model."""

@@ -123,15 +123,13 @@ def _frames(path: Path) -> Any:
         container.close()
 
 
-def _frame_count(path: Path, _cache: dict = {}) -> int:  # noqa: B006 (a per-process cache)
+def _frame_count(path: Path) -> int:
     """Frames the container says the video has (0 when it does not say)."""
-    if path not in _cache:
-        container = _open(path)
-        try:
-            _cache[path] = int(container.streams.video[0].frames or 0)
-        finally:
-            container.close()
-    return _cache[path]
+    container = _open(path)
+    try:
+        return int(container.streams.video[0].frames or 0)
+    finally:
+        container.close()
 
 
 def _resized(rgb: np.ndarray, max_side: int) -> np.ndarray:
@@ -165,13 +163,14 @@ def extract_frames(video: str | os.PathLike, out: str | os.PathLike, opts: Video
     if not video.is_file():
         raise DamcapError(f"{video}: video file not found")
     scores, times, rotations = [], [], set()
+    total = _frame_count(video) if progress else 0
     for k, t, rgb, rotation in _frames(video):
         rotations.add(rotation)
         gray = cv2.cvtColor(_resized(rgb, SCORE_SIDE), cv2.COLOR_RGB2GRAY)
         scores.append(sharpness(gray))
         times.append(t)
         if progress:
-            progress("scoring", k + 1, _frame_count(video))
+            progress("scoring", k + 1, total)
     if len(scores) < 2:
         raise DamcapError(f"{video}: {len(scores)} frame(s) decoded; a capture needs at least 2")
     chosen = pick_frames(scores, opts.count)

@@ -42,7 +42,9 @@ def test_the_sharp_frames_of_each_stretch_are_kept(video, tmp_path):
 
 
 def test_photos_are_downscaled_to_max_side(video, tmp_path):
-    extract_frames(video, tmp_path / "small", VideoFrameOptions(count=3, max_side=160))
+    calls: list[tuple[str, int, int]] = []
+    extract_frames(video, tmp_path / "small", VideoFrameOptions(count=3, max_side=160), progress=lambda *a: calls.append(a))
+    assert calls[-1] == ("writing", 3, 3) and ("scoring", 40, 40) in calls  # the container says 40 frames
     assert read_image_u8(next((tmp_path / "small").glob("*.jpg"))).shape == (100, 160, 3)
 
 

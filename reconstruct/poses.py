@@ -111,12 +111,16 @@ def nearest_facing_camera(points_world: np.ndarray, world_from_cams: np.ndarray)
     """
     pts = np.asarray(points_world, np.float64)
     cams = np.asarray(world_from_cams, np.float64)
-    if len(pts) == 0 or len(cams) == 0:
-        return np.zeros(len(pts), np.int64)
-    rel = pts[:, None, :] - cams[None, :, :3, 3]  # (P, N, 3)
-    z_cam = np.einsum("pnk,nk->pn", rel, cams[:, :3, 2])
-    dist = np.linalg.norm(rel, axis=2)
-    return np.argmin(np.where(z_cam < 0, dist, dist + 1e12), axis=1).astype(np.int64)
+    out = np.zeros(len(pts), np.int64)
+    if len(cams) == 0:
+        return out
+    chunk = max(1, (1 << 22) // len(cams))  # (chunk, N, 3) stays near 100 MB whatever the cloud's size
+    for a in range(0, len(pts), chunk):
+        rel = pts[a:a + chunk, None, :] - cams[None, :, :3, 3]  # (p, N, 3)
+        z_cam = np.einsum("pnk,nk->pn", rel, cams[:, :3, 2])
+        dist = np.linalg.norm(rel, axis=2)
+        out[a:a + chunk] = np.argmin(np.where(z_cam < 0, dist, dist + 1e12), axis=1)
+    return out
 
 
 def world_from_cam_of_colmap(cam_from_world_cv: np.ndarray) -> np.ndarray:

@@ -54,6 +54,7 @@ import sys
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -404,6 +405,7 @@ def write_report(res: dict, path: Path = REPORT) -> None:
         lines += ["| " + " | ".join(row_cells(r)) + " |" for r in sc.get("global_reruns", [])]
         if sc.get("known_intrinsics"):
             lines.append("| " + " | ".join(row_cells(sc["known_intrinsics"])) + " |")
+        lines += ["| " + " | ".join(row_cells(r)) + " |" for r in sc.get("variants", [])]
         lines.append("")
         earlier: dict[tuple[str, str], list[str]] = {}
         for r in sc["rows"]:
@@ -412,6 +414,8 @@ def write_report(res: dict, path: Path = REPORT) -> None:
         lines += [f"Rows {', '.join(methods)} measured earlier by `{cmd}` ({date})." for (cmd, date), methods in earlier.items()]
         if sc.get("known_intrinsics_command"):
             lines += [f"Incremental mapping again with the reference intrinsics fixed: `{sc['known_intrinsics_command']}`.", ""]
+        if sc.get("variants_command"):
+            lines += [f"damcap's registration with one option changed: `{sc['variants_command']}`.", ""]
         lines += sorted({f"Global mapping again on the same database: `{c}`." for c in sc.get("global_rerun_commands", [])})
         if sc.get("global_rerun_commands"):
             lines.append("")
@@ -434,12 +438,14 @@ def write_report(res: dict, path: Path = REPORT) -> None:
 # The runs
 # --------------------------------------------------------------------------------------------
 
-def run_damcap(images: Path, names: list[str], work: Path, refine_pp: bool) -> dict:
+def run_damcap(images: Path, names: list[str], work: Path, refine_pp: bool, **sfm: Any) -> dict:
+    """damcap's registration with the principal point kept at the centre or refined (``sfm``:
+    other :class:`SfmOptions` fields changed, for :data:`VARIANTS`)."""
     from damcap.common.errors import DamcapError
     from damcap.reconstruct.colmap.register import SfmOptions, register_photos
 
     shutil.rmtree(work, ignore_errors=True)
-    opts = replace(SfmOptions(), principal_point="refine" if refine_pp else "centre")
+    opts = replace(SfmOptions(), principal_point="refine" if refine_pp else "centre", **sfm)
     t0 = time.perf_counter()
     try:
         reg, rep = register_photos(images, names, work, opts)
@@ -704,6 +710,33 @@ def run_scene(scene: str, data: Path, methods: tuple[str, ...], first: int | Non
     return out
 
 
+VARIANTS: dict[str, dict[str, Any]] = {
+    "damcap refined pp, features at 1536 px": {"max_image_size": 1536},
+    "damcap refined pp, SIMPLE_PINHOLE": {"camera_model": "SIMPLE_PINHOLE"},
+    "damcap refined pp, RADIAL": {"camera_model": "RADIAL"},
+}
+"""``--variants``: damcap's registration (principal point refined) with one option changed: the
+photos' full resolution for the features (Strecha's are 1536 px; the default caps them at
+1024), and no or two radial terms instead of SIMPLE_RADIAL's one"""
+
+
+def rerun_variants(scene: str, data: Path) -> list[dict]:
+    """:data:`VARIANTS` on one scene, scored like the study's rows."""
+    from damcap.reconstruct.known_poses import load_known_poses
+    from damcap.reconstruct.photos import image_size, list_photos
+
+    images, spec = scene_paths(scene, data)
+    names = list_photos(images)
+    ref = load_known_poses(spec, {n: image_size(images / n) for n in names})
+    rows = []
+    for method, sfm in VARIANTS.items():
+        log(f"{scene}: {method}")
+        r = run_damcap(images, names, WORK / scene / "variant", refine_pp=True, **sfm)
+        reg = r.pop("registration", None)
+        rows.append(scored({"method": method, "photos": len(names), **r}, reg, ref))
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -715,10 +748,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--known-intrinsics", action="store_true",
                     help="instead of the study: incremental mapping again on each scene's cached database with the "
                          "reference intrinsics fixed")
+    ap.add_argument("--variants", action="store_true",
+                    help="instead of the study: damcap's registration with one option changed (VARIANTS) on each scene")
     args = ap.parse_args(argv)
     import damcap.reconstruct.colmap.register  # noqa: F401  (imports pycolmap after OpenImageIO/OpenCV)
 
     data = shared_data_dir()
+    if args.variants:
+        for scene in args.scenes:
+            rows = rerun_variants(scene, data)
+            res = json.loads(RESULT.read_text(encoding="utf-8"))
+            sc = res["scenes"][scene]
+            sc["variants"], sc["variants_command"] = rows, command_line("registration_gt", argv)
+            RESULT.write_text(json.dumps(res, indent=1), encoding="utf-8")
+            write_report(res)
+        return 0
     if args.global_seeds is not None:
         for scene in args.scenes:
             rows = [rerun_global(scene, data, seed) for seed in args.global_seeds]
@@ -772,7 +816,7 @@ def merged_scene(prev: dict | None, new: dict) -> dict:
     done = {r["method"] for r in new["rows"]}
     kept = [{"command": prev["command"], "date_utc": prev["machine"]["date_utc"], **r} for r in prev["rows"] if r["method"] not in done]
     out = {**new, "rows": sorted(new["rows"] + kept, key=lambda r: METHODS.index(r["method"]) if r["method"] in METHODS else len(METHODS))}
-    for k in ("global_reruns", "global_rerun_commands", "known_intrinsics", "known_intrinsics_command"):
+    for k in ("global_reruns", "global_rerun_commands", "known_intrinsics", "known_intrinsics_command", "variants", "variants_command"):
         if k in prev and k not in out:
             out[k] = prev[k]
     return out

@@ -95,7 +95,7 @@ def export(
         raise DamcapError(f"--format {opts.format} needs --mesh SHAPE.obj|ply")
     if opts.format == "glb":
         _export_glb([d.dam_alone() if d.has_surface_factors else d for d in dams], [meta for _, meta in loaded], models,
-                    mesh, labels, target.path, orbit)
+                    mesh, labels, target.path, orbit, opts.glb_min_triangles)
         return
     with staged_folder(output, replace=True) as stage:  # frames, PNGs, video and export.json move into OUTPUT at the end
         _export_frames(dams, [meta for _, meta in loaded], models, mesh, labels, stage, orbit, opts)
@@ -139,11 +139,11 @@ def _first_view_exposure(dams, shape, part, orbit: OrbitOptions, up) -> float:
     return exposure_scale_for(rad, buf.coverage > 0.5)
 
 
-def _export_glb(dams, metas, model_paths, mesh_path: Path, labels, path: Path, orbit: OrbitOptions) -> None:
+def _export_glb(dams, metas, model_paths, mesh_path: Path, labels, path: Path, orbit: OrbitOptions, min_triangles: int) -> None:
     from damcap.appearance.dam_file import recorded_up
     from damcap.common.atomic import atomic_path
     from damcap.common.cameras import orbit_world_from_cam
-    from damcap.export.gltf import glb_bytes, gltf_from_world, split_parts, vertex_radiance
+    from damcap.export.gltf import glb_bytes, gltf_from_world, split_parts, subdivide_midpoint, vertex_radiance
     from damcap.export.turntable import orbit_up, shape_and_parts
 
     orbit.validate()
@@ -155,6 +155,9 @@ def _export_glb(dams, metas, model_paths, mesh_path: Path, labels, path: Path, o
         typer.echo(f"note: {up_note}", err=True)
     cam = orbit_world_from_cam(1, orbit.distance, orbit.elevation_deg, orbit.azimuth0_deg, up)[0]
     scale = _first_view_exposure(dams, shape, part, orbit, up)
+    given = len(shape.triangles)
+    while len(shape.triangles) < min_triangles:
+        shape, part = subdivide_midpoint(shape, part)
     parts = split_parts(shape, part, len(dams))
     colours = [vertex_radiance(d, p.positions, p.normals, cam[:3, 3]) * scale for d, p in zip(dams, parts)]
     values = np.concatenate([c.ravel() for c in colours])
@@ -163,13 +166,15 @@ def _export_glb(dams, metas, model_paths, mesh_path: Path, labels, path: Path, o
         "what": "linear radiance of the DAM(s) seen from the camera 'baked_view', times exposure_scale, clipped to [0, 1], per vertex",
         "models": [str(m.resolve()) for m in model_paths], "mesh": str(mesh_path.resolve()), "exposure_scale": scale,
         "clipped_fraction": clipped, "up_world": up.tolist(), "up_source": up_source,
+        "triangles": {"mesh": given, "baked": len(shape.triangles), "subdivided_to_at_least": min_triangles},
         "view": {"elevation_deg": orbit.elevation_deg, "azimuth_deg": orbit.azimuth0_deg, "distance": orbit.distance,
                  "fov_deg": orbit.fov_deg},
         "world": "the mesh centred and scaled into the unit sphere (as damcap export renders it), turned so that up is +y"}}
     data = glb_bytes(parts, colours, gltf_from_world(up), cam, orbit.fov_deg, extras)
     with atomic_path(path) as staged:
         staged.write_bytes(data)
-    typer.echo(f"wrote {path} ({sum(len(p.triangles) for p in parts)} triangles, radiance baked for elevation "
+    typer.echo(f"wrote {path} ({len(shape.triangles)} triangles" + (f", the mesh's {given} subdivided" if len(shape.triangles) > given else "")
+               + ", radiance baked for elevation "
                f"{orbit.elevation_deg:g} deg, azimuth {orbit.azimuth0_deg:g} deg; exposure x{scale:.4g}, "
                f"{clipped:.1%} of the colour values clipped at 1)")
 

@@ -62,6 +62,41 @@ def split_parts(mesh: Mesh, triangle_part: np.ndarray, parts: int) -> list[PartM
     return out
 
 
+def subdivide_midpoint(mesh: Mesh, triangle_part: np.ndarray) -> tuple[Mesh, np.ndarray]:
+    """Each triangle cut into four at its edges' midpoints (positions on the flat triangle, normals
+    the normalised mean of the edge's two), each child in its parent's part.
+
+    Args:
+        mesh: with vertex normals.
+        triangle_part: (T,) part per triangle.
+
+    Returns:
+        (the finer mesh: V + E vertices, 4T triangles; (4T,) parts).
+
+    >>> tri = Mesh(np.eye(3), np.array([[0, 1, 2]]), np.eye(3))
+    >>> fine, part = subdivide_midpoint(tri, np.array([7]))
+    >>> fine.vertices[3:].tolist()  # the midpoints of edges 01, 02, 12
+    [[0.5, 0.5, 0.0], [0.5, 0.0, 0.5], [0.0, 0.5, 0.5]]
+    >>> fine.triangles.tolist(), part.tolist()  # the corners' three children (same winding) and the middle one
+    ([[0, 3, 4], [3, 1, 5], [4, 5, 2], [3, 5, 4]], [7, 7, 7, 7])
+    """
+    t = np.asarray(mesh.triangles, np.int64)
+    edges = np.sort(np.stack([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]], 1).reshape(-1, 2), axis=1)
+    unique, edge_index = np.unique(edges, axis=0, return_inverse=True)
+    mid = len(mesh.vertices) + edge_index.reshape(-1, 3)  # (T, 3): the midpoints of edges 01, 12, 20
+    v = np.asarray(mesh.vertices, np.float64)
+    n = np.asarray(mesh.vertex_normals, np.float64)
+    n_mid = n[unique[:, 0]] + n[unique[:, 1]]
+    n_mid /= np.maximum(np.linalg.norm(n_mid, axis=1, keepdims=True), 1e-12)
+    vertices = np.concatenate([v, 0.5 * (v[unique[:, 0]] + v[unique[:, 1]])])
+    normals = np.concatenate([n, n_mid])
+    a, b, c = t[:, 0], t[:, 1], t[:, 2]
+    ab, bc, ca = mid[:, 0], mid[:, 1], mid[:, 2]
+    tris = np.stack([np.stack([a, ab, ca], 1), np.stack([ab, b, bc], 1), np.stack([ca, bc, c], 1), np.stack([ab, bc, ca], 1)], 1)
+    fine = Mesh(vertices.astype(np.float32), tris.reshape(-1, 3).astype(np.int32), normals.astype(np.float32))
+    return fine, np.repeat(np.asarray(triangle_part), 4)
+
+
 def vertex_radiance(model: DeepAppearanceMap, positions_world: np.ndarray, normals_world: np.ndarray,
                     camera_centre_world: np.ndarray) -> np.ndarray:
     """The DAM's radiance at each vertex seen from one camera centre (a pinhole's view directions).

@@ -61,6 +61,10 @@ class ExportOptions:
     """frames: also write an MP4 turntable"""
     fps: int = field(default=24, metadata=in_range(1, 1000))
     """frames: video frame rate"""
+    glb_min_triangles: int = field(default=40_000, metadata=in_range(0, 10_000_000))
+    """glb: the mesh is subdivided (each triangle into four at its edges' midpoints) until it has at
+    least this many triangles, so that the colours baked per vertex follow the DAM across each
+    triangle (0 = as given)"""
 
     def validate(self) -> None:
         check_ranges(self)

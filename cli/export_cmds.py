@@ -127,8 +127,8 @@ def _export_matcap(dam, meta: dict, model_path: Path, output: Path, orbit: Orbit
 
 
 def _first_view_exposure(dams, shape, part, orbit: OrbitOptions, up) -> float:
-    """The exposure of ``damcap view`` and the export's PNGs: the display key at the 95th percentile
-    of a 128 px render of the orbit's first view."""
+    """The exposure of ``damcap view``, the GLB and the three.js material: the display key at the
+    95th percentile of a 128 px render of the orbit's first view (the export PNGs' rule)."""
     from dataclasses import replace
 
     from damcap.common.colour import exposure_scale_for
@@ -328,8 +328,7 @@ def view(
     """Write a self-contained HTML page that shows the DAM on a mesh in real time (WebGL 2)."""
     from damcap.appearance.dam_file import load_dam
     from damcap.common.atomic import write_text_atomic
-    from damcap.common.colour import exposure_scale_for
-    from damcap.export.turntable import OrbitOptions, render_orbit
+    from damcap.export.turntable import OrbitOptions
     from damcap.export.viewer import viewer_html
 
     # the page's exposure: the same rule as damcap export's PNGs, on a CPU render of the first view
@@ -343,8 +342,8 @@ def view(
                    "field) are left out", err=True)
         dam = dam.dam_alone()
     shape = _load_mesh(mesh)
-    _, buf, rad = next(render_orbit([dam], shape, np.zeros(len(shape.triangles), np.int64), opts))
-    html = viewer_html(dam, shape, exposure_scale_for(rad, buf.coverage > 0.5), cam, title=f"{model.name} on {mesh.name if mesh else 'a sphere'}")
+    scale = _first_view_exposure([dam], shape, np.zeros(len(shape.triangles), np.int64), opts, None)
+    html = viewer_html(dam, shape, scale, cam, title=f"{model.name} on {mesh.name if mesh else 'a sphere'}")
     write_text_atomic(output, html)
     typer.echo(f"wrote {output}")
     if serve:

@@ -148,8 +148,6 @@ def _export_glb(dams, metas, model_paths, mesh_path: Path, labels, path: Path, o
 
     orbit.validate()
     _, shape, part = shape_and_parts(mesh_path, labels, len(dams))
-    if part.max() >= len(dams):
-        raise DamcapError(f"{labels or mesh_path}: part {int(part.max())} has no model; give {int(part.max()) + 1} .dam files (one per part)")
     up, up_source, up_note = orbit_up(orbit.up, [recorded_up(m) for m in metas])
     if up_note:
         typer.echo(f"note: {up_note}", err=True)
@@ -264,8 +262,6 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
     raw, shape, part = shape_and_parts(mesh_path, labels, len(dams))  # read once: rendered centred and scaled, textured in its own frame
     centre, radius = unit_sphere_transform(raw.vertices)
     centre = [float(x) for x in centre]
-    if part.max() >= len(dams):
-        raise DamcapError(f"{labels or mesh_path}: part {int(part.max())} has no model; give {int(part.max()) + 1} .dam files (one per part)")
     dams, spatial = _surface_factors_on_shape(dams, model_paths, mesh_path, raw.vertices)
     up, up_source, up_note = orbit_up(opts.up, [recorded_up(m) for m in metas])
     if up_note:

@@ -42,7 +42,8 @@ class Mesh:
     vertex_normals: np.ndarray | None = None
     """(V, 3) unit normals (area-weighted where computed), or None when not (yet) known"""
     triangle_groups: np.ndarray | None = None
-    """(T,) int32 part index per triangle (OBJ material groups; 0 when none), or None"""
+    """(T,) int32 part index per triangle (OBJ material groups: the k-th material used, in the
+    material library's order, is part k; 0 when none), or None"""
 
     def __post_init__(self) -> None:
         if self.vertices.ndim != 2 or self.vertices.shape[1] != 3:
@@ -284,6 +285,9 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
         raise DamcapError(f"{path}: no triangles could be read (empty mesh or unsupported format; use OBJ or PLY)")
     groups = np.asarray(mesh.triangle_material_ids, np.int32) if mesh.has_triangle_material_ids() else None
     if groups is not None and len(groups) == len(mesh.triangles):
+        # Open3D numbers an OBJ's materials from 1 (0 is its default material): part k is the
+        # k-th material used, in the material library's order
+        groups = np.unique(groups, return_inverse=True)[1].astype(np.int32).reshape(-1)
         # Open3D's clean-up below reorders triangles; carry groups through as a triangle attribute
         mesh.triangle_material_ids = o3d.utility.IntVector(groups.tolist())
     mesh.remove_duplicated_vertices()

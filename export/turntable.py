@@ -152,6 +152,9 @@ def shape_and_parts(mesh_path, labels_path, models: int) -> tuple:
 
     Returns:
         (the mesh as read, the mesh in the unit sphere, (T,) int64 part per triangle).
+
+    Raises:
+        DamcapError: a part has no model (the labels or the OBJ groups name more parts than ``models``).
     """
     from damcap.common.mesh import file_vertex_order, load_mesh, normalise_to_unit_sphere
     from damcap.export.labels import read_vertex_labels
@@ -165,6 +168,8 @@ def shape_and_parts(mesh_path, labels_path, models: int) -> tuple:
         part = np.zeros(len(shape.triangles), np.int64)
     else:
         part = shape.triangle_groups.astype(np.int64)
+    if len(part) and part.max() >= models:
+        raise DamcapError(f"{labels_path or mesh_path}: part {int(part.max())} has no model; give {int(part.max()) + 1} .dam files (one per part)")
     return raw, shape, part
 
 

@@ -88,3 +88,12 @@ def assert_one_line_error(code: int, err: str, *needles: str, exit_code: int | N
     assert lines and lines[-1].startswith("error:") and "Traceback" not in err, err
     for n in needles:
         assert n in lines[-1], (n, lines[-1])
+
+
+def write_tetra_obj_with_materials(folder) -> Path:
+    """A unit right tetrahedron as an OBJ in three material groups (a: face 1, b: face 2, c: faces 3, 4),
+    with its material library; the OBJ's path."""
+    (folder / "m.mtl").write_text("newmtl a\nKd 1 0 0\nnewmtl b\nKd 0 1 0\nnewmtl c\nKd 0 0 1\n")
+    faces = ["usemtl a", "f 1 3 2", "usemtl b", "f 1 2 4", "usemtl c", "f 1 4 3", "f 2 3 4"]
+    (folder / "t.obj").write_text("\n".join(["mtllib m.mtl"] + [f"v {x:g} {y:g} {z:g}" for x, y, z in [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1)]] + faces) + "\n")
+    return folder / "t.obj"

@@ -215,6 +215,17 @@ def test_load_mesh_repairs_and_names_the_file(tmp_path):
         load_mesh(tmp_path / "nope.obj")
 
 
+def test_obj_material_groups_are_numbered_from_0_in_library_order(tmp_path):
+    """Open3D numbers OBJ materials from 1 (0 is its default); damcap's parts start at 0, so three
+    materials need three models."""
+    from tests.conftest import write_tetra_obj_with_materials
+
+    m = load_mesh(write_tetra_obj_with_materials(tmp_path))
+    centroid = m.vertices[m.triangles].mean(axis=1)
+    by_face = {tuple(np.round(c * 3).astype(int)): int(g) for c, g in zip(centroid, m.triangle_groups)}
+    assert by_face == {(1, 1, 0): 0, (1, 0, 1): 1, (0, 1, 1): 2, (1, 1, 1): 2}
+
+
 def test_shared_meshes_load(shared_data):
     counts = {"igea.ply": 268686, "stanford-bunny.obj": 69451, "beetle.obj": 2053}
     for name, faces in counts.items():

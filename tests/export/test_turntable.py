@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import torch
 
 from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
@@ -110,6 +111,18 @@ def test_several_dams_by_vertex_labels(model_file, bunny, tmp_path):
     np.save(tmp_path / "bad.npy", labels + 5)
     args[args.index(str(tmp_path / "labels.npy"))] = str(tmp_path / "bad.npy")
     assert main(args) == 2
+
+
+def test_obj_groups_need_one_model_each(tmp_path):
+    from damcap.common.errors import DamcapError
+    from damcap.export.turntable import shape_and_parts
+
+    from tests.conftest import write_tetra_obj_with_materials
+
+    obj = write_tetra_obj_with_materials(tmp_path)
+    assert sorted(shape_and_parts(obj, None, 3)[2].tolist()) == [0, 1, 2, 2]
+    with pytest.raises(DamcapError, match="t.obj: part 2 has no model; give 3 .dam files"):
+        shape_and_parts(obj, None, 2)
 
 
 def test_spatial_factor_is_drawn_on_its_own_surface_only(model_file, bunny, tmp_path, capsys):

@@ -118,6 +118,12 @@ class SfmOptions:
     """verified matches a pair needs to count"""
     filter_stationary_matches: bool = True
     """drop matches that do not move between two photos (a static background on a turntable)"""
+    sift_peak_threshold: float = 0.02 / 3
+    """SIFT's contrast threshold on the difference of Gaussians (COLMAP's default 0.02 / 3)"""
+    low_contrast_peak_threshold: float | None = None
+    """when set, a few photos are probed first (:func:`peak_threshold_for`): where the subject
+    offers few features, the set is extracted at this lower threshold instead (features inside
+    masks: :data:`MASKED_PEAK_THRESHOLD`)"""
     mask_erode: float = 0.01
     """masks are eroded by this fraction of the longer image side before they restrict features
     (descriptors at the silhouette see the background)"""
@@ -147,6 +153,8 @@ class SfmReport:
     retry: dict[str, Any] | None = None
     """the other pass when registration was retried with upsampled features: its registered count
     (or its error) and which pass was kept"""
+    sift_peak_threshold: float | None = None
+    """SIFT's contrast threshold the features were extracted at (None: from before it was recorded)"""
 
 
 def fingerprint(obj: Any) -> str:
@@ -196,7 +204,8 @@ def _fingerprints(photo_dir: Path, names: list[str], opts: SfmOptions, masks: di
     fp_features = fingerprint({"files": files, "masks": mask_files, "max_image_size": opts.max_image_size,
                                "max_num_features": opts.max_num_features, "camera_model": opts.camera_model,
                                "upsample_below": opts.upsample_below, "mask_erode": opts.mask_erode if masks else None,
-                               "single_camera": opts.single_camera})
+                               "single_camera": opts.single_camera, "sift_peak_threshold": opts.sift_peak_threshold,
+                               "low_contrast_peak_threshold": opts.low_contrast_peak_threshold})
     pairing = opts.pairing
     if pairing == "auto":
         pairing = "exhaustive" if len(names) <= opts.exhaustive_max_images else "retrieval"
@@ -246,6 +255,10 @@ def _features_and_matches(photo_dir: Path, names: list[str], work_dir: Path, opt
         ext.num_threads = opts.num_threads
         ext.sift.max_num_features = opts.max_num_features
         ext.sift.first_octave = 0 if octave_skipped(sizes, opts) else -1
+        ext.sift.peak_threshold = opts.sift_peak_threshold
+        if opts.low_contrast_peak_threshold is not None:
+            ext.sift.peak_threshold = _probed_peak_threshold(photo_dir, names, work_dir / "probe.db", mode, reader, ext, opts)
+        stages.state["sift_peak_threshold"] = float(ext.sift.peak_threshold)
         for k in range(0, n, EXTRACT_CHUNK):
             progress("features", k, n)
             pycolmap.extract_features(str(db_path), str(photo_dir), image_names=names[k:k + EXTRACT_CHUNK], camera_mode=mode,
@@ -312,6 +325,53 @@ def _features_and_matches(photo_dir: Path, names: list[str], work_dir: Path, opt
     return db_path, n_pairs, pairing
 
 
+#: :func:`peak_threshold_for`: the lower threshold is used when the probed photos keep fewer than
+#: this fraction of their feature budget at the default one
+LOW_CONTRAST_BUDGET_FRACTION = 0.5
+
+
+#: photos (spread over the set) whose features decide the contrast threshold
+PEAK_PROBE_PHOTOS = 4
+
+
+def peak_threshold_for(median_features: float, budget: int, default: float, low: float) -> float:
+    """SIFT's contrast threshold for a photo set, from the median feature count of a few photos
+    extracted at ``default``: ``low`` when that is under :data:`LOW_CONTRAST_BUDGET_FRACTION` of
+    the budget (the subject offers few features; weaker ones add points), else ``default``. Where
+    the budget binds, weaker features would only replace finer ones: COLMAP fills the budget from
+    the coarsest scales down. Measured (bench/registration_gt.md, docs/registration.md): the
+    rendered turntable's object keeps 650 of 9614 at the default, and 0.003 takes its median
+    rotation error from 0.104 to 0.075 deg; every 2nd of the first 60 cape photos keep about 8100
+    of 8670 inside the masks, and 0.003 took theirs from 0.195 to 0.415 deg.
+
+    >>> peak_threshold_for(650, 9614, 0.0067, 0.003), peak_threshold_for(8097, 8670, 0.0067, 0.003)
+    (0.003, 0.0067)
+    """
+    return low if median_features < LOW_CONTRAST_BUDGET_FRACTION * budget else default
+
+
+def _probed_peak_threshold(photo_dir: Path, names: list[str], probe_db: Path, mode: Any, reader: Any, ext: Any,
+                           opts: SfmOptions) -> float:
+    """:func:`peak_threshold_for` on :data:`PEAK_PROBE_PHOTOS` photos spread over ``names``,
+    extracted as the set will be (``reader``, ``ext``) into a scratch database."""
+    pycolmap = import_pycolmap()
+    probe = [names[round(i)] for i in np.linspace(0, len(names) - 1, min(PEAK_PROBE_PHOTOS, len(names)))]
+    probe_db.unlink(missing_ok=True)
+    pycolmap.Database.open(str(probe_db)).close()
+    pycolmap.import_images(str(probe_db), str(photo_dir), camera_mode=mode, image_names=probe, options=reader)
+    pycolmap.extract_features(str(probe_db), str(photo_dir), image_names=probe, camera_mode=mode, reader_options=reader,
+                              extraction_options=ext, device=pycolmap.Device.cpu)
+    db = pycolmap.Database.open(str(probe_db))
+    try:
+        counts = [db.num_keypoints_for_image(im.image_id) for im in db.read_all_images()]
+    finally:
+        db.close()
+    probe_db.unlink(missing_ok=True)
+    low = opts.low_contrast_peak_threshold
+    assert low is not None
+    return peak_threshold_for(float(np.median(counts)) if counts else 0.0, opts.max_num_features, opts.sift_peak_threshold, low)
+
+
 def octave_skipped(sizes: set[tuple[int, int]], opts: SfmOptions) -> bool:
     """Whether feature extraction skips SIFT's upsampled first octave for photos of ``sizes``
     ((width, height) pairs): their longer side, capped at ``max_image_size``, reaches ``upsample_below``.
@@ -337,6 +397,14 @@ def wants_upsampled_retry(registered: int, photos: int, skipped: bool, retry_bel
 MASKED_BUDGET_MAX_FACTOR = 4
 
 
+#: masked features: SIFT's contrast threshold where the object offers few features
+#: (:func:`peak_threshold_for`; COLMAP's default 0.0067): weaker ones make more points. The rendered turntable
+#: (36 photos of 800 px, bench/registration_gt.md), median rotation error against the true cameras
+#: (seeds 0, 1, 2 where measured): 0.0067 -> 0.104 / 0.105 / 0.105 deg (2335 points); 0.0045 ->
+#: 0.091; 0.004 -> 0.093; 0.003 -> 0.075 / 0.076 / 0.079 (3095 points); 0.002 -> 0.076 (3369 points)
+MASKED_PEAK_THRESHOLD = 0.003
+
+
 def masked_options(opts: SfmOptions, object_fraction: float) -> SfmOptions:
     """Options for features restricted to the object by masks.
 
@@ -344,19 +412,21 @@ def masked_options(opts: SfmOptions, object_fraction: float) -> SfmOptions:
     outside the mask, so an object filling a fraction ``object_fraction`` of the photo keeps
     about that fraction of the budget: the budget is divided by it (at most
     ``MASKED_BUDGET_MAX_FACTOR`` x). The object is a small part of the photo, so SIFT's upsampled
-    first octave is always used (no skip-then-retry).
+    first octave is always used (no skip-then-retry), and an object that offers few features
+    gives weaker ones too (:data:`MASKED_PEAK_THRESHOLD`, :func:`peak_threshold_for`).
 
     Args:
         opts: the options for whole photos.
         object_fraction: mean fraction of a photo's pixels inside its mask, (0, 1].
 
     >>> o = masked_options(SfmOptions(), 0.25)
-    >>> o.max_num_features, o.upsample_below > o.max_image_size, o.retry_upsampled_below
-    (16384, True, 0.0)
+    >>> o.max_num_features, o.upsample_below > o.max_image_size, o.retry_upsampled_below, o.low_contrast_peak_threshold
+    (16384, True, 0.0, 0.003)
     """
     factor = min(float(MASKED_BUDGET_MAX_FACTOR), 1.0 / max(float(object_fraction), 1e-6))
     return replace(opts, max_num_features=int(round(opts.max_num_features * max(factor, 1.0))),
-                   upsample_below=opts.max_image_size + 1, retry_upsampled_below=0.0)
+                   upsample_below=opts.max_image_size + 1, retry_upsampled_below=0.0,
+                   low_contrast_peak_threshold=MASKED_PEAK_THRESHOLD)
 
 
 def register_photos(photo_dir: str | Path, names: list[str], work_dir: str | Path, opts: SfmOptions = SfmOptions(),
@@ -524,7 +594,8 @@ def _register_once(photo_dir: Path, names: list[str], work_dir: Path, opts: SfmO
                     mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()), pairs=n_pairs,
                     pairing=pairing, seconds={k: round(v, 2) for k, v in seconds.items()},
                     unregistered=reg.unregistered, resumed=resumed,
-                    principal_point=asdict(principal) if principal is not None else None)
+                    principal_point=asdict(principal) if principal is not None else None,
+                    sift_peak_threshold=stages.state.get("sift_peak_threshold"))
     write_json_atomic(report_path, asdict(rep))
     stages.mark("mapping", fp_mapping, done=True)
     reg.stats = asdict(rep)

@@ -36,6 +36,7 @@ def test_principal_point_estimate_matches_the_truth_within_its_uncertainty(seed)
     assert np.all((sd > 0.1) & (sd < 2.0))
     assert np.all(np.abs(np.array(est.offset_px) - [20.0, -12.0]) < 4 * sd)
     assert est.tilt_deg == pytest.approx(principal_point_tilt_deg(est.offset_px, 1280.0), abs=0.01)
+    assert est.coverage is not None and 0.5 <= est.coverage <= 1.0  # 300 points seen across the frames
     assert list(rec.cameras[cam.camera_id].params[1:3]) == [512.0, 384.0]
 
     applied = adjust_principal_point(rec, pycolmap, apply=True)
@@ -53,17 +54,19 @@ def test_principal_point_line_says_how_far_and_whether_it_is_used():
     assert "the cameras use it" in principal_point_line({**pp, "used": True})
 
 
-@pytest.mark.parametrize("offset, sd, tilt, photos, used", [
-    ([-6.9, -11.2], [2.0, 2.2], 0.55, 8, True),    # Herz-Jesu-P8: 6.2 sigma
-    ([-4.1, -12.3], [3.8, 4.8], 0.54, 4, False),   # its first 4 photos: 2.8 sigma, too few photos
-    ([-6.9, -11.2], [2.0, 2.2], 0.55, 4, False),   # significant, but 4 photos
-    ([0.1, 59.1], [0.9, 20.1], 8.2, 24, False),    # a rendered turntable (truth: the centre): 2.9 sigma, 8 deg
-    ([30.0, 0.0], [1.0, 1.0], 1.5, 50, False),     # significant but a tilt beyond 1 deg
-    ([3.0, 0.0], [1.0, 1.0], 0.1, 5, True),        # exactly 3 sigma and 5 photos
+@pytest.mark.parametrize("offset, sd, tilt, photos, used, coverage", [
+    ([-6.9, -11.2], [2.0, 2.2], 0.55, 8, True, None),    # Herz-Jesu-P8: 6.2 sigma
+    ([-4.1, -12.3], [3.8, 4.8], 0.54, 4, False, None),   # its first 4 photos: 2.8 sigma, too few photos
+    ([-6.9, -11.2], [2.0, 2.2], 0.55, 4, False, None),   # significant, but 4 photos
+    ([0.1, 59.1], [0.9, 20.1], 8.2, 24, False, None),    # a rendered turntable (truth: the centre): 2.9 sigma, 8 deg
+    ([30.0, 0.0], [1.0, 1.0], 1.5, 50, False, None),     # significant but a tilt beyond 1 deg
+    ([3.0, 0.0], [1.0, 1.0], 0.1, 5, True, None),        # exactly 3 sigma and 5 photos
+    ([2.36, -11.23], [1.48, 3.22], 0.69, 36, False, 0.44),  # the rendered bunny on black, 800 px (truth: the centre)
+    ([-6.9, -11.2], [2.0, 2.2], 0.55, 8, True, 0.75),       # Herz-Jesu-P8, points reaching just enough of the frame
 ])
-def test_auto_uses_the_principal_point_only_where_the_photos_support_it(offset, sd, tilt, photos, used):
+def test_auto_uses_the_principal_point_only_where_the_photos_support_it(offset, sd, tilt, photos, used, coverage):
     from damcap.reconstruct.colmap.principal_point import PrincipalPointEstimate, photos_support_offset
 
-    ok, why = photos_support_offset(PrincipalPointEstimate(offset, sd, tilt, False), photos)
+    ok, why = photos_support_offset(PrincipalPointEstimate(offset, sd, tilt, False, coverage=coverage), photos)
     assert ok is used
     assert why.startswith("refined" if used else "kept at the centre") and f"{photos} photos" in why

@@ -348,10 +348,11 @@ def geometry_cameras(photos_n: int = 36) -> np.ndarray:
 def geometry_photos(obj: str, cache: Path = CACHE, photos_n: int = 36, photo_size: int = 320, fresh: bool = False,
                     meshes: Path = DATA.parent / "meshes") -> Path:
     """The geometry part's photo set of ``obj`` (textured object, no background, masks, true
-    cameras on rings at 10, 35 and 60 deg), rendered into the cache once; its folder."""
+    cameras on rings at 10, 35 and 60 deg), rendered into the cache once; its folder (another
+    ``photo_size`` than 320 px renders into its own folder)."""
     from damcap.synth.photos import default_intrinsics, write_photo_set
 
-    root = cache / "geometry" / obj
+    root = cache / "geometry" / (obj if photo_size == 320 else f"{obj}-{photo_size}px")
     photos = root / "photos"
     if fresh and root.exists():
         shutil.rmtree(root)

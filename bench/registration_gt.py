@@ -63,10 +63,12 @@ from bench.common import CACHE, REPO, RESULTS, command_line, log, machine_info, 
 REPORT = Path(__file__).with_name("registration_gt.md")
 RESULT = RESULTS / "registration_gt.json"
 WORK = CACHE / "registration_gt"
-SCENES = ("herz-jesus-p8", "castle-p19", "cape", "fox", "turntable", "orbit", "bunny", "dragon", "armadillo")
-GEOMETRY_SETS = ("bunny", "dragon", "armadillo")
+GEOMETRY_SETS = {"bunny": 320, "dragon": 320, "armadillo": 320, "bunny-800": 800, "dragon-800": 800, "armadillo-800": 800}
 """bench/reconstruct's geometry sets of the shared meshes (:func:`bench.reconstruct.geometry_photos`:
-36 photos of 320 px of the textured object alone, masks, true cameras)"""
+36 photos of the textured object alone, masks, true cameras): photo size in px by scene. The
+geometry bench's 320 px is a thumbnail; 800 px is what a phone photo downsized for registration
+still has"""
+SCENES = ("herz-jesus-p8", "castle-p19", "cape", "fox", "turntable", "orbit", *GEOMETRY_SETS)
 METHODS = ("damcap reconstruct", "damcap", "damcap refined pp", "pycolmap incremental", "pycolmap global", "pycolmap masked")
 #: what each scene's reference cameras are
 REFERENCES = {"strecha": "Strecha ground truth (gt_cameras, K scaled from 3072x2048)",
@@ -75,8 +77,7 @@ REFERENCES = {"strecha": "Strecha ground truth (gt_cameras, K scaled from 3072x2
                       "point): a reference, not ground truth"),
               "turntable": "the renderer's cameras, in the object's frame (ground truth)",
               "orbit": "the renderer's cameras (ground truth)",
-              "bunny": "the renderer's cameras (ground truth)", "dragon": "the renderer's cameras (ground truth)",
-              "armadillo": "the renderer's cameras (ground truth)"}
+              **{scene: "the renderer's cameras (ground truth)" for scene in GEOMETRY_SETS}}
 #: the rendered sets: an object in a textured room, photographed while it turns before a (2 deg
 #: shaky) camera, or by a camera orbiting it; ground-truth cameras and masks from the renderer
 RENDERED = {"turntable": dict(views=36, size=800, motion="turntable"), "orbit": dict(views=24, size=800, motion="orbit")}
@@ -106,7 +107,7 @@ def scene_paths(scene: str, data: Path) -> tuple[Path, str]:
     if scene in GEOMETRY_SETS:
         from bench.reconstruct import geometry_photos
 
-        root = geometry_photos(scene)
+        root = geometry_photos(scene.removesuffix("-800"), photo_size=GEOMETRY_SETS[scene])
         return root / "images", str(root / "transforms.json")
     root = data / "real" / "strecha" / scene
     return root / "images", f"strecha:{root / 'gt_cameras'}"
@@ -119,7 +120,7 @@ def scene_masks(scene: str, data: Path) -> Path | None:
     if scene in GEOMETRY_SETS:
         from bench.reconstruct import geometry_photos
 
-        return geometry_photos(scene) / "masks"
+        return geometry_photos(scene.removesuffix("-800"), photo_size=GEOMETRY_SETS[scene]) / "masks"
     return rendered_set(scene) / "masks" if scene in RENDERED else None
 
 
@@ -233,16 +234,18 @@ def pp_rule_refines(estimate: dict | None, photos: int) -> tuple[bool, str]:
 
     if not estimate:
         return False, "no estimate"
-    return photos_support_offset(PrincipalPointEstimate(estimate["offset_px"], estimate["sd_px"], estimate["tilt_deg"], False), photos)
+    return photos_support_offset(PrincipalPointEstimate(estimate["offset_px"], estimate["sd_px"], estimate["tilt_deg"], False,
+                                                        coverage=estimate.get("coverage")), photos)
 
 
 def discussion_lines(res: dict) -> list[str]:
     """What the measurements say, computed from them: the principal-point rule's decision per
     run against what refining did, and what global mapping did against incremental mapping."""
-    from damcap.reconstruct.colmap.principal_point import PP_MAX_TILT_DEG, PP_MIN_PHOTOS, PP_MIN_SIGMAS
+    from damcap.reconstruct.colmap.principal_point import PP_GRID, PP_MAX_TILT_DEG, PP_MIN_COVERAGE, PP_MIN_PHOTOS, PP_MIN_SIGMAS
 
     lines = [(f"Principal-point rule (damcap's 'auto', `photos_support_offset`: refine when the offset is >= {PP_MIN_SIGMAS:g} sigma, >= "
-             f"{PP_MIN_PHOTOS} photos registered, tilt <= {PP_MAX_TILT_DEG:g} deg), against what refining measured "
+             f"{PP_MIN_PHOTOS} photos registered, tilt <= {PP_MAX_TILT_DEG:g} deg, and the median photo's points on >= "
+             f"{100 * PP_MIN_COVERAGE:.0f} % of a {PP_GRID}x{PP_GRID} grid, where the run measured it), against what refining measured "
              "(rotation sim median, centred -> refined; principal point minus the reference's):"), ""]
     for key, sc in res.get("scenes", {}).items():
         rows = {r["method"]: r for r in sc["rows"]}
@@ -363,7 +366,9 @@ def row_cells(row: dict) -> list[str]:
     ppt = f"({i['pp_err_px'][0]:+.1f}, {i['pp_err_px'][1]:+.1f})" if i else "-"
     est = (f"({pp['offset_px'][0]:+.1f}, {pp['offset_px'][1]:+.1f}) +- ({pp['sd_px'][0]:.1f}, {pp['sd_px'][1]:.1f})"
            if pp else "-")
-    reg = f"{row['registered']}/{row['photos']}" + (f" ({row['error'].split(': ', 1)[-1][:90]})" if row.get("error") else "")
+    reg = f"{row['registered']}/{row['photos']}" + (f" ({row['error'].split(': ', 1)[-1][:90]})" if row.get("error") else "") \
+        + (f", {row['points']} points" if row.get("points") else "") \
+        + (f" (SIFT peak {row['sift_peak_threshold']:.4f})" if row.get("sift_peak_threshold") else "")
     mapping = row.get("stage_wall_s", {}).get("mapping")
     wall = f"{row['wall_s']:.1f}" + (f" ({mapping:.1f})" if mapping is not None else "")
     sc = row.get("self_check")
@@ -405,7 +410,7 @@ def write_report(res: dict, path: Path = REPORT) -> None:
         lines += ["| " + " | ".join(row_cells(r)) + " |" for r in sc.get("global_reruns", [])]
         if sc.get("known_intrinsics"):
             lines.append("| " + " | ".join(row_cells(sc["known_intrinsics"])) + " |")
-        lines += ["| " + " | ".join(row_cells(r)) + " |" for r in sc.get("variants", [])]
+        lines += ["| " + " | ".join(row_cells(r)) + " |" for r in sc.get("variants", []) + sc.get("masked_variants", [])]
         lines.append("")
         earlier: dict[tuple[str, str], list[str]] = {}
         for r in sc["rows"]:
@@ -416,6 +421,9 @@ def write_report(res: dict, path: Path = REPORT) -> None:
             lines += [f"Incremental mapping again with the reference intrinsics fixed: `{sc['known_intrinsics_command']}`.", ""]
         if sc.get("variants_command"):
             lines += [f"damcap's registration with one option changed: `{sc['variants_command']}`.", ""]
+        if sc.get("masked_variants_command"):
+            lines += [f"damcap's masked registration (the features inside the masks) with SIFT's contrast threshold or the "
+                      f"seed changed: `{sc['masked_variants_command']}`.", ""]
         lines += sorted({f"Global mapping again on the same database: `{c}`." for c in sc.get("global_rerun_commands", [])})
         if sc.get("global_rerun_commands"):
             lines.append("")
@@ -720,6 +728,60 @@ photos' full resolution for the features (Strecha's are 1536 px; the default cap
 1024), and no or two radial terms instead of SIMPLE_RADIAL's one"""
 
 
+MASKED_VARIANTS: dict[str, dict[str, Any]] = {
+    "damcap masked (its probe picks the threshold)": {},
+    "damcap masked, probe, seed 1": {"seed": 1},
+    "damcap masked, SIFT peak 0.0067 (COLMAP's default)": {"sift_peak_threshold": 0.02 / 3, "low_contrast_peak_threshold": None},
+    "damcap masked, SIFT peak 0.0067, seed 1": {"sift_peak_threshold": 0.02 / 3, "low_contrast_peak_threshold": None, "seed": 1},
+    "damcap masked, SIFT peak 0.0045": {"sift_peak_threshold": 0.0045, "low_contrast_peak_threshold": None},
+    "damcap masked, SIFT peak 0.003": {"sift_peak_threshold": 0.003, "low_contrast_peak_threshold": None},
+    "damcap masked, SIFT peak 0.002": {"sift_peak_threshold": 0.002, "low_contrast_peak_threshold": None},
+}
+"""``--masked-variants``: damcap's registration with features inside the masks
+(:func:`~damcap.reconstruct.colmap.register.masked_options`, every other option at its default):
+as it runs (a probe of 4 photos picks SIFT's contrast threshold, :func:`peak_threshold_for`), and
+with the threshold fixed or the seed changed: what chose ``MASKED_PEAK_THRESHOLD``"""
+
+
+def run_masked(images: Path, names: list[str], masks_dir: Path, work: Path, **sfm: Any) -> dict:
+    """damcap's masked registration (``sfm``: :class:`SfmOptions` fields changed after
+    :func:`masked_options`), as :func:`run_damcap` reports it."""
+    from damcap.reconstruct.colmap.register import SfmOptions, masked_options, register_photos
+    from damcap.reconstruct.photos import image_size, match_masks, read_mask
+
+    masks = match_masks(names, masks_dir)
+    fraction = float(np.mean([(read_mask(masks[n], image_size(images / n), n) > 0.5).mean() for n in names]))
+    opts = replace(masked_options(SfmOptions(), fraction), **sfm)
+    shutil.rmtree(work, ignore_errors=True)
+    t0 = time.perf_counter()
+    reg, rep = register_photos(images, names, work, opts, masks)
+    return {"registered": rep.registered, "wall_s": time.perf_counter() - t0, "stage_wall_s": rep.seconds,
+            "points": rep.points, "sift_peak_threshold": rep.sift_peak_threshold, "principal_point": rep.principal_point,
+            "options": asdict(opts), "registration": reg}
+
+
+def rerun_masked_variants(scene: str, data: Path) -> list[dict]:
+    """:data:`MASKED_VARIANTS` on one scene with masks, scored like the study's rows."""
+    from damcap.reconstruct.known_poses import load_known_poses
+    from damcap.reconstruct.photos import image_size, list_photos
+
+    images, spec = scene_paths(scene, data)
+    masks = scene_masks(scene, data)
+    if masks is None:
+        raise SystemExit(f"{scene} has no masks: --masked-variants needs a scene with masks")
+    names = list_photos(images)
+    ref = load_known_poses(spec, {n: image_size(images / n) for n in names})
+    rows = []
+    for method, sfm in MASKED_VARIANTS.items():
+        log(f"{scene}: {method}")
+        r = run_masked(images, names, masks, WORK / scene / "masked-variant", **sfm)
+        reg = r.pop("registration", None)
+        rows.append(scored({"method": method, "photos": len(names), **r}, reg, ref))
+        log(f"  -> {rows[-1]['registered']} registered, {rows[-1].get('points')} points at SIFT peak "
+            f"{rows[-1].get('sift_peak_threshold')}, {rows[-1].get('errors')}")
+    return rows
+
+
 def rerun_variants(scene: str, data: Path) -> list[dict]:
     """:data:`VARIANTS` on one scene, scored like the study's rows."""
     from damcap.reconstruct.known_poses import load_known_poses
@@ -750,16 +812,20 @@ def main(argv: list[str] | None = None) -> int:
                          "reference intrinsics fixed")
     ap.add_argument("--variants", action="store_true",
                     help="instead of the study: damcap's registration with one option changed (VARIANTS) on each scene")
+    ap.add_argument("--masked-variants", action="store_true",
+                    help="instead of the study: damcap's masked registration with SIFT's contrast threshold or the seed "
+                         "changed (MASKED_VARIANTS) on each scene")
     args = ap.parse_args(argv)
     import damcap.reconstruct.colmap.register  # noqa: F401  (imports pycolmap after OpenImageIO/OpenCV)
 
     data = shared_data_dir()
-    if args.variants:
+    if args.variants or args.masked_variants:
+        key = "masked_variants" if args.masked_variants else "variants"
         for scene in args.scenes:
-            rows = rerun_variants(scene, data)
+            rows = rerun_masked_variants(scene, data) if args.masked_variants else rerun_variants(scene, data)
             res = json.loads(RESULT.read_text(encoding="utf-8"))
             sc = res["scenes"][scene]
-            sc["variants"], sc["variants_command"] = rows, command_line("registration_gt", argv)
+            sc[key], sc[f"{key}_command"] = rows, command_line("registration_gt", argv)
             RESULT.write_text(json.dumps(res, indent=1), encoding="utf-8")
             write_report(res)
         return 0
@@ -816,7 +882,8 @@ def merged_scene(prev: dict | None, new: dict) -> dict:
     done = {r["method"] for r in new["rows"]}
     kept = [{"command": prev["command"], "date_utc": prev["machine"]["date_utc"], **r} for r in prev["rows"] if r["method"] not in done]
     out = {**new, "rows": sorted(new["rows"] + kept, key=lambda r: METHODS.index(r["method"]) if r["method"] in METHODS else len(METHODS))}
-    for k in ("global_reruns", "global_rerun_commands", "known_intrinsics", "known_intrinsics_command", "variants", "variants_command"):
+    for k in ("global_reruns", "global_rerun_commands", "known_intrinsics", "known_intrinsics_command", "variants", "variants_command",
+              "masked_variants", "masked_variants_command"):
         if k in prev and k not in out:
             out[k] = prev[k]
     return out

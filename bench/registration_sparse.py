@@ -40,6 +40,7 @@ from bench.reconstruct import reference_registration
 REPORT = Path(__file__).with_name("registration_sparse.md")
 RESULT = RESULTS / "registration_sparse.json"
 SUBSETS = {"every 2nd of the first 60": lambda names: names[:60][::2], "every 4th": lambda names: names[::4]}
+METHODS = ("damcap (no retry)", "damcap", "damcap reconstruct --masks", "pycolmap")
 
 
 def subset_folder(data: Path, names: list[str], tag: str) -> Path:
@@ -142,6 +143,8 @@ def write_report(res: dict, path: Path = REPORT) -> None:
         err = (f"{row['median_rot_aligned_deg']:.3f} / {row['max_rot_aligned_deg']:.3f}" if "median_rot_aligned_deg" in row
                else "-")
         lines.append(f"| {row['subset']} | {row['photos']} | {row['method']} | {row['registered']} | {err} | {row['wall_s']} |")
+    earlier = sorted({(r["command"], r["date_utc"]) for r in res["rows"] if r.get("command")})
+    lines += [""] + [f"Rows not measured by the command above: `{c}` ({d})." for c, d in earlier]
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 
@@ -149,6 +152,8 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--subsets", nargs="+", default=list(SUBSETS), choices=list(SUBSETS))
+    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS),
+                    help="rerun only these; the saved rows of the others are kept, each with the command that measured it")
     args = ap.parse_args(argv)
     data = shared_data_dir() / "real" / "mold_gold_cape"
     all_names = sorted(p.name for p in (data / "images").iterdir())
@@ -164,16 +169,37 @@ def main(argv: list[str] | None = None) -> int:
                             ("damcap", lambda: run_damcap(root, names, retry=True)),
                             ("damcap reconstruct --masks", lambda: run_reconstruct(root)),
                             ("pycolmap", lambda: run_pycolmap(root, names))):
+            if method not in args.methods:
+                continue
             log(f"{tag}: {method} on {len(names)} photos")
             out = run()
             est = out.pop("est", {})
             row = {"subset": tag, "photos": len(names), "method": method, **out, **_rotation_errors(est, ref)}
             log(f"  -> {json.dumps({k: v for k, v in row.items() if k not in ('retry', 'candidates')})}")
             rows.append(row)
-    res = {"command": command_line("registration_sparse", argv), "machine": machine_info(), "rows": rows}
+    res = {"command": command_line("registration_sparse", argv), "machine": machine_info(),
+           "rows": merged_rows(json.loads(RESULT.read_text(encoding="utf-8")) if RESULT.is_file() else None, rows)}
     RESULT.write_text(json.dumps(res, indent=1), encoding="utf-8")
     write_report(res)
     return 0
+
+
+def merged_rows(prev: dict | None, new: list[dict]) -> list[dict]:
+    """The new rows, and the saved rows (``prev``, a saved result) of the (subset, method) pairs
+    not rerun, each saved row with the command and date that measured it; in subset, then
+    :data:`METHODS` order.
+
+    >>> prev = {"command": "a", "machine": {"date_utc": "d0"}, "rows": [{"subset": "every 4th", "method": "pycolmap"},
+    ...         {"subset": "every 4th", "method": "damcap"}]}
+    >>> [(r["method"], r.get("command", "b")) for r in merged_rows(prev, [{"subset": "every 4th", "method": "damcap"}])]
+    [('damcap', 'b'), ('pycolmap', 'a')]
+    """
+    done = {(r["subset"], r["method"]) for r in new}
+    kept = [{"command": prev.get("command"), "date_utc": prev["machine"]["date_utc"], **r}
+            for r in (prev or {}).get("rows", []) if (r["subset"], r["method"]) not in done] if prev else []
+    order = list(SUBSETS)
+    return sorted(new + kept, key=lambda r: (order.index(r["subset"]) if r["subset"] in order else len(order),
+                                             METHODS.index(r["method"]) if r["method"] in METHODS else len(METHODS)))
 
 
 def rewrite_report() -> None:

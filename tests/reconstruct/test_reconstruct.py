@@ -182,7 +182,8 @@ def test_rendered_turntable_and_orbit_sets_register_correctly_by_default(motion,
              for f in json.loads((photos / "transforms.json").read_text())["frames"]}
     cams = np.stack([f.world_from_cam for f in cap.frames])
     absolute, _ = rotation_agreement_deg(cams, np.stack([truth[f.extra["photo"]] for f in cap.frames]))
-    # measured at these sizes: turntable 0.22 deg median, 0.54 max; orbit 0.13 / 0.21
+    # measured at these sizes: turntable 0.17 deg median, 0.37 max (0.22 / 0.54 before the masked features took SIFT's
+    # lower contrast threshold); orbit 0.13 / 0.21
     assert np.median(absolute) < 0.4 and absolute.max() < 1.0
 
 

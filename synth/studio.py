@@ -73,11 +73,18 @@ class StudioOptions:
     materials: str = "red-plastic,gold,aluminium"
     """comma-separated materials of the object's regions, one region each (names: STUDIO_MATERIALS)"""
     views: int = field(default=24, metadata=in_range(3, 1000))
-    """photos on one ring around the object"""
+    """photos around the object, split evenly over the rings"""
     size: int = field(default=320, metadata=in_range(8, MAX_IMAGE_SIDE))
     """photo width and height, pixels"""
     elevation_deg: float = field(default=30.0, metadata={**ELEVATION_DEG, "cli_flag": "--elevation"})
-    """camera ring elevation above the board, degrees"""
+    """mean elevation of the camera rings above the board, degrees"""
+    rings: int = field(default=2, metadata=in_range(1, 8))
+    """camera rings, the ring step apart in elevation, centred on the mean elevation. Two rings, as
+    photogrammetry guides advise, let the visual hull carve what one ring cannot: the demo's three
+    materials, segmented, score 0.59x RM++ on novel views from rings at 15 and 45 deg against
+    0.71x from one ring at 30 (README.md)"""
+    ring_step_deg: float = field(default=30.0, metadata=in_range(0, 90))
+    """elevation between neighbouring rings, degrees"""
     jitter_deg: float = field(default=3.0, metadata=in_range(0, 90, cli_flag="--jitter"))
     """random azimuth and elevation jitter of each camera, degrees"""
     distance: float = field(default=3.4, metadata=CAMERA_DISTANCE)
@@ -103,11 +110,24 @@ class StudioOptions:
         for flag, path in (("--object", self.object), ("--env", self.env)):
             if not path or not Path(path).is_file():
                 raise DamcapError(f"{flag} {path!r}: file not found; give an existing {'mesh' if flag == '--object' else '.hdr or .exr'} file")
+        rings = ring_elevations_deg(self.elevation_deg, self.rings, self.ring_step_deg)
+        if not all(-90.0 < e < 90.0 for e in rings):
+            raise DamcapError(f"--elevation {self.elevation_deg:g} with --rings {self.rings} --ring-step-deg {self.ring_step_deg:g} "
+                              f"puts rings at {', '.join(f'{e:g}' for e in rings)} deg; keep every ring within (-90, 90)")
         names = self.material_names()
         unknown = [m for m in names if m not in STUDIO_MATERIALS]
         if unknown or not 1 <= len(names) <= 8:
             raise DamcapError(f"--materials {self.materials!r}: give 1 to 8 of {', '.join(STUDIO_MATERIALS)}, comma-separated"
                               + (f" ({', '.join(unknown)} unknown)" if unknown else ""))
+
+
+def ring_elevations_deg(mean_deg: float, rings: int, step_deg: float) -> tuple[float, ...]:
+    """Elevations of ``rings`` camera rings ``step_deg`` apart, centred on ``mean_deg`` (degrees).
+
+    >>> ring_elevations_deg(30.0, 2, 30.0), ring_elevations_deg(30.0, 1, 30.0), ring_elevations_deg(40.0, 3, 20.0)
+    ((15.0, 45.0), (30.0,), (20.0, 40.0, 60.0))
+    """
+    return tuple(mean_deg + (k - (rings - 1) / 2) * step_deg for k in range(rings))
 
 
 def board_albedo(half_size: float, saturation: float, seed: int, texels: int = BOARD_TEXELS) -> np.ndarray:
@@ -252,7 +272,8 @@ def make_studio_photos(out: str | os.PathLike, opts: StudioOptions, progress: Ca
     set_render_threads(os.cpu_count() or 2)
     env_multiplier = env_scale(opts)
     scene = studio_scene(opts, mesh, normals, labels, env_multiplier)
-    cams = orbit_cameras(opts.views, opts.distance, (opts.elevation_deg,), jitter_deg=opts.jitter_deg, seed=opts.seed)
+    cams = orbit_cameras(opts.views, opts.distance, ring_elevations_deg(opts.elevation_deg, opts.rings, opts.ring_step_deg),
+                         jitter_deg=opts.jitter_deg, seed=opts.seed)
     intr = default_intrinsics(opts.size)
     exposures = exposure_series(opts.views, opts.seed)
     median_factor = float(np.median([e.factor for e in exposures]))

@@ -40,6 +40,8 @@ def test_options_name_what_is_wrong(inputs, tmp_path):
     with pytest.raises(DamcapError, match="--object '': file not found"):
         StudioOptions(env=env).validate()
     assert set(StudioOptions(object=obj, env=env).material_names()) <= set(STUDIO_MATERIALS)
+    with pytest.raises(DamcapError, match="puts rings at 65, 95 deg"):
+        StudioOptions(object=obj, env=env, elevation_deg=80.0).validate()
 
 
 def test_a_small_set_is_photographed_with_masks_cameras_and_materials(inputs, tmp_path):

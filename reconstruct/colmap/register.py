@@ -341,8 +341,8 @@ def peak_threshold_for(median_features: float, budget: int, default: float, low:
     the budget binds, weaker features would only replace finer ones: COLMAP fills the budget from
     the coarsest scales down. Measured (bench/registration_gt.md, docs/registration.md): the
     rendered turntable's object keeps 650 of 9614 at the default, and 0.003 takes its median
-    rotation error from 0.104 to 0.075 deg; every 2nd of the first 60 cape photos keep about 8100
-    of 8670 inside the masks, and 0.003 took theirs from 0.195 to 0.415 deg.
+    rotation error from 0.104 to 0.075 deg; every 2nd of the first 60 cape photos keep about 8800
+    of 9780 inside the masks (4 probed), and 0.003 took theirs from 0.195 to 0.415 deg.
 
     >>> peak_threshold_for(650, 9614, 0.0067, 0.003), peak_threshold_for(8097, 8670, 0.0067, 0.003)
     (0.003, 0.0067)

@@ -355,6 +355,32 @@ def file_vertex_order(path: str | os.PathLike, loaded_vertices: np.ndarray) -> t
 # --------------------------------------------------------------------------------------------
 
 
+def midpoint_subdivision(triangles: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """The topology of one midpoint subdivision: each triangle cut into four at its edges' midpoints.
+
+    Args:
+        triangles: (T, 3) vertex indices.
+        n_vertices: vertices before; the midpoints are numbered after them, one per edge.
+
+    Returns:
+        (E, 2) int64 the edges' end vertices (midpoint k, vertex ``n_vertices + k``, lies between
+        them), and (T, 4, 3) int64 each triangle's children: its three corners' (same winding)
+        and the middle one.
+
+    >>> edges, children = midpoint_subdivision(np.array([[0, 1, 2]]), 3)
+    >>> edges.tolist(), children.tolist()  # midpoints 3, 4, 5 of edges 01, 02, 12
+    ([[0, 1], [0, 2], [1, 2]], [[[0, 3, 4], [3, 1, 5], [4, 5, 2], [3, 5, 4]]])
+    """
+    t = np.asarray(triangles, np.int64)
+    keys = np.sort(np.stack([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]], 1).reshape(-1, 2), axis=1)
+    edges, index = np.unique(keys, axis=0, return_inverse=True)
+    mid = n_vertices + index.reshape(-1, 3)  # (T, 3): the midpoints of edges 01, 12, 20
+    a, b, c = t[:, 0], t[:, 1], t[:, 2]
+    ab, bc, ca = mid[:, 0], mid[:, 1], mid[:, 2]
+    children = np.stack([np.stack([a, ab, ca], 1), np.stack([ab, b, bc], 1), np.stack([ca, bc, c], 1), np.stack([ab, bc, ca], 1)], 1)
+    return edges, children
+
+
 def face_normals_area(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Unnormalised face normals (cross products): length = 2 x face area.
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from damcap.common.errors import DamcapError
-from damcap.common.mesh import Mesh, signed_volume, to_open3d, vertex_normals_area_weighted
+from damcap.common.mesh import Mesh, midpoint_subdivision, signed_volume, to_open3d, vertex_normals_area_weighted
 
 SHAPES = ("torus", "sphere")
 
@@ -95,16 +95,11 @@ def icosphere(subdivisions: int) -> Mesh:
     pos /= np.linalg.norm(pos, axis=-1, keepdims=True)
     faces = np.asarray(f, dtype=np.int64)
     for _ in range(subdivisions):
-        edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-        key = np.sort(edges, axis=1)
-        uniq, inv = np.unique(key, axis=0, return_inverse=True)
+        uniq, children = midpoint_subdivision(faces, len(pos))
         mid = pos[uniq[:, 0]] + pos[uniq[:, 1]]
         mid /= np.linalg.norm(mid, axis=-1, keepdims=True)
-        m = len(pos) + inv.reshape(3, -1)  # midpoints of edges (0,1), (1,2), (2,0) per face
         pos = np.concatenate([pos, mid])
-        a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
-        faces = np.concatenate([np.stack([a, m[0], m[2]], 1), np.stack([m[0], b, m[1]], 1),
-                                np.stack([m[2], m[1], c], 1), np.stack([m[0], m[1], m[2]], 1)])
+        faces = children.transpose(1, 0, 2).reshape(-1, 3)  # every face's first child, then every second, ...
     return Mesh(pos, faces)
 
 

@@ -25,7 +25,7 @@ import torch
 
 from damcap.appearance.dam import DeepAppearanceMap
 from damcap.common.cameras import rotation_between
-from damcap.common.mesh import Mesh
+from damcap.common.mesh import Mesh, midpoint_subdivision
 
 GLB_MAGIC = 0x46546C67  # 'glTF'
 CHUNK_JSON = 0x4E4F534A
@@ -80,20 +80,14 @@ def subdivide_midpoint(mesh: Mesh, triangle_part: np.ndarray) -> tuple[Mesh, np.
     >>> fine.triangles.tolist(), part.tolist()  # the corners' three children (same winding) and the middle one
     ([[0, 3, 4], [3, 1, 5], [4, 5, 2], [3, 5, 4]], [7, 7, 7, 7])
     """
-    t = np.asarray(mesh.triangles, np.int64)
-    edges = np.sort(np.stack([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]], 1).reshape(-1, 2), axis=1)
-    unique, edge_index = np.unique(edges, axis=0, return_inverse=True)
-    mid = len(mesh.vertices) + edge_index.reshape(-1, 3)  # (T, 3): the midpoints of edges 01, 12, 20
+    unique, children = midpoint_subdivision(mesh.triangles, len(mesh.vertices))
     v = np.asarray(mesh.vertices, np.float64)
     n = np.asarray(mesh.vertex_normals, np.float64)
     n_mid = n[unique[:, 0]] + n[unique[:, 1]]
     n_mid /= np.maximum(np.linalg.norm(n_mid, axis=1, keepdims=True), 1e-12)
     vertices = np.concatenate([v, 0.5 * (v[unique[:, 0]] + v[unique[:, 1]])])
     normals = np.concatenate([n, n_mid])
-    a, b, c = t[:, 0], t[:, 1], t[:, 2]
-    ab, bc, ca = mid[:, 0], mid[:, 1], mid[:, 2]
-    tris = np.stack([np.stack([a, ab, ca], 1), np.stack([ab, b, bc], 1), np.stack([ca, bc, c], 1), np.stack([ab, bc, ca], 1)], 1)
-    fine = Mesh(vertices.astype(np.float32), tris.reshape(-1, 3).astype(np.int32), normals.astype(np.float32))
+    fine = Mesh(vertices.astype(np.float32), children.reshape(-1, 3).astype(np.int32), normals.astype(np.float32))
     return fine, np.repeat(np.asarray(triangle_part), 4)
 
 

@@ -154,7 +154,7 @@ def mean_iou(model, views: list[ViewData], carried: bool, lit_only: bool = False
     fgs = [v.data.coverage > FOREGROUND_COVERAGE for v in views]
     if lit_only:
         fgs = [fg & _lit(v, model.radiance_scale) for v, fg in zip(views, fgs)]
-    pw = np.concatenate([(model.weights_at(v.data.position_world) if carried else model.weights_of(v))[fg] for v, fg in zip(views, fgs)])
+    pw = np.concatenate([(model.weights_on(v) if carried else model.weights_of(v))[fg] for v, fg in zip(views, fgs)])
     tw = np.concatenate([v.data.weights[fg] for v, fg in zip(views, fgs)])
     return match_materials(pw, tw)[1]
 

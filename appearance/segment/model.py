@@ -97,7 +97,7 @@ class SegmentationModel:
     def weights_of(self, view: ViewData) -> np.ndarray:
         """(H, W, n) Psi's weights for a frame with colour (a training frame); 0 off the object."""
         if not self.has_psi:
-            return self.weights_at(view.data.position_world) * (view.data.coverage > 0)[..., None]
+            return self.weights_on(view)
         x = psi_inputs(view, self.radiance_scale, self.scene_centre, self.scene_radius)[None]
         w = torch.softmax(self.psi(x), 1)[0].permute(1, 2, 0).numpy()
         return w * (view.data.coverage > 0)[..., None]
@@ -117,6 +117,19 @@ class SegmentationModel:
         _, idx = tree.query(flat, k=min(k, len(self.points_world)))
         idx = idx.reshape(len(flat), -1)
         return self.point_weights[idx].mean(1).reshape(position_world.shape[:-1] + (self.materials,))
+
+    def weights_on(self, view: ViewData) -> np.ndarray:
+        """(H, W, n) weights carried from the geometry onto a frame's covered pixels; 0 off the object.
+
+        Only covered pixels are looked up: a background pixel's position (0 by the capture format)
+        can lie far from every training point, where a k-d tree query costs 1000x a surface one
+        (a 320 px frame of the demo took 17 s, against 0.02 s for its object).
+        """
+        cov = view.data.coverage > 0
+        out = np.zeros(cov.shape + (self.materials,), np.float32)
+        if cov.any():
+            out[cov] = self.weights_at(view.data.position_world[cov])
+        return out
 
     @torch.no_grad()
     def render(self, view: ViewData, weights: np.ndarray) -> np.ndarray:

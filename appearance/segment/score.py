@@ -53,12 +53,13 @@ def novel_view_dssim(model: SegmentationModel, views: list[ViewData], seen_only:
     scores = []
     tree = model.point_tree() if seen_only else None
     for v in views:
-        pred = model.render(v, model.weights_at(v.data.position_world))
+        pred = model.render(v, model.weights_on(v))
         if tree is None:
             scores.append(score_view(v, pred))
             continue
-        dist, _ = tree.query(v.data.position_world.reshape(-1, 3))
-        seen = (dist < seen_radius * model.scene_radius).reshape(v.data.coverage.shape)
+        cov = v.data.coverage > 0
+        seen = np.zeros(cov.shape, bool)
+        seen[cov] = tree.query(v.data.position_world[cov])[0] < seen_radius * model.scene_radius
         scores.append(dssim(v.data.radiance_lin, pred, v.data.coverage * seen))
     vals = [s for s in scores if s is not None]
     return float(np.mean(vals)) if vals else float("nan")
@@ -82,7 +83,7 @@ def segmentation_scores(model: SegmentationModel, train: list[ViewData], targets
 
     out: dict[str, dict[str, float | None]] = {"estimated weights": {}}
     for v in targets:
-        w = model.weights_of(v) if same_view else model.weights_at(v.data.position_world)
+        w = model.weights_of(v) if same_view else model.weights_on(v)
         out["estimated weights"][v.name] = score_view(v, model.render(v, w))
     if all(v.data.weights is not None for v in train + targets):
         fgs = [v.data.coverage > FOREGROUND_COVERAGE for v in train]

@@ -1,4 +1,4 @@
-"""The segmentation model carried onto meshes (mesh_material_weights, through segment-labels)."""
+"""The segmentation model: its weights carried onto frames (weights_on) and onto meshes (mesh_material_weights, through segment-labels)."""
 
 from __future__ import annotations
 
@@ -68,3 +68,15 @@ def test_segmentation_carries_onto_meshes(two_materials, segmented, tmp_path, ca
     code, _, err = run_cli(["segment-labels", seg, "--mesh", same, "-o", tmp_path / "l3.npy"], capsys)
     assert_one_line_error(code, err, first.name)
     assert not (tmp_path / "l3.npy").exists()
+
+
+def test_weights_on_a_frame_are_the_carried_weights_on_its_object(two_materials, segmented):
+    _, _, test = two_materials
+    v = test[0]
+    cov = v.data.coverage > 0
+    assert 0 < cov.mean() < 1
+    w = segmented.weights_on(v)
+    assert w.shape == cov.shape + (2,) and w.dtype == np.float32
+    np.testing.assert_allclose(w[cov], segmented.weights_at(v.data.position_world[cov]), atol=1e-7)
+    np.testing.assert_allclose(w[cov].sum(-1), 1.0, atol=1e-5)
+    assert not w[~cov].any()

@@ -136,7 +136,7 @@ def offset_in_sigmas(offset_px: Sequence[float], sd_px: Sequence[float]) -> floa
     return math.hypot(*(d / max(sd, 1e-9) for d, sd in zip(offset_px, sd_px)))
 
 
-def adjust_principal_point(rec: Any, pycolmap: Any, apply: bool) -> PrincipalPointEstimate | None:
+def adjust_principal_point(rec: Any, pycolmap: Any, apply: bool) -> tuple[PrincipalPointEstimate | None, Any]:
     """One global bundle adjustment with the principal point free (colmap2nerf's last step),
     and where it puts the point.
 
@@ -148,10 +148,12 @@ def adjust_principal_point(rec: Any, pycolmap: Any, apply: bool) -> PrincipalPoi
 
     Returns:
         The estimate, or None when the photos use several cameras or COLMAP cannot estimate the
-        covariance (the adjustment is made all the same).
+        covariance (the adjustment is made all the same); and the adjusted reconstruction (``rec``
+        itself when ``apply``, else the copy: a caller that decides to use the point takes it
+        instead of adjusting again).
     """
     if rec.num_cameras() != 1 and not apply:
-        return None
+        return None, rec
     work = rec if apply else pycolmap.Reconstruction(rec)
     ba = pycolmap.BundleAdjustmentOptions()
     ba.refine_principal_point = True
@@ -163,12 +165,12 @@ def adjust_principal_point(rec: Any, pycolmap: Any, apply: bool) -> PrincipalPoi
     adjuster = pycolmap.create_default_ceres_bundle_adjuster(ba, config, work)
     summary = adjuster.solve().ceres_summary
     if work.num_cameras() != 1:
-        return None
+        return None, work
     camera = work.cameras[next(iter(work.cameras))]
     cov = pycolmap.estimate_ba_covariance(pycolmap.BACovarianceOptions(), work, adjuster)
     block = cov.get_other_params_cov(camera.params) if cov is not None else None
     if block is None or block.shape != (len(camera.params), len(camera.params)):
-        return None
+        return None, work
     var = residual_variance(summary.final_cost, summary.num_residuals_reduced, summary.num_effective_parameters_reduced)
     sd = np.sqrt(np.maximum(np.diag(block)[list(camera.principal_point_idxs())], 0.0) * var)
     offset = [camera.principal_point_x - camera.width / 2, camera.principal_point_y - camera.height / 2]
@@ -176,4 +178,4 @@ def adjust_principal_point(rec: Any, pycolmap: Any, apply: bool) -> PrincipalPoi
                 for im in (work.image(i) for i in work.reg_image_ids())]
     return PrincipalPointEstimate(offset_px=[round(float(v), 2) for v in offset], sd_px=[round(float(v), 3) for v in sd],
                                   tilt_deg=round(principal_point_tilt_deg(offset, camera.mean_focal_length()), 3), used=apply,
-                                  coverage=round(float(np.median(coverage)), 3) if coverage else None)
+                                  coverage=round(float(np.median(coverage)), 3) if coverage else None), work

@@ -521,7 +521,7 @@ def _register_once(photo_dir: Path, names: list[str], work_dir: Path, opts: SfmO
         rep = SfmReport(**json.loads(report_path.read_text(encoding="utf-8")))
         rep.resumed = ["features", "matches", "mapping"]
         if rep.principal_point is None and rec.num_cameras() == 1:  # a registration from before the estimate
-            principal = adjust_principal_point(rec, pycolmap, apply=False)  # on a copy: the model stays as it was
+            principal = adjust_principal_point(rec, pycolmap, apply=False)[0]  # on a copy: the model stays as it was
             if principal is not None:
                 rep.principal_point = asdict(replace(principal, used=opts.principal_point == "refine"))
                 write_json_atomic(report_path, asdict(rep))
@@ -570,11 +570,11 @@ def _register_once(photo_dir: Path, names: list[str], work_dir: Path, opts: SfmO
     rec = ranked[0]
     progress("principal point", 0, 1)
     t0 = time.perf_counter()
-    principal = adjust_principal_point(rec, pycolmap, apply=opts.principal_point == "refine")
+    principal, adjusted = adjust_principal_point(rec, pycolmap, apply=opts.principal_point == "refine")
     if principal is not None and opts.principal_point == "auto":
         use, why = photos_support_offset(principal, int(rec.num_reg_images()))
-        if use:  # the same adjustment, now on the registration itself
-            principal = adjust_principal_point(rec, pycolmap, apply=True) or replace(principal, used=True)
+        if use:  # the copy the estimate was made on is the registration with the point refined
+            rec, principal = adjusted, replace(principal, used=True)
         principal = replace(principal, decision=f"auto: {why}")
     seconds["principal_point"] = time.perf_counter() - t0
     progress("principal point", 1, 1)

@@ -30,17 +30,21 @@ def test_principal_point_estimate_matches_the_truth_within_its_uncertainty(seed)
     cam.params = params
     rec.cameras[cam.camera_id] = cam
 
-    est = adjust_principal_point(rec, pycolmap, apply=False)
-    assert est is not None and not est.used
+    est, copy = adjust_principal_point(rec, pycolmap, apply=False)
+    assert est is not None and not est.used and copy is not rec
     sd = np.array(est.sd_px)
     assert np.all((sd > 0.1) & (sd < 2.0))
     assert np.all(np.abs(np.array(est.offset_px) - [20.0, -12.0]) < 4 * sd)
     assert est.tilt_deg == pytest.approx(principal_point_tilt_deg(est.offset_px, 1280.0), abs=0.01)
     assert est.coverage is not None and 0.5 <= est.coverage <= 1.0  # 300 points seen across the frames
     assert list(rec.cameras[cam.camera_id].params[1:3]) == [512.0, 384.0]
+    # the copy carries the adjustment: a caller that decides to use the point takes it as it is
+    on_copy = copy.cameras[cam.camera_id]
+    assert [on_copy.principal_point_x - 512.0, on_copy.principal_point_y - 384.0] == pytest.approx(est.offset_px, abs=0.01)
 
-    applied = adjust_principal_point(rec, pycolmap, apply=True)
-    assert applied is not None and applied.used
+    applied, same = adjust_principal_point(rec, pycolmap, apply=True)
+    assert applied is not None and applied.used and same is rec
+    assert applied.offset_px == pytest.approx(est.offset_px, abs=0.01)
     moved = rec.cameras[cam.camera_id]
     assert [moved.principal_point_x - 512.0, moved.principal_point_y - 384.0] == pytest.approx(applied.offset_px, abs=0.01)
 

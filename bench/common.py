@@ -12,6 +12,7 @@ import platform
 import shlex
 import time
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -41,6 +42,21 @@ def command_line(study: str, argv: list[str] | tuple[str, ...]) -> str:
     '.venv/bin/python -m bench.synth --stages noise,why'
     """
     return " ".join([PYTHON, "-m", f"bench.{study}", *(shlex.quote(a) for a in argv)])
+
+
+def rows_not_rerun(prev: dict | None, new_rows: list[dict], key: Callable[[dict], Any]) -> list[dict]:
+    """The saved rows of a result (``prev``: its ``rows``, ``command`` and ``machine.date_utc``)
+    whose ``key`` no new row has, each tagged with the command and date that measured it: what a
+    rerun of some methods keeps of the others.
+
+    >>> prev = {"command": "a", "machine": {"date_utc": "d0"}, "rows": [{"method": "x"}, {"method": "y"}]}
+    >>> rows_not_rerun(prev, [{"method": "x"}], lambda r: r["method"]), rows_not_rerun(None, [], lambda r: r["method"])
+    ([{'command': 'a', 'date_utc': 'd0', 'method': 'y'}], [])
+    """
+    if not prev:
+        return []
+    done = {key(r) for r in new_rows}
+    return [{"command": prev.get("command"), "date_utc": prev["machine"]["date_utc"], **r} for r in prev.get("rows", []) if key(r) not in done]
 
 
 def log(msg: str) -> None:

@@ -53,7 +53,6 @@ import numpy as np
 from bench.common import BENCH, NCPU, REPO, RESULTS as RESULTS_DIR, command_line, cpu_model, log, shared_data_dir
 
 
-BENCH = Path(__file__).resolve().parent
 CACHE = BENCH / ".cache" / "reconstruct"
 RESULTS = RESULTS_DIR / "reconstruct.json"
 REPORT = BENCH / "reconstruct.md"

@@ -58,14 +58,15 @@ from typing import Any
 
 import numpy as np
 
-from bench.common import CACHE, REPO, RESULTS, command_line, log, machine_info, shared_data_dir
+from bench.common import CACHE, REPO, RESULTS, command_line, log, machine_info, rows_not_rerun, shared_data_dir
 
 REPORT = Path(__file__).with_name("registration_gt.md")
 RESULT = RESULTS / "registration_gt.json"
 WORK = CACHE / "registration_gt"
-GEOMETRY_SETS = {"bunny": 320, "dragon": 320, "armadillo": 320, "bunny-800": 800, "dragon-800": 800, "armadillo-800": 800}
+GEOMETRY_SETS = {**{obj: (obj, 320) for obj in ("bunny", "dragon", "armadillo")},
+                 **{f"{obj}-800": (obj, 800) for obj in ("bunny", "dragon", "armadillo")}}
 """bench/reconstruct's geometry sets of the shared meshes (:func:`bench.reconstruct.geometry_photos`:
-36 photos of the textured object alone, masks, true cameras): photo size in px by scene. The
+36 photos of the textured object alone, masks, true cameras): (mesh, photo size in px) by scene. The
 geometry bench's 320 px is a thumbnail; 800 px is what a phone photo downsized for registration
 still has"""
 SCENES = ("herz-jesus-p8", "castle-p19", "cape", "fox", "turntable", "orbit", *GEOMETRY_SETS)
@@ -92,6 +93,14 @@ def scene_key(scene: str, first: int | None) -> str:
     return scene if first is None else f"{scene} (first {first})"
 
 
+def geometry_set_root(scene: str) -> Path:
+    """The folder of one of :data:`GEOMETRY_SETS` (photos, masks, transforms.json), rendered once."""
+    from bench.reconstruct import geometry_photos
+
+    obj, size = GEOMETRY_SETS[scene]
+    return geometry_photos(obj, photo_size=size)
+
+
 def scene_paths(scene: str, data: Path) -> tuple[Path, str]:
     """(photo folder, ``--poses`` spec of its reference cameras); a rendered set is rendered into
     the cache first when it is not there."""
@@ -105,9 +114,7 @@ def scene_paths(scene: str, data: Path) -> tuple[Path, str]:
         root = rendered_set(scene)
         return root / "images", str(root / "transforms.json")
     if scene in GEOMETRY_SETS:
-        from bench.reconstruct import geometry_photos
-
-        root = geometry_photos(scene.removesuffix("-800"), photo_size=GEOMETRY_SETS[scene])
+        root = geometry_set_root(scene)
         return root / "images", str(root / "transforms.json")
     root = data / "real" / "strecha" / scene
     return root / "images", f"strecha:{root / 'gt_cameras'}"
@@ -118,9 +125,7 @@ def scene_masks(scene: str, data: Path) -> Path | None:
     if scene == "cape":
         return data / "real" / "mold_gold_cape" / "masks"
     if scene in GEOMETRY_SETS:
-        from bench.reconstruct import geometry_photos
-
-        return geometry_photos(scene.removesuffix("-800"), photo_size=GEOMETRY_SETS[scene]) / "masks"
+        return geometry_set_root(scene) / "masks"
     return rendered_set(scene) / "masks" if scene in RENDERED else None
 
 
@@ -747,10 +752,11 @@ def run_masked(images: Path, names: list[str], masks_dir: Path, work: Path, **sf
     """damcap's masked registration (``sfm``: :class:`SfmOptions` fields changed after
     :func:`masked_options`), as :func:`run_damcap` reports it."""
     from damcap.reconstruct.colmap.register import SfmOptions, masked_options, register_photos
-    from damcap.reconstruct.photos import image_size, match_masks, read_mask
+    from damcap.reconstruct.photos import image_size, match_masks
+    from damcap.reconstruct.pipeline import check_masks
 
     masks = match_masks(names, masks_dir)
-    fraction = float(np.mean([(read_mask(masks[n], image_size(images / n), n) > 0.5).mean() for n in names]))
+    fraction = check_masks(masks, {n: image_size(images / n) for n in names})  # as reconstruct measures it
     opts = replace(masked_options(SfmOptions(), fraction), **sfm)
     shutil.rmtree(work, ignore_errors=True)
     t0 = time.perf_counter()
@@ -879,8 +885,7 @@ def merged_scene(prev: dict | None, new: dict) -> dict:
     """
     if not prev:
         return new
-    done = {r["method"] for r in new["rows"]}
-    kept = [{"command": prev["command"], "date_utc": prev["machine"]["date_utc"], **r} for r in prev["rows"] if r["method"] not in done]
+    kept = rows_not_rerun(prev, new["rows"], lambda r: r["method"])
     out = {**new, "rows": sorted(new["rows"] + kept, key=lambda r: METHODS.index(r["method"]) if r["method"] in METHODS else len(METHODS))}
     for k in ("global_reruns", "global_rerun_commands", "known_intrinsics", "known_intrinsics_command", "variants", "variants_command",
               "masked_variants", "masked_variants_command"):

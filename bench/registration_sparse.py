@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import CACHE, RESULTS, command_line, log, machine_info, shared_data_dir
+from bench.common import CACHE, RESULTS, command_line, log, machine_info, rows_not_rerun, shared_data_dir
 from bench.reconstruct import reference_registration
 
 REPORT = Path(__file__).with_name("registration_sparse.md")
@@ -194,9 +194,7 @@ def merged_rows(prev: dict | None, new: list[dict]) -> list[dict]:
     >>> [(r["method"], r.get("command", "b")) for r in merged_rows(prev, [{"subset": "every 4th", "method": "damcap"}])]
     [('damcap', 'b'), ('pycolmap', 'a')]
     """
-    done = {(r["subset"], r["method"]) for r in new}
-    kept = [{"command": prev.get("command"), "date_utc": prev["machine"]["date_utc"], **r}
-            for r in (prev or {}).get("rows", []) if (r["subset"], r["method"]) not in done] if prev else []
+    kept = rows_not_rerun(prev, new, lambda r: (r["subset"], r["method"]))
     order = list(SUBSETS)
     return sorted(new + kept, key=lambda r: (order.index(r["subset"]) if r["subset"] in order else len(order),
                                              METHODS.index(r["method"]) if r["method"] in METHODS else len(METHODS)))

@@ -6,8 +6,6 @@ from pathlib import Path
 
 import typer
 
-from damcap.common.errors import DamcapError
-
 from damcap.cli.options import COMMANDS, command  # noqa: F401  (command: the decorator every command module uses)
 
 

@@ -461,7 +461,7 @@ def _known_poses(poses: str | None, sizes: dict[str, tuple[int, int]], opts: Rec
     return reg
 
 
-def _check_masks(masks: dict[str, Path] | None, sizes: dict[str, tuple[int, int]]) -> float | None:
+def check_masks(masks: dict[str, Path] | None, sizes: dict[str, tuple[int, int]]) -> float | None:
     """Step 1: every mask decodes, has its photo's size and marks some object (read before any work).
 
     Returns:
@@ -809,7 +809,7 @@ def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, o
     # every input is read and checked before the output folder is touched
     sizes = _photo_sizes(photos_dir, names)
     known = _known_poses(poses, sizes, opts, photos_dir, progress)
-    object_fraction = _check_masks(masks, sizes)
+    object_fraction = check_masks(masks, sizes)
     exposure_factors([photos_dir / n for n in names], opts.ignore_exposure, tone_curve)  # refuses missing EXIF now
     created = not out.exists()
     _prepare_output(out, [photos_dir] + ([Path(masks_dir)] if masks_dir is not None else []))

@@ -14,7 +14,7 @@ def test_procedural_shapes_are_the_closed_form_surfaces(tmp_path, capsys):
     """The demo's new shapes: every torus vertex lies on (sqrt(x^2 + z^2) - 0.9)^2 + y^2 = 0.4^2
     (axis y, as the capture contract's up), every sphere vertex on |v| = 1; both come back through
     damcap's own mesh reader, and bad requests are refused with a message."""
-    from damcap.common.shapes import torus_mesh, write_shape
+    from damcap.common.shapes import write_shape
     from damcap.common.mesh import load_mesh
 
     v = np.asarray(torus_mesh(0.9, 0.4).vertices)

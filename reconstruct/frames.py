@@ -17,7 +17,7 @@ from damcap.common.errors import DamcapError
 from damcap.common.mesh import Mesh
 from damcap.common.raycast import MeshRaycaster
 
-from damcap.reconstruct.photos import read_photo_radiance
+from damcap.reconstruct.photos import photo_kind, read_photo_radiance
 from damcap.reconstruct.undistort import PhotoCamera, resample_to_pinhole
 
 
@@ -80,7 +80,7 @@ def unclipped_fraction(clipped: np.ndarray, camera: PhotoCamera, target: Intrins
 def write_frames(out: Path, photos: list[FramePhoto], world_from_cams: np.ndarray, mesh: Mesh,
                  sphere: tuple[np.ndarray, float] | None, reference: float, supersample: int, dtype: str,
                  progress: Callable[[str, int, int], None], log: Callable[[str], None],
-                 log_response: np.ndarray | None = None, keep_clipped: bool = False) -> tuple[list[Frame], dict[str, str]]:
+                 log_response: np.ndarray | None = None, clipped: str = "auto") -> tuple[list[Frame], dict[str, str]]:
     """Write one frame per photo that sees the geometry (each file atomically).
 
     Args:
@@ -94,24 +94,28 @@ def write_frames(out: Path, photos: list[FramePhoto], world_from_cams: np.ndarra
         dtype: 'half' or 'float' EXR channels.
         progress, log: progress(stage, done, total) and one-line messages.
         log_response: (3, L) response curve undone for 8-bit photos instead of sRGB, or None.
-        keep_clipped: keep pixels the photo flags clipped (linear EXR, RAW) in the coverage;
-            by default their coverage is 0.
+        clipped: pixels the photo flags clipped (:class:`.photos.PhotoRadiance`): 'drop' (coverage
+            0), 'keep', or 'auto' (keep a display photo's, drop the others'; ``ReconstructOptions.clipped``).
+            Either way one line of ``log`` says how many of the object's pixels were clipped, and
+            each frame records its count.
 
     Returns:
         the frames written, and the dropped photos with their reasons.
     """
     with ThreadPoolExecutor(max_workers=1) as writer:  # writes one frame while the next is ray cast
         return _write_frames(out, photos, world_from_cams, mesh, sphere, reference, supersample, dtype, progress, log,
-                             log_response, keep_clipped, writer)
+                             log_response, clipped, writer)
 
 
 def _write_frames(out: Path, photos: list[FramePhoto], world_from_cams: np.ndarray, mesh: Mesh,
                   sphere: tuple[np.ndarray, float] | None, reference: float, supersample: int, dtype: str,
                   progress: Callable[[str, int, int], None], log: Callable[[str], None], log_response: np.ndarray | None,
-                  keep_clipped: bool, writer: ThreadPoolExecutor) -> tuple[list[Frame], dict[str, str]]:
+                  clipped: str, writer: ThreadPoolExecutor) -> tuple[list[Frame], dict[str, str]]:
     """:func:`write_frames`' loop; each frame's files go to ``writer`` (at most two pending)."""
     rc = MeshRaycaster(mesh)
     frames: list[Frame] = []
+    clipped_tally = [0, 0, 0]  # clipped object pixels, object pixels, photos with any
+    kept_kinds: set[str] = set()
     dropped: dict[str, str] = {}
     pending: list[Future] = []
     for k, p in enumerate(photos):
@@ -124,11 +128,20 @@ def _write_frames(out: Path, photos: list[FramePhoto], world_from_cams: np.ndarr
         radiance = resample_to_pinhole(photo.radiance_lin, p.camera, tgt)
         mask = p.mask
         clipped_px = 0
-        if photo.clipped is not None and photo.clipped.any() and not keep_clipped:
+        keep = None
+        if photo.clipped is not None and photo.clipped.any():
             keep = unclipped_fraction(photo.clipped, p.camera, tgt)
             clipped_px = int((keep == 0).sum())
-            mask = keep if mask is None else np.minimum(mask, keep)
+            if keeps_clipped(clipped, photo_kind(p.path)):
+                kept_kinds.add(photo_kind(p.path))
+            else:
+                mask = keep if mask is None else np.minimum(mask, keep)
         b = rc.buffers(world_from_cams[k], tgt.fl_x, tgt.fl_y, tgt.cx, tgt.cy, tgt.w, tgt.h, supersample=supersample)
+        on_object = (b.coverage > 0.5) if p.mask is None else (b.coverage > 0.5) & (p.mask > 0.5)
+        clipped_object_px = int(((keep == 0) & on_object).sum()) if keep is not None else 0
+        clipped_tally[0] += clipped_object_px
+        clipped_tally[1] += int(on_object.sum())
+        clipped_tally[2] += clipped_object_px > 0
         normal = b.normal_world
         if sphere is not None:  # analytic normals of the analytic sphere
             hit = b.coverage > 0
@@ -144,7 +157,7 @@ def _write_frames(out: Path, photos: list[FramePhoto], world_from_cams: np.ndarr
         frame = Frame(file_path=f"images/{stem}.exr", geometry_path=f"geometry/{stem}.exr", world_from_cam=world_from_cams[k],
                       intrinsics=tgt, exposure=p.exposure,
                       extra={"photo": p.name, "exposure_relative": float(p.exposure_factor / reference),
-                             **({"clipped_pixels": clipped_px} if clipped_px else {})})
+                             **({"clipped_pixels": clipped_px, "clipped_object_pixels": clipped_object_px} if clipped_px else {})})
         while len(pending) >= 2:
             pending.pop(0).result()  # raises the writer's error here
         pending.append(writer.submit(write_frame, Capture(out, [frame], [], []), frame, data, dtype=dtype))
@@ -152,4 +165,30 @@ def _write_frames(out: Path, photos: list[FramePhoto], world_from_cams: np.ndarr
     for f in pending:
         f.result()
     progress("frames", len(photos), len(photos))
+    if clipped_tally[0]:
+        log(clipped_note(*clipped_tally, len(photos), bool(kept_kinds)))
     return frames, dropped
+
+
+def keeps_clipped(policy: str, kind: str) -> bool:
+    """Whether a photo's clipped pixels stay in the coverage (``ReconstructOptions.clipped``).
+
+    >>> keeps_clipped("auto", "display"), keeps_clipped("auto", "raw"), keeps_clipped("drop", "display")
+    (True, False, False)
+    """
+    if policy not in ("auto", "drop", "keep"):
+        raise DamcapError(f"unknown clipped-pixel policy {policy!r}: use auto, drop or keep")
+    return policy == "keep" or (policy == "auto" and kind == "display")
+
+
+def clipped_note(clipped_px: int, object_px: int, photos_with: int, photos: int, kept: bool) -> str:
+    """The one line reconstruct prints when photos have clipped pixels on the object.
+
+    >>> print(clipped_note(30, 1000, 2, 5, False))
+    clipped: 30 of the object's 1000 pixels (3.0 %) in 2 of 5 photos are saturated (their radiance is only a lower bound): left out of the coverage (--clipped keep keeps them)
+    """
+    share = f"{clipped_px} of the object's {object_px} pixels ({100 * clipped_px / max(object_px, 1):.1f} %) in {photos_with} of {photos} photos are saturated"
+    if kept:
+        return (f"clipped: {share} (their radiance is only a lower bound): kept in the coverage, so what is fitted there is that "
+                "bound (--clipped drop leaves them out; an exposure bracket, damcap hdr, records them)")
+    return f"clipped: {share} (their radiance is only a lower bound): left out of the coverage (--clipped keep keeps them)"

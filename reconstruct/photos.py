@@ -5,6 +5,8 @@ Photos are the files of one folder, all of one kind (:func:`photo_kind`):
 - ``display``: 8/16-bit JPEG/PNG/TIFF. The tone curve is undone (sRGB, or a response curve that
   ``damcap hdr`` recovered) and the EXIF exposure ``time_s * (iso / 100) / f_number^2`` divided
   out, relative to the median exposure of the set (:func:`damcap.capture.linearize.linearize_photo`).
+  A pixel with a channel at the top codes (:func:`damcap.capture.linearize.clipped_mask`, the
+  level ``damcap linearize`` flags) is flagged clipped: its radiance is only a lower bound.
 - ``linear``: OpenEXR (the output of ``damcap hdr`` and ``damcap linearize``) or Radiance ``.hdr``;
   the values are linear already. An EXR written by damcap records in its header the exposure its
   values are relative to (``damcap:reference_exposure``); the values are rescaled to the median of
@@ -349,8 +351,9 @@ class PhotoRadiance:
     """(H, W, 3) float32, linear Rec.709, proportional across the photo set (exposure divided out), >= 0
     up to noise"""
     clipped: np.ndarray | None
-    """(H, W) bool, radiance only a lower bound (saturated); None when the file does not say
-    (display photos)"""
+    """(H, W) bool, radiance only a lower bound (saturated: a display photo's top codes, a RAW
+    file's white level, an EXR's ``clipped`` channel); None when the file does not say (an EXR or
+    ``.hdr`` without that channel)"""
 
 
 def verify_photos(folder: str | os.PathLike, names: list[str],
@@ -471,7 +474,7 @@ def read_photo_radiance(path: str | os.PathLike, factor: float, reference: float
         DamcapError: an unreadable or truncated file (named), a bad factor, a response curve
             given for a linear or RAW photo.
     """
-    from damcap.capture.linearize import linearize_photo
+    from damcap.capture.linearize import clipped_mask, linearize_photo
 
     path = Path(path)
     if not (np.isfinite(factor) and factor > 0 and np.isfinite(reference) and reference > 0):
@@ -481,7 +484,7 @@ def read_photo_radiance(path: str | os.PathLike, factor: float, reference: float
         raise DamcapError(f"{path}: a response curve undoes the tone curve of 8-bit photos; this photo is a {kind} file")
     if kind == "display":
         codes = _read_display_codes(path)
-        return PhotoRadiance(linearize_photo(codes, float(factor), float(reference), log_response), None)
+        return PhotoRadiance(linearize_photo(codes, float(factor), float(reference), log_response), clipped_mask(codes))
     rgb, clipped = read_linear_rgb(path) if kind == "linear" else _read_raw(path)
     return PhotoRadiance((rgb * np.float32(reference / factor)).astype(np.float32), clipped)
 

@@ -269,8 +269,53 @@ def test_clipped_pixels_leave_the_coverage(scene, jpeg_frames, linearized, tmp_p
     assert (frames["IMG_0002"].radiance_lin[60:70, 60:70] == 0).all()
     doc = json.loads((tmp_path / "excluded" / "transforms.json").read_text())
     assert [f.get("clipped_pixels") for f in doc["frames"] if f["photo"] == "IMG_0002.exr"] == [100]
-    kept, _ = _reconstruct(scene, photos, tmp_path / "kept", keep_clipped=True)
+    kept, _ = _reconstruct(scene, photos, tmp_path / "kept", clipped="keep")
     assert np.array_equal(kept["IMG_0002"].coverage, ref_cov)
+
+
+def test_a_display_photo_flags_its_top_codes_clipped(tmp_path):
+    """An 8-bit code at or above 99 % of full scale in any channel (what damcap linearize flags)
+    is a lower bound of the radiance: read_photo_radiance says so for PNG and JPEG alike."""
+    codes = np.full((4, 5, 3), 120, np.uint8)
+    codes[1, 2] = (255, 40, 40)  # one channel saturated
+    codes[3, 4] = (253, 253, 253)  # 253 / 255 = 0.992
+    codes[0, 0] = (252, 252, 252)  # 0.988: measured
+    write_image_u8(tmp_path / "a.png", codes)
+    clipped = read_photo_radiance(tmp_path / "a.png", 1.0, 1.0).clipped
+    assert clipped.tolist() == (np.isin(np.arange(20).reshape(4, 5), [7, 19])).tolist()
+
+
+def test_saturated_jpeg_pixels_are_reported_kept_by_default_and_dropped_when_asked(scene, jpeg_frames, tmp_path):
+    """A white patch burnt into one JPEG on the object. By default (--clipped auto) a display
+    photo's saturated pixels stay in the coverage, one log line says how many of the object's
+    pixels are clipped and the frame records the count; with --clipped drop they leave the
+    coverage, as a clipped EXR's do."""
+    from damcap.synth.photos import write_jpeg
+
+    photos = tmp_path / "photos"
+    shutil.copytree(scene.images, photos)
+    codes, _ = read_ldr_codes(photos / "IMG_0002.jpg")
+    codes = codes.copy()
+    codes[60:70, 60:70] = 255
+    write_jpeg(photos / "IMG_0002.jpg", codes, scene.exposures[2], quality=100)
+    ref_cov = jpeg_frames["IMG_0002"].coverage
+    object_px = sum(int((f.coverage > 0.5).sum()) for f in jpeg_frames.values())
+    runs = {}
+    for policy in ("auto", "drop"):
+        lines: list[str] = []
+        cap, _ = reconstruct_capture(photos, tmp_path / policy, _options(scene, clipped=policy), masks_dir=scene.root / "masks",
+                                     poses=str(scene.root / "transforms.json"), log=lines.append)
+        frame = cap.frame("IMG_0002")
+        n = frame.extra["clipped_object_pixels"]
+        assert 100 <= n <= 144  # the patch, and at most a ring of JPEG ringing
+        (line,) = [ln for ln in lines if ln.startswith("clipped: ")]
+        assert line.startswith(f"clipped: {n} of the object's {object_px} pixels") and f"in 1 of {N_VIEWS} photos" in line
+        runs[policy] = (read_frame(cap, frame).coverage, n, line)
+    cov, _, line = runs["auto"]
+    assert np.array_equal(cov, ref_cov) and "kept in the coverage" in line
+    cov, n, line = runs["drop"]
+    assert (ref_cov[60:70, 60:70] > 0.99).all() and (cov[60:70, 60:70] == 0).all() and "left out of the coverage" in line
+    assert (cov == 0).sum() - (ref_cov == 0).sum() == n
 
 
 # ---- LDR brackets merged by damcap hdr, and its response curve ----------------------------------

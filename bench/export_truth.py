@@ -10,6 +10,19 @@ against the truth next to a constant-colour baseline (the region painted with it
 colour over all frames), each scored on its region alone (elsewhere both images are the truth).
 Target (issue 29): the export at most 0.5x the baseline.
 
+What a DAM can reach at all: per region, a DAM of the export's own architecture fitted to the
+truth frames themselves (:func:`best_dam_on_truth`, in-sample, so an optimistic bound). Whatever
+it misses (self-shadowing, the board's reflection, anything not a function of view and normal) no
+DAM carried from the photos can recover; a ratio above the target there means the target lies
+beyond the model, not beyond the capture.
+
+What a DAM of the photographed object can carry to the torus (``--transfer-bound``): per
+material, a DAM fitted to path-traced HDR renders of the studio's own object from every photo's
+true camera, with its exact normals and material labels (:func:`object_dams`: no clipping, no
+JPEG, no reconstruction or segmentation error), drawn on the torus. The export cannot beat it
+except by chance; where it misses the target, the scene's light is not a function of (view,
+normal) alone (the board beside the object, occlusion that differs between the two shapes).
+
 How the frames are matched:
 - the capture's world is a similarity of the studio's (``damcap reconstruct`` registered the photos
   itself and normalised the result); it is estimated from the camera centres (Umeyama) and
@@ -33,22 +46,27 @@ import argparse
 import json
 import statistics
 import time
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
+import torch
 
+from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
+from damcap.appearance.dam_file import load_dam
+from damcap.appearance.fit import FitOptions, fit_dam
 from damcap.appearance.metrics import dssim
+from damcap.appearance.pixels import PixelSamples, view_dir_world
 from damcap.common.capture_folder import Intrinsics, read_capture
 from damcap.common.exr import read_exr, write_png
 from damcap.common.colour import display_srgb8, exposure_scale_for
 from damcap.common.mesh import Mesh
-from damcap.common.raycast import MeshRaycaster
-from damcap.export.turntable import shape_and_parts
+from damcap.common.raycast import MeshRaycaster, SurfaceBuffers
+from damcap.export.turntable import shade_buffers, shape_and_parts
 from damcap.reconstruct.normalize import similarity_scale, umeyama_similarity
 from damcap.synth.studio import StudioOptions, capture_radiance_scale, render_on_shape, studio_object
 
-from bench.common import BENCH, RESULTS, command_line, log, machine_info
+from bench.common import BENCH, CACHE, RESULTS, command_line, log, machine_info
 
 INTERIOR = 0.99
 """a pixel belongs to a region when its coverage in both images is above this (no silhouette mixing)"""
@@ -121,12 +139,96 @@ def region_scores(truth: np.ndarray, pred: np.ndarray, mask: np.ndarray, constan
     return (a, b) if a is not None and b is not None else None
 
 
+def best_dam_on_truth(radiance_lin: list[np.ndarray], masks: list[np.ndarray], buffers: list[SurfaceBuffers],
+                      camera_centres_world: list[np.ndarray], arch: DamArchitecture, steps: int = 2000, seed: int = 0) -> DeepAppearanceMap | None:
+    """A DAM fitted to the truth frames' pixels on their region (every frame, none held out).
+
+    Args:
+        radiance_lin: per frame (H, W, 3) truth radiance.
+        masks: per frame (H, W) bool, the region's pixels.
+        buffers: per frame, the ray-cast surface (normal_world, position_world).
+        camera_centres_world: per frame (3,).
+        arch: the DAM's architecture (the export's, so the bound is of the same model).
+        steps: optimiser steps (``damcap fit``'s default).
+
+    Returns:
+        the fitted DAM, or None when no frame has a pixel of the region.
+    """
+    vs, ns, cs, fs = [], [], [], []
+    for k, (rad, m, b, c) in enumerate(zip(radiance_lin, masks, buffers, camera_centres_world)):
+        if m.any():
+            vs.append(view_dir_world(b.position_world[m], c))
+            ns.append(b.normal_world[m].astype(np.float32))
+            cs.append(rad[m].astype(np.float32))
+            fs.append(np.full(int(m.sum()), k, np.int64))
+    if not vs:
+        return None
+    samples = PixelSamples(*(torch.from_numpy(np.concatenate(x)) for x in (vs, ns, cs)), torch.ones(sum(len(f) for f in fs)),
+                           torch.from_numpy(np.concatenate(fs)))
+    opts = FitOptions(steps=steps, width=arch.width, depth=arch.depth, activation=arch.activation, encoding=arch.encoding,
+                      separable=arch.separable, holdout_views=0, checkpoint_every=0, seed=seed)
+    return fit_dam(samples, opts).model
+
+
+def rendered_on_shape(opts: StudioOptions, mesh: Mesh, face_material: np.ndarray, world_from_cam: np.ndarray, intr: Intrinsics,
+                      spp: int, seed: int | None = None, cache: Path | None = CACHE / "export_truth") -> tuple[np.ndarray, np.ndarray, bool]:
+    """:func:`damcap.synth.studio.render_on_shape`, kept in ``cache`` under the SHA-256 of
+    everything it depends on (options, mesh, materials, cameras, pinhole, spp, seed), so a rerun
+    on another export of the same shape and cameras renders nothing (None: no cache). Returns
+    (radiance, alpha, whether they came from the cache)."""
+    import hashlib
+
+    h = hashlib.sha256(json.dumps([asdict(opts), asdict(intr), spp, seed]).encode())
+    for a in (mesh.vertices, mesh.triangles, face_material, world_from_cam):
+        h.update(np.ascontiguousarray(a).tobytes())
+    path = cache / f"{h.hexdigest()[:24]}.npz" if cache is not None else None
+    if path is not None and path.is_file():
+        z = np.load(path)
+        return z["radiance"], z["alpha"], True
+    radiance, alpha = render_on_shape(opts, mesh, face_material, world_from_cam, intr, spp=spp, seed=seed)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, radiance=radiance, alpha=alpha)
+        tmp.replace(path)
+    return radiance, alpha, False
+
+
+def object_dams(opts: StudioOptions, record: dict, world_from_cam: np.ndarray, intr: Intrinsics, arch: DamArchitecture,
+                spp: int, cache: Path | None = None) -> list[DeepAppearanceMap | None]:
+    """Per studio material, a DAM fitted to HDR renders of the studio's object (:func:`best_dam_on_truth`).
+
+    Args:
+        opts, record: the studio set (``transforms.json``'s ``damcap_studio``).
+        world_from_cam: (N, 4, 4) the photos' true cameras, studio world, OpenGL axes.
+        intr: the photos' pinhole.
+        arch: the DAMs' architecture.
+        spp: path-tracing samples per pixel.
+        cache: the render cache (:func:`rendered_on_shape`).
+
+    Returns:
+        one DAM per material of the set (studio axes), None for a material no render shows.
+    """
+    mesh, normals, face = studio_object(opts)
+    radiance, alpha, _ = rendered_on_shape(opts, mesh, face, world_from_cam, intr, spp, cache=cache)
+    radiance = radiance * capture_radiance_scale(record)
+    caster = MeshRaycaster(replace(mesh, vertex_normals=normals))
+    bufs = [caster.buffers(m, intr.fl_x, intr.fl_y, intr.cx, intr.cy, intr.w, intr.h, supersample=1) for m in world_from_cam]
+    labels = [np.where(b.triangle_id >= 0, face[np.maximum(b.triangle_id, 0)], -1) for b in bufs]
+    return [best_dam_on_truth(list(radiance), [(lab == k) & (a > INTERIOR) for lab, a in zip(labels, alpha)], bufs,
+                              [m[:3, 3] for m in world_from_cam], arch) for k in range(len(opts.material_names()))]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--demo", type=Path, required=True, help="make demo's output folder (DEMO_OUT)")
     ap.add_argument("--photos", type=Path, default=Path("samples/photos_studio"), help="the studio photo set the demo ran on")
     ap.add_argument("--spp", type=int, default=256, help="samples per pixel of the truth")
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--render-cache", type=Path, default=CACHE / "export_truth",
+                    help="folder of path-traced renders kept between runs (rendered_on_shape)")
+    ap.add_argument("--transfer-bound", action="store_true",
+                    help="also fit DAMs to HDR renders of the photographed object itself and draw them on the torus (object_dams)")
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
     studio = json.loads((args.photos / "transforms.json").read_text())
@@ -155,18 +257,38 @@ def main(argv: list[str] | None = None) -> int:
     torus_studio = Mesh(shape.vertices @ rot.T, shape.triangles)  # same size (unit sphere), turned into the studio's axes
     cams_studio = np.stack([camera_to_studio(m, sim, move_centre=False) for m in cams])
     t = time.perf_counter()
-    truth, truth_alpha = render_on_shape(opts, torus_studio, np.array(seg_material)[part], cams_studio, intr, spp=args.spp)
-    truth *= capture_radiance_scale(record)
+    truth, truth_alpha, truth_cached = rendered_on_shape(opts, torus_studio, np.array(seg_material)[part], cams_studio, intr, args.spp, cache=args.render_cache)
+    truth = truth * capture_radiance_scale(record)
     truth_s = time.perf_counter() - t
-    again, _ = render_on_shape(opts, torus_studio, np.array(seg_material)[part], cams_studio, intr, spp=args.spp, seed=opts.seed + 1)
-    again *= capture_radiance_scale(record)
+    again, _, _ = rendered_on_shape(opts, torus_studio, np.array(seg_material)[part], cams_studio, intr, args.spp, seed=opts.seed + 1, cache=args.render_cache)
+    again = again * capture_radiance_scale(record)
     caster = MeshRaycaster(shape)
-    frames = []
+    frames, buffers = [], []
     for k, m in enumerate(cams):
         px, _ = read_exr(args.demo / "export" / "frames" / f"{k:04d}.exr")
         b = caster.buffers(m, intr.fl_x, intr.fl_y, intr.cx, intr.cy, intr.w, intr.h, supersample=1)
         part_px = np.where(b.triangle_id >= 0, part[np.maximum(b.triangle_id, 0)], -1)
         frames.append((px[..., :3], px[..., 3], part_px))
+        buffers.append(b)
+    region_masks = {seg: [(fp == seg) & (a > INTERIOR) & (truth_alpha[k] > INTERIOR) for k, (_, a, fp) in enumerate(frames)]
+                    for seg in range(len(export["models"]))}
+    # the best a DAM of the export's architecture can do on these frames: fitted to the truth itself
+    t = time.perf_counter()
+    arch = load_dam(export["models"][0])[0].arch
+    best = [best_dam_on_truth(list(truth), region_masks[seg], buffers, [m[:3, 3] for m in cams], arch) for seg in range(len(export["models"]))]
+    any_dam = next((d for d in best if d is not None), load_dam(export['models'][0])[0])
+    best_frames = [shade_buffers([d if d is not None else any_dam for d in best], b, m[:3, 3], part) for b, m in zip(buffers, cams)]
+    best_s = time.perf_counter() - t
+    transfer_frames, transfer_s = None, None
+    if args.transfer_bound:
+        t = time.perf_counter()
+        photo_intr = Intrinsics(*(studio[k] for k in ("fl_x", "fl_y", "cx", "cy")), int(studio["w"]), int(studio["h"]))
+        by_material = object_dams(opts, record, np.stack(list(gt.values())), photo_intr, arch, args.spp, args.render_cache)
+        dams = [by_material[m] if by_material[m] is not None else any_dam for m in seg_material]
+        caster_studio = MeshRaycaster(replace(torus_studio, vertex_normals=shape.vertex_normals @ rot.T))  # the export's normals, turned
+        transfer_frames = [shade_buffers(dams, caster_studio.buffers(c, intr.fl_x, intr.fl_y, intr.cx, intr.cy, intr.w, intr.h, supersample=1),
+                                         c[:3, 3], part) for c in cams_studio]
+        transfer_s = time.perf_counter() - t
     constants = {}
     for seg in range(len(export["models"])):
         vals = [truth[k][(fp == seg) & (a > INTERIOR) & (truth_alpha[k] > INTERIOR)] for k, (_, a, fp) in enumerate(frames)]
@@ -174,19 +296,27 @@ def main(argv: list[str] | None = None) -> int:
         constants[seg] = np.concatenate(vals).mean(0) if vals else np.zeros(3, np.float32)
     per_region = {}
     for seg in range(len(export["models"])):
-        ours, base, floor = [], [], []
+        ours, base, floor, bound, transfer = [], [], [], [], []
         for k, (rad, a, fp) in enumerate(frames):
-            mask = (fp == seg) & (a > INTERIOR) & (truth_alpha[k] > INTERIOR)
+            mask = region_masks[seg][k]
             r = region_scores(truth[k], rad, mask, constants[seg])
             if r is not None:
                 ours.append(r[0])
                 base.append(r[1])
                 floor.append(region_scores(truth[k], again[k], mask, constants[seg])[0])
+                bound.append(region_scores(truth[k], best_frames[k], mask, constants[seg])[0])
+                if transfer_frames is not None:
+                    transfer.append(region_scores(truth[k], transfer_frames[k], mask, constants[seg])[0])
         per_region[f"segment {seg}"] = {"material": names[seg_material[seg]], "purity": purity[seg], "frames": len(ours),
                                         "export": statistics.mean(ours) if ours else None, "constant": statistics.mean(base) if base else None,
-                                        "noise_floor": statistics.mean(floor) if floor else None}
+                                        "noise_floor": statistics.mean(floor) if floor else None,
+                                        "best_dam": statistics.mean(bound) if bound else None,
+                                        "object_dam": statistics.mean(transfer) if transfer else None}
         if ours:
             per_region[f"segment {seg}"]["ratio"] = statistics.mean(ours) / statistics.mean(base)
+            per_region[f"segment {seg}"]["best_dam_ratio"] = statistics.mean(bound) / statistics.mean(base)
+            if transfer:
+                per_region[f"segment {seg}"]["object_dam_ratio"] = statistics.mean(transfer) / statistics.mean(base)
     whole = [dssim(truth[k], np.where((truth_alpha[k] > INTERIOR)[..., None] & (a > INTERIOR)[..., None], rad, truth[k]),
                    ((truth_alpha[k] > INTERIOR) & (a > INTERIOR)).astype(np.float32)) for k, (rad, a, _) in enumerate(frames)]
     # side by side for one frame: truth | export | constant colours (one display exposure)
@@ -203,7 +333,7 @@ def main(argv: list[str] | None = None) -> int:
            "demo": str(args.demo), "photos": str(args.photos), "spp": args.spp, "frames": len(frames), "resolution": intr.w,
            "capture_to_studio": residual, "segment_material": [names[m] for m in seg_material], "confusion": confusion.tolist(),
            "per_region": per_region, "whole_object_export_dssim": float(np.mean([w for w in whole if w is not None])),
-           "truth_seconds": truth_s, "seconds": time.perf_counter() - t_start, "target_ratio": TARGET_RATIO}
+           "truth_seconds": truth_s, "truth_cached": truth_cached, "best_dam_seconds": best_s, "object_dam_seconds": transfer_s, "best_dam_arch": asdict(arch), "seconds": time.perf_counter() - t_start, "target_ratio": TARGET_RATIO}
     out_json = (args.out or RESULTS) / "export_truth.json"
     out_json.parent.mkdir(parents=True, exist_ok=True)
     out_json.write_text(json.dumps(res, indent=1, default=float))
@@ -217,7 +347,9 @@ def write_markdown(res: dict, path: Path) -> None:
     lines = ["# The demo's export against the truth (issue 29)", "",
              f"Command (from the repository root): `{res['command']}` (after `make demo DEMO_OUT={res['demo']}`)", "",
              f"Machine: {res['machine']['cpu_model']} ({res['machine']['nproc']} cores); {res['date']}. Truth: Mitsuba, "
-             f"{res['spp']} spp, {res['frames']} frames of {res['resolution']} px, rendered in {res['truth_seconds']:.0f} s; the whole "
+             f"{res['spp']} spp, {res['frames']} frames of {res['resolution']} px, "
+             + ("read from the render cache (bench/.cache/export_truth)" if res.get("truth_cached") else f"rendered in {res['truth_seconds']:.0f} s")
+             + "; the whole "
              f"bench took {res['seconds']:.0f} s.", "",
              f"The capture's world against the studio's: camera centres {r['centre_rms']:.4f} RMS "
              f"(studio units, object radius 1), orientations {r['rotation_median_deg']:.3f} deg median, {r['rotation_max_deg']:.3f} deg at most.", "",
@@ -225,14 +357,23 @@ def write_markdown(res: dict, path: Path) -> None:
              "mean over the frames. Constant colour: the region painted with its mean truth colour. Target: export at most "
              f"{res['target_ratio']}x the constant colour.", "",
              "Noise floor: a second truth render with another seed against the first (what path-tracing noise alone costs).", "",
-             "| segment | its material (purity in the photos) | frames | export | constant colour | ratio | noise floor |",
-             "|---|---|---:|---:|---:|---:|---:|"]
+             "Best DAM: a DAM of the export's architecture fitted to these truth frames themselves, on the region, every frame "
+             f"(in-sample: an optimistic bound on what any DAM can reach here; fitted in {res['best_dam_seconds']:.0f} s).", ""]
+    transfer = res.get("object_dam_seconds") is not None
+    if transfer:
+        lines += ["Object's DAM: per material, a DAM fitted to path-traced HDR renders of the photographed object itself from every "
+                  "photo's true camera, with its exact normals and material labels (no clipping, no JPEG, no reconstruction or "
+                  f"segmentation error), drawn on the torus: the best a DAM of the object carries to this shape ({res['object_dam_seconds']:.0f} s).", ""]
+    lines += ["| segment | its material (purity in the photos) | frames | export | constant colour | ratio | noise floor | best DAM | its ratio |"
+              + (" object's DAM | its ratio |" if transfer else ""),
+              "|---|---|---:|---:|---:|---:|---:|---:|---:|" + ("---:|---:|" if transfer else "")]
     for name, d in res["per_region"].items():
         if d["export"] is None:
-            lines.append(f"| {name} | {d['material']} ({d['purity']:.0%}) | 0 | | | | |")
+            lines.append(f"| {name} | {d['material']} ({d['purity']:.0%}) | 0 | | | | | | |" + (" | |" if transfer else ""))
             continue
         lines.append(f"| {name} | {d['material']} ({d['purity']:.0%}) | {d['frames']} | {d['export']:.4f} | {d['constant']:.4f} | "
-                     f"x{d['ratio']:.2f} | {d['noise_floor']:.4f} |")
+                     f"x{d['ratio']:.2f} | {d['noise_floor']:.4f} | {d['best_dam']:.4f} | x{d['best_dam_ratio']:.2f} |"
+                     + (f" {d['object_dam']:.4f} | x{d['object_dam_ratio']:.2f} |" if transfer else ""))
     lines += ["", f"Whole torus: export DSSIM {res['whole_object_export_dssim']:.4f}.", "",
               "`export_truth.png`: the first frame, truth | export | constant colours."]
     path.write_text("\n".join(lines) + "\n")

@@ -85,7 +85,7 @@ bench: venv
 
 # The demo's export against the path-traced truth (bench/export_truth.md; runs the demo first)
 export-truth: demo
-	$(PY) -m bench.export_truth --demo $(DEMO_OUT)
+	$(PY) -m bench.export_truth --demo $(DEMO_OUT) --transfer-bound
 
 # The paper's Tables 1 and 2 (renders the held-out corpora first when missing; resumable)
 SMALL := bench/.cache/synth_small

@@ -35,9 +35,9 @@ How the frames are matched:
 Run (from the repository root)::
 
     make demo DEMO_OUT=demo_out
-    .venv/bin/python -m bench.export_truth --demo demo_out
+    .venv/bin/python -m bench.export_truth --demo demo_out --transfer-bound
 
-It writes bench/results/export_truth.json, bench/export_truth.md and bench/export_truth.png.
+(``make export-truth`` runs both.) It writes bench/results/export_truth.json, bench/export_truth.md and bench/export_truth.png.
 """
 
 from __future__ import annotations
@@ -149,7 +149,8 @@ def best_dam_on_truth(radiance_lin: list[np.ndarray], masks: list[np.ndarray], b
         buffers: per frame, the ray-cast surface (normal_world, position_world).
         camera_centres_world: per frame (3,).
         arch: the DAM's architecture (the export's, so the bound is of the same model).
-        steps: optimiser steps (``damcap fit``'s default).
+        steps: optimiser steps (2000, ``damcap fit``'s default).
+        seed: the fit's seed.
 
     Returns:
         the fitted DAM, or None when no frame has a pixel of the region.

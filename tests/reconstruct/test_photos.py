@@ -275,7 +275,8 @@ def test_clipped_pixels_leave_the_coverage(scene, jpeg_frames, linearized, tmp_p
 
 def test_a_display_photo_flags_its_top_codes_clipped(tmp_path):
     """An 8-bit code at or above 99 % of full scale in any channel (what damcap linearize flags)
-    is a lower bound of the radiance: read_photo_radiance says so for PNG and JPEG alike."""
+    is a lower bound of the radiance: read_photo_radiance flags it (a lossless PNG, so the codes
+    are exact; a JPEG's decoded codes go through the same test)."""
     codes = np.full((4, 5, 3), 120, np.uint8)
     codes[1, 2] = (255, 40, 40)  # one channel saturated
     codes[3, 4] = (253, 253, 253)  # 253 / 255 = 0.992

@@ -50,14 +50,13 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
 from damcap.appearance.dam_file import load_dam
 from damcap.appearance.fit import FitOptions, fit_dam
 from damcap.appearance.metrics import dssim
-from damcap.appearance.pixels import PixelSamples, view_dir_world
-from damcap.common.capture_folder import Intrinsics, read_capture
+from damcap.appearance.pixels import gather_samples
+from damcap.common.capture_folder import FrameData, Intrinsics, read_capture
 from damcap.common.exr import read_exr, write_png
 from damcap.common.colour import display_srgb8, exposure_scale_for
 from damcap.common.mesh import Mesh
@@ -155,17 +154,10 @@ def best_dam_on_truth(radiance_lin: list[np.ndarray], masks: list[np.ndarray], b
     Returns:
         the fitted DAM, or None when no frame has a pixel of the region.
     """
-    vs, ns, cs, fs = [], [], [], []
-    for k, (rad, m, b, c) in enumerate(zip(radiance_lin, masks, buffers, camera_centres_world)):
-        if m.any():
-            vs.append(view_dir_world(b.position_world[m], c))
-            ns.append(b.normal_world[m].astype(np.float32))
-            cs.append(rad[m].astype(np.float32))
-            fs.append(np.full(int(m.sum()), k, np.int64))
-    if not vs:
+    if not any(m.any() for m in masks):
         return None
-    samples = PixelSamples(*(torch.from_numpy(np.concatenate(x)) for x in (vs, ns, cs)), torch.ones(sum(len(f) for f in fs)),
-                           torch.from_numpy(np.concatenate(fs)))
+    samples = gather_samples([FrameData(np.asarray(rad, np.float32), b.normal_world, b.position_world, m.astype(np.float32))
+                              for rad, m, b in zip(radiance_lin, masks, buffers, strict=True)], camera_centres_world)
     opts = FitOptions(steps=steps, width=arch.width, depth=arch.depth, activation=arch.activation, encoding=arch.encoding,
                       separable=arch.separable, holdout_views=0, checkpoint_every=0, seed=seed)
     return fit_dam(samples, opts).model
@@ -275,9 +267,10 @@ def main(argv: list[str] | None = None) -> int:
                     for seg in range(len(export["models"]))}
     # the best a DAM of the export's architecture can do on these frames: fitted to the truth itself
     t = time.perf_counter()
-    arch = load_dam(export["models"][0])[0].arch
+    first_export_dam = load_dam(export["models"][0])[0]
+    arch = first_export_dam.arch
     best = [best_dam_on_truth(list(truth), region_masks[seg], buffers, [m[:3, 3] for m in cams], arch) for seg in range(len(export["models"]))]
-    any_dam = next((d for d in best if d is not None), load_dam(export['models'][0])[0])
+    any_dam = next((d for d in best if d is not None), first_export_dam)  # draws regions no frame shows (never scored)
     best_frames = [shade_buffers([d if d is not None else any_dam for d in best], b, m[:3, 3], part) for b, m in zip(buffers, cams)]
     best_s = time.perf_counter() - t
     transfer_frames, transfer_s = None, None
@@ -292,7 +285,7 @@ def main(argv: list[str] | None = None) -> int:
         transfer_s = time.perf_counter() - t
     constants = {}
     for seg in range(len(export["models"])):
-        vals = [truth[k][(fp == seg) & (a > INTERIOR) & (truth_alpha[k] > INTERIOR)] for k, (_, a, fp) in enumerate(frames)]
+        vals = [truth[k][m] for k, m in enumerate(region_masks[seg])]
         vals = [v for v in vals if len(v)]
         constants[seg] = np.concatenate(vals).mean(0) if vals else np.zeros(3, np.float32)
     per_region = {}

@@ -114,8 +114,9 @@ def _write_frames(out: Path, photos: list[FramePhoto], world_from_cams: np.ndarr
     """:func:`write_frames`' loop; each frame's files go to ``writer`` (at most two pending)."""
     rc = MeshRaycaster(mesh)
     frames: list[Frame] = []
-    clipped_tally = [0, 0, 0]  # clipped object pixels, object pixels, photos with any
-    kept_kinds: set[str] = set()
+    # a photo folder holds one kind of file (reconstruct.photos refuses a mix): one decision for all
+    keep_flagged = bool(photos) and keeps_clipped(clipped, photo_kind(photos[0].path))
+    clipped_object_total = object_total = photos_clipped = 0
     dropped: dict[str, str] = {}
     pending: list[Future] = []
     for k, p in enumerate(photos):
@@ -132,16 +133,14 @@ def _write_frames(out: Path, photos: list[FramePhoto], world_from_cams: np.ndarr
         if photo.clipped is not None and photo.clipped.any():
             keep = unclipped_fraction(photo.clipped, p.camera, tgt)
             clipped_px = int((keep == 0).sum())
-            if keeps_clipped(clipped, photo_kind(p.path)):
-                kept_kinds.add(photo_kind(p.path))
-            else:
+            if not keep_flagged:
                 mask = keep if mask is None else np.minimum(mask, keep)
         b = rc.buffers(world_from_cams[k], tgt.fl_x, tgt.fl_y, tgt.cx, tgt.cy, tgt.w, tgt.h, supersample=supersample)
         on_object = (b.coverage > 0.5) if p.mask is None else (b.coverage > 0.5) & (p.mask > 0.5)
         clipped_object_px = int(((keep == 0) & on_object).sum()) if keep is not None else 0
-        clipped_tally[0] += clipped_object_px
-        clipped_tally[1] += int(on_object.sum())
-        clipped_tally[2] += clipped_object_px > 0
+        clipped_object_total += clipped_object_px
+        object_total += int(on_object.sum())
+        photos_clipped += clipped_object_px > 0
         normal = b.normal_world
         if sphere is not None:  # analytic normals of the analytic sphere
             hit = b.coverage > 0
@@ -165,8 +164,8 @@ def _write_frames(out: Path, photos: list[FramePhoto], world_from_cams: np.ndarr
     for f in pending:
         f.result()
     progress("frames", len(photos), len(photos))
-    if clipped_tally[0]:
-        log(clipped_note(*clipped_tally, len(photos), bool(kept_kinds)))
+    if clipped_object_total:
+        log(clipped_note(clipped_object_total, object_total, photos_clipped, len(photos), keep_flagged))
     return frames, dropped
 
 

@@ -141,7 +141,7 @@ class FitOptions:
     reproduces the training photos: relief the geometry lacks) or 'auto' (the field only when it
     lowers the DSSIM of the held-out training views by at least ``normal_refine_min_gain``). On
     the real cape (8 train views, 256 px, dense geometry) it lowered novel-view DSSIM from 0.411
-    to 0.261, 0.248 with the albedo (bench/normal_refine.md). Its cost is steps x pixels per
+    to 0.272, 0.244 with the albedo (bench/normal_refine.md). Its cost is steps x pixels per
     step, whatever the capture's size ('auto' refines twice)"""
     normal_refine_voxel_px: float = field(default=_REFINE["voxel_px"].default, metadata=_REFINE["voxel_px"].metadata)
     """normal refinement: voxel edge of the offset field, in pixels' footprints on the surface

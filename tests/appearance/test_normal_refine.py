@@ -40,10 +40,17 @@ def test_refinement_recovers_bumps_the_geometry_lacks():
     points, true_n = positions_of(views), np.concatenate(truth).astype(np.float32)
     model = fit_dam(samples, FitOptions(steps=600, checkpoint_every=0)).model
     before = angle_deg(samples.normal_world.numpy(), true_n)
-    refined_model, nf = refine_normals(model, samples, points, training_footprint(views),
-                                       NormalRefineOptions(voxel_px=4.0, steps=400, batch=8192, lr_offsets=1e-2))
+    knobs = NormalRefineOptions(voxel_px=4.0, steps=400, batch=8192, lr_offsets=1e-2)
+    # the DAM fitted to the smooth normals has averaged the bumps' shading away; with its weights
+    # trained too, the field recovers most of them. Measured: median error 18.6 deg before, 12.0
+    # after (the rest lies mostly along the iso-shading direction, which shading alone cannot see)
+    refined_model, nf = refine_normals(model, samples, points, training_footprint(views), dataclasses.replace(knobs, lr_dam=1e-3))
     after = angle_deg(refined_normals(nf, samples.normal_world.numpy(), points), true_n)
-    # measured: median error 18.6 deg before, 12.0 after (the rest lies mostly along the iso-shading
-    # direction, which shading alone cannot see)
     assert np.median(after) < 0.75 * np.median(before), (np.median(before), np.median(after))
     assert math.isfinite(float(refined_model.get_flat_weights().sum()))
+    # the default keeps the DAM as fitted (it generalises better on a real object): the field
+    # still lowers the error, less (measured 18.6 -> 17.4 deg), and the weights do not move
+    kept_model, nf = refine_normals(model, samples, points, training_footprint(views), knobs)
+    kept = angle_deg(refined_normals(nf, samples.normal_world.numpy(), points), true_n)
+    assert np.median(kept) < 0.97 * np.median(before), (np.median(before), np.median(kept))
+    assert torch.equal(kept_model.get_flat_weights(), model.get_flat_weights())

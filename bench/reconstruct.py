@@ -299,6 +299,19 @@ def chamfer(capture_dir: Path, gt_mesh, gt_cams: np.ndarray, photo_index: dict[s
     return {"chamfer_pct": (acc + comp) / 2, "accuracy_pct": acc, "completeness_pct": comp}
 
 
+def refined_weights(row: dict) -> str:
+    """How a *refined* geometry row treated the DAM's weights (rows measured before ``lr_dam`` was
+    recorded ran with the then default, 1e-3).
+
+    >>> refined_weights({"lr_dam": 0.0}), refined_weights({})
+    ('DAM kept as fitted', 'DAM weights trained too, lr_dam 0.001 (the default before 2026-11-27)')
+    """
+    lr = row.get("lr_dam")
+    if lr is None:
+        return "DAM weights trained too, lr_dam 0.001 (the default before 2026-11-27)"
+    return "DAM kept as fitted" if lr == 0 else f"DAM weights trained too, lr_dam {lr:g}"
+
+
 def refined_normal_errors(capture_dir: Path, gt_mesh, gt_cams: np.ndarray, photo_index: dict[str, int], steps: int = 2000) -> dict:
     """``damcap fit --normal-refine on`` on the capture's train views (the DAM's fit, then the
     photometric refinement), and the normal errors of :func:`normal_errors` with the refined
@@ -315,7 +328,7 @@ def refined_normal_errors(capture_dir: Path, gt_mesh, gt_cams: np.ndarray, photo
         model = fit_dam(samples_of(train), opts).model
         decision = choose_normal_refine(model, train, opts)
     return {**normal_errors(capture_dir, gt_mesh, gt_cams, photo_index, decision.model), "tilt_deg": decision.record()["tilt_deg"],
-            **t.record()}
+            "lr_dam": opts.normal_refine_options.lr_dam, **t.record()}
 
 
 GEOMETRY_MODES = ("visual-hull", "poisson", "sphere", "dense", "mesh (align none)", "mesh (align icp)")
@@ -712,7 +725,8 @@ def write_report(res: dict, command: str, path: Path = REPORT, results: Path = R
                 f = r.get("refined")
                 if f:
                     L.append(f"| {obj} | {mode}, refined | {f['median_deg']:.2f} | {f['mean_deg']:.2f} | {f['p90_deg']:.2f} | | | "
-                             f"{f['wall_s']:.0f} | fit + normal refinement (tilt median {f['tilt_deg']['median']:.1f} deg) |")
+                             f"{f['wall_s']:.0f} | fit + normal refinement (tilt median {f['tilt_deg']['median']:.1f} deg; "
+                             f"{refined_weights(f)}) |")
         L.append("")
         for obj, modes in geo.items():
             check = (modes.get("auto") or {}).get("geometry_check") or {}

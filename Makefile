@@ -42,12 +42,13 @@ DEMO_OUT ?= demo_out
 
 # The main job, photos to appearance, on the bundled photos (24 path-traced JPEGs of a bunny in
 # red plastic, gold and aluminium on a printed board, with masks; samples/README.md): register and
-# reconstruct a capture folder (10 train views spread over both camera rings), validate it, segment it into its 3 materials, fit one DAM,
+# reconstruct a capture folder (16 train views spread over both camera rings, the other 8 kept as
+# novel views), validate it, segment it into its 3 materials, fit one DAM,
 # predict one with the shipped predictor (+100 refinement steps), render the fitted one into the
 # novel views, evaluate all of them, carry the segmentation onto a new shape (a torus damcap
 # generates) and export the three materials on it as a turntable, and write the viewer page.
 demo: venv
-	$(DAMCAP) reconstruct $(PHOTOS)/images -o $(DEMO_OUT)/capture --masks $(PHOTOS)/masks --split spread
+	$(DAMCAP) reconstruct $(PHOTOS)/images -o $(DEMO_OUT)/capture --masks $(PHOTOS)/masks --split spread --train-views 16
 	$(DAMCAP) inspect $(DEMO_OUT)/capture
 	$(DAMCAP) segment $(DEMO_OUT)/capture -o $(DEMO_OUT)/segmentation --materials 3
 	$(DAMCAP) fit $(DEMO_OUT)/capture -o $(DEMO_OUT)/model.dam

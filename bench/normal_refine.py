@@ -6,8 +6,9 @@ with and without the spatial albedo factor (``fit --spatial albedo``), against t
 normals were refined by :func:`damcap.appearance.normal_refine.refine_normals` at several voxel
 sizes, the refinement with the DAM's weights trained as well (``lr_dam``), and a control that
 continues the DAM's fit for as many steps with the normals left alone (so the gain is the
-normals', not more steps). Novel views get the refined normals through the same field (a surface
-point has one normal in every view).
+normals', not more steps). The refined model carries its field, so every view, novel ones too,
+is rendered with the refined normals as ``damcap render`` draws them (a surface point has one
+normal in every view).
 
 Each row is also scored the way ``--normal-refine auto`` and ``--spatial auto`` decide: refined
 (and the albedo estimated) without the training views the fit held out, then scored on those
@@ -24,7 +25,6 @@ It writes bench/results/normal_refine.json and bench/normal_refine.md (``--out D
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 from pathlib import Path
@@ -34,23 +34,10 @@ import torch
 from bench.common import BENCH, CACHE, RESULTS, command_line, log, machine_info
 
 from damcap.appearance.fit import FitOptions, fit_dam, holdout_frames
-from damcap.appearance.normal_field import refined_normals
 from damcap.appearance.normal_refine import NormalRefineOptions, refine_normals
 from damcap.appearance.spatial_fit import estimate_for, mean_dssim, training_footprint
 from damcap.appearance.views import ViewData, load_views, positions_of, samples_of
 from damcap.common.capture_folder import read_capture
-
-
-def with_normals(views: list[ViewData], nf) -> list[ViewData]:
-    """The views with every covered pixel's normal refined by the field ``nf``."""
-    out = []
-    for v in views:
-        d = v.data
-        cov = d.coverage > 0
-        n = d.normal_world.copy()
-        n[cov] = refined_normals(nf, d.normal_world[cov], d.position_world[cov])
-        out.append(ViewData(v.name, dataclasses.replace(d, normal_world=n), v.world_from_cam))
-    return out
 
 
 def scores(model, train: list[ViewData], test: list[ViewData], albedo_voxel: float) -> dict:
@@ -87,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(2)
     cap = read_capture(args.capture)
     train, test = load_views(cap, "train"), load_views(cap, "test")[::args.test_every]
-    samples, points = samples_of(train), positions_of(train)
+    samples = samples_of(train)
     footprint = training_footprint(train)
     albedo_voxel = FitOptions.spatial_voxel_px * footprint
     fit_opts = FitOptions(checkpoint_every=0) if args.fit_steps is None else FitOptions(checkpoint_every=0, steps=args.fit_steps)

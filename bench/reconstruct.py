@@ -374,9 +374,24 @@ def geometry_photos(obj: str, cache: Path = CACHE, photos_n: int = 36, photo_siz
     return photos
 
 
+def dense_knob(text: str) -> tuple[int, int]:
+    """A ``--geometry-dense-knobs`` item, SIZExPLANES: the dense geometry's ``dense_size`` (px) and
+    ``dense_planes``.
+
+    >>> dense_knob("160x64")
+    (160, 64)
+    """
+    size, planes = text.lower().split("x")
+    return int(size), int(planes)
+
+
 def part_geometry(fresh: bool, cache: Path = CACHE, objects: tuple[str, ...] = ("blob", "sphere"), photos_n: int = 36,
                   photo_size: int = 320, capture_size: int = 256, modes: tuple[str, ...] = ("auto",) + GEOMETRY_MODES,
-                  meshes: Path = DATA.parent / "meshes", refine: bool = False) -> dict:
+                  meshes: Path = DATA.parent / "meshes", refine: bool = False,
+                  dense_knobs: tuple[tuple[int, int], ...] = ()) -> dict:
+    """Per object: each geometry mode with the true cameras (and ``auto`` from the photos alone);
+    ``dense_knobs``: extra dense rows at these (``dense_size``, ``dense_planes``), the dense
+    geometry's speed/accuracy knobs."""
     from damcap.reconstruct.pipeline import ReconstructOptions, reconstruct_capture
 
     import open3d as o3d
@@ -408,16 +423,19 @@ def part_geometry(fresh: bool, cache: Path = CACHE, objects: tuple[str, ...] = (
                                **chamfer(first, mesh, cams, index), **t.record()}
             log(f"  {obj}/auto: {res['auto']}")
         # every mode with the true cameras (geometry error alone; Poisson triangulates with them held fixed)
-        for mode, align in (("visual-hull", "auto"), ("poisson", "auto"), ("sphere", "auto"), ("dense", "auto"),
-                            (f"mesh:{gt_path}", "none"), (f"mesh:{gt_path}", "icp")):
-            key = mode.split(":")[0] + (f" (align {align})" if mode.startswith("mesh") else "")
-            if key not in modes:
+        runs = [(mode.split(":")[0] + (f" (align {align})" if mode.startswith("mesh") else ""), replace(base, geometry=mode, mesh_align=align))
+                for mode, align in (("visual-hull", "auto"), ("poisson", "auto"), ("sphere", "auto"), ("dense", "auto"),
+                                    (f"mesh:{gt_path}", "none"), (f"mesh:{gt_path}", "icp"))]
+        runs += [(f"dense ({size} px, {planes} planes)", replace(base, geometry="dense", dense_size=size, dense_planes=planes))
+                 for size, planes in dense_knobs]
+        for key, opts in runs:
+            if key not in modes and not key.startswith("dense ("):
                 continue
-            cap_dir = root / f"capture-{key.replace(' ', '_').replace('(', '').replace(')', '')}"
+            cap_dir = root / f"capture-{key.replace(' ', '_').replace('(', '').replace(')', '').replace(',', '')}"
             try:
                 with Timer() as t:
-                    _, rep = reconstruct_capture(photos / "images", cap_dir, replace(base, geometry=mode, mesh_align=align),  # type: ignore[arg-type]
-                                                 masks_dir=photos / "masks", poses=str(photos / "transforms.json"), log=log)
+                    _, rep = reconstruct_capture(photos / "images", cap_dir, opts, masks_dir=photos / "masks",
+                                                 poses=str(photos / "transforms.json"), log=log)
                 res[key] = {"reason": rep.geometry_reason, **normal_errors(cap_dir, mesh, cams, index),
                             **chamfer(cap_dir, mesh, cams, index), **t.record()}
                 if refine and key in REFINED_MODES:
@@ -710,7 +728,9 @@ def write_report(res: dict, command: str, path: Path = REPORT, results: Path = R
               "Chamfer: the symmetric mean nearest-point distance between 100k area-uniform points on each surface, "
               "% of the true mesh's bounding radius (accuracy = estimate to truth, completeness = truth to estimate). "
               "Rows *refined*: the same capture fitted by `damcap fit --normal-refine on` (2000 fit steps, 10 train "
-              "views), its normals refined by the field (bench option `--geometry-refine`).", "",
+              "views), its normals refined by the field (bench option `--geometry-refine`). Rows *dense (S px, P planes)*: "
+              "the dense mode at `reconstruct --dense-size S --dense-planes P`, its speed/accuracy knobs (the *dense* row: "
+              "320 px, 64 planes; bench option `--geometry-dense-knobs`).", "",
               "| object | mode | median normal error deg | mean | p90 | Chamfer % (acc / comp) | coverage est/gt | s | note |",
               "|---|---|---|---|---|---|---|---|---|"]
         for obj, modes in geo.items():
@@ -1063,6 +1083,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--realworld-scene", default="mold_gold_cape", choices=REALWORLD_SCENES, help="realworld: which real capture")
     ap.add_argument("--geometry-objects", nargs="+", default=["blob", "sphere"], choices=["blob", "sphere", *GEOMETRY_MESHES],
                     help="geometry: photo sets (bunny, dragon, armadillo: the shared meshes)")
+    ap.add_argument("--geometry-dense-knobs", type=dense_knob, nargs="*", default=[], metavar="SIZExPLANES",
+                    help="geometry: extra dense rows at these reconstruct --dense-size and --dense-planes (e.g. 160x64 320x32)")
     ap.add_argument("--geometry-refine", action="store_true",
                     help=f"geometry: also fit the {' and '.join(REFINED_MODES)} captures with --normal-refine on and measure the refined normals")
     ap.add_argument("--geometry-photos", type=int, default=36, help="geometry: photos per set")
@@ -1095,7 +1117,7 @@ def main(argv: list[str] | None = None) -> int:
         elif part == "geometry":
             new = part_geometry(args.fresh, args.cache, tuple(args.geometry_objects), args.geometry_photos,
                                 args.geometry_photo_size, args.geometry_capture_size, tuple(args.geometry_modes),
-                                args.data / "meshes", args.geometry_refine)
+                                args.data / "meshes", args.geometry_refine, tuple(args.geometry_dense_knobs))
             old = res.get("geometry") or {}  # modes and objects not rerun keep their earlier results
             res["geometry"] = {**old, **{obj: {**old.get(obj, {}), **modes} for obj, modes in new.items()}}
         else:

@@ -83,9 +83,12 @@ class ReconstructOptions:
     sphere_max_rms: float = field(default=0.01, metadata=FRACTION)
     """auto: picks the sphere when it fits within this fraction of its radius"""
     dense_size: int = field(default=320, metadata=in_range(16, MAX_IMAGE_SIDE))
-    """dense: longest side of the images stereo matches, pixels (at most the capture size)"""
+    """dense: longest side of the images stereo matches, pixels (never above the photos' own). On
+    the rendered bunny (36 photos of 320 px, true cameras; bench/reconstruct.md) 160 px took 16 s
+    against 23 s, for a median normal error of 12.3 deg against 11.2 and Chamfer 1.72 % against 1.53"""
     dense_planes: int = field(default=64, metadata=in_range(4, 1024))
-    """dense: depth hypotheses per view"""
+    """dense: depth hypotheses per view. On the rendered bunny 32 planes took 20 s (11.3 deg, Chamfer
+    1.61 %) and 128 took 34 s (11.5 deg, 1.53 %), against 64's 23 s (11.2 deg, 1.53 %)"""
     dense_views: int = field(default=40, metadata=in_range(2, 100_000))
     """dense: most views that get a depth map (spread over the cameras)"""
     auto_dense: bool = True

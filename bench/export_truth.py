@@ -43,6 +43,7 @@ Run (from the repository root)::
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import statistics
 import time
@@ -56,6 +57,7 @@ from damcap.appearance.dam_file import load_dam
 from damcap.appearance.fit import FitOptions, fit_dam
 from damcap.appearance.metrics import dssim
 from damcap.appearance.pixels import gather_samples
+from damcap.common.atomic import atomic_path
 from damcap.common.capture_folder import FrameData, Intrinsics, read_capture
 from damcap.common.exr import read_exr, write_png
 from damcap.common.colour import display_srgb8, exposure_scale_for
@@ -169,8 +171,6 @@ def rendered_on_shape(opts: StudioOptions, mesh: Mesh, face_material: np.ndarray
     everything it depends on (options, mesh, materials, cameras, pinhole, spp, seed), so a rerun
     on another export of the same shape and cameras renders nothing (None: no cache). Returns
     (radiance, alpha, whether they came from the cache)."""
-    import hashlib
-
     h = hashlib.sha256(json.dumps([asdict(opts), asdict(intr), spp, seed]).encode())
     for a in (mesh.vertices, mesh.triangles, face_material, world_from_cam):
         h.update(np.ascontiguousarray(a).tobytes())
@@ -180,10 +180,8 @@ def rendered_on_shape(opts: StudioOptions, mesh: Mesh, face_material: np.ndarray
         return z["radiance"], z["alpha"], True
     radiance, alpha = render_on_shape(opts, mesh, face_material, world_from_cam, intr, spp=spp, seed=seed)
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez(tmp, radiance=radiance, alpha=alpha)
-        tmp.replace(path)
+        with atomic_path(path) as tmp:
+            np.savez(tmp, radiance=radiance, alpha=alpha)
     return radiance, alpha, False
 
 

@@ -170,13 +170,12 @@ def _write_frames(out: Path, photos: list[FramePhoto], world_from_cams: np.ndarr
 
 
 def keeps_clipped(policy: str, kind: str) -> bool:
-    """Whether a photo's clipped pixels stay in the coverage (``ReconstructOptions.clipped``).
+    """Whether a photo's clipped pixels stay in the coverage (``ReconstructOptions.clipped``, which
+    ``ReconstructOptions.validate`` checks).
 
     >>> keeps_clipped("auto", "display"), keeps_clipped("auto", "raw"), keeps_clipped("drop", "display")
     (True, False, False)
     """
-    if policy not in ("auto", "drop", "keep"):
-        raise DamcapError(f"unknown clipped-pixel policy {policy!r}: use auto, drop or keep")
     return policy == "keep" or (policy == "auto" and kind == "display")
 
 

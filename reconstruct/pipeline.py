@@ -33,7 +33,7 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import Any, Callable, Literal, get_args
 
 import numpy as np
 
@@ -184,6 +184,8 @@ class ReconstructOptions:
         check_ranges(self)
         if self.threads == 0:
             raise DamcapError("--threads must be -1 (all) or an integer in [1, 4096], got 0")
+        if self.clipped not in get_args(ClippedPolicy):
+            raise DamcapError(f"--clipped must be one of {', '.join(get_args(ClippedPolicy))}, got {self.clipped!r}")
         # a voxel grid of voxels^3 (float32 and a label per voxel) and the capture's frame buffers
         require_memory(float(self.voxels) ** 3 * 8, f"--voxels {self.voxels} (a {self.voxels}^3 grid)")
         require_resolution(self.capture_size, self.capture_size, FRAME_BYTES_PER_PIXEL * self.supersample ** 2,

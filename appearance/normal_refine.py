@@ -41,9 +41,12 @@ class NormalRefineOptions:
     resolves finer relief and costs more corners"""
     prior: float = field(default=0.01, metadata=in_range(0, 1e6))
     """weight of the L2 prior on the offsets (tangent length; 0.01 ~ a 6 deg offset costs what
-    an L1 error of 1e-4 does)"""
+    an L1 error of 1e-4 does). On the real cape (voxel 1 px, with the albedo;
+    bench/normal_refine.md) 0.001 and 0.1 gave novel-view DSSIM 0.243 and 0.244, as 0.01 does"""
     steps: int = field(default=400, metadata=COUNT)
-    """Adam steps of the joint optimisation"""
+    """Adam steps of the joint optimisation; time grows linearly. On the real cape (voxel 1 px, with
+    the albedo; bench/normal_refine.md) 200 / 400 / 800 steps: novel-view DSSIM 0.249 / 0.244 /
+    0.242 in 11 / 19 / 38 s, held-out training views 0.373 / 0.373 / 0.375"""
     batch: int = field(default=16384, metadata=in_range(1, 1 << 24))
     """pixels per step"""
     lr_offsets: float = field(default=3e-3, metadata=in_range(0, 10))

@@ -4,9 +4,9 @@ On a reconstructed capture of a real object (default: the cape, the realworld be
 capture, 8 train views at 256 px): same-view (train) and novel-view (test) DSSIM of the fitted DAM,
 with and without the spatial albedo factor (``fit --spatial albedo``), against the DAM whose
 normals were refined by :func:`damcap.appearance.normal_refine.refine_normals` at several voxel
-sizes, the refinement with the DAM's weights trained as well (``lr_dam``), and a control that
-continues the DAM's fit for as many steps with the normals left alone (so the gain is the
-normals', not more steps). The refined model carries its field, so every view, novel ones too,
+sizes, step counts and prior weights, the refinement with the DAM's weights trained as well
+(``lr_dam``), and a control that continues the DAM's fit for as many steps with the normals left
+alone (so the gain is the normals', not more steps). The refined model carries its field, so every view, novel ones too,
 is rendered with the refined normals as ``damcap render`` draws them (a surface point has one
 normal in every view).
 
@@ -67,6 +67,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=NormalRefineOptions.steps)
     ap.add_argument("--lr-dam", type=float, nargs="*", default=[1e-4, 1e-3],
                     help="rows refining the DAM's weights too, at these learning rates (voxel: the first --voxel-px)")
+    ap.add_argument("--step-variants", type=int, nargs="*", default=[200, 800],
+                    help="rows refining for these step counts instead of --steps (voxel: the first --voxel-px)")
+    ap.add_argument("--priors", type=float, nargs="*", default=[0.001, 0.1],
+                    help="rows with these offset prior weights instead of the default (voxel: the first --voxel-px)")
     ap.add_argument("--fit-steps", type=int, default=None, help="fit steps (default: FitOptions' default)")
     ap.add_argument("--test-every", type=int, default=1, help="score every k-th test view (smoke runs: more)")
     ap.add_argument("--out", type=Path, default=None)
@@ -89,6 +93,10 @@ def main(argv: list[str] | None = None) -> int:
     variants += [(f"normals refined, voxel {vox:g} px", NormalRefineOptions(voxel_px=vox, steps=args.steps)) for vox in args.voxel_px]
     variants += [(f"normals and DAM weights refined (lr_dam {lr:g}), voxel {args.voxel_px[0]:g} px",
                   NormalRefineOptions(voxel_px=args.voxel_px[0], steps=args.steps, lr_dam=lr)) for lr in args.lr_dam]
+    variants += [(f"normals refined, voxel {args.voxel_px[0]:g} px, {n} steps", NormalRefineOptions(voxel_px=args.voxel_px[0], steps=n))
+                 for n in args.step_variants]
+    variants += [(f"normals refined, voxel {args.voxel_px[0]:g} px, prior {w:g} (default {NormalRefineOptions.prior:g})",
+                  NormalRefineOptions(voxel_px=args.voxel_px[0], steps=args.steps, prior=w)) for w in args.priors]
     for method, ropts in variants:
         t = time.perf_counter()
         model, nf = refined(base, train, footprint, ropts)
@@ -110,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     lines = ["# Photometric normal refinement on a real object (issue 27)", "", f"Command (from the repository root): `{res['command']}`", "",
              f"Machine: {res['machine']['cpu_model']} ({res['machine']['nproc']} cores), torch {res['machine']['torch']}; "
              f"{res['machine']['date_utc']}. Capture: `{args.capture.name}`, {len(train)} train views, {len(test)} test views; "
-             f"{args.steps} refinement steps.", "",
+             f"{args.steps} refinement steps unless a row says otherwise.", "",
              "DSSIM (lower is better); `+ albedo` = with the spatial albedo factor (`fit --spatial albedo`) estimated afterwards. "
              f"*Held out*: refined and the albedo estimated without the training views the fit held out "
              f"({', '.join(res['heldout_views'])}), scored on them, as `--normal-refine auto` and `--spatial auto` decide. "

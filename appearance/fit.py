@@ -500,9 +500,11 @@ def training_l1(model: DeepAppearanceMap, samples: PixelSamples) -> float:
     return _evaluate_cost(model, x, samples.radiance_lin.float() / model.radiance_scale, samples.weight, model.arch)
 
 
-def refine_dam(model: DeepAppearanceMap, samples: PixelSamples, steps: int, learning_rate: float = 3e-3, seed: int = 0,
+def refine_dam(model: DeepAppearanceMap, samples: PixelSamples, steps: int, learning_rate: float, seed: int = 0,
                progress: Callable[[int, int, dict[str, float]], None] | None = None) -> tuple[DeepAppearanceMap, float, float]:
-    """K steps of the fit's cost starting from ``model`` (a learned initialisation).
+    """K steps of the fit's cost starting from ``model`` (a learned initialisation), Adam from
+    ``learning_rate`` cosine-decayed to 5 % of it (``damcap predict``'s rate:
+    :attr:`.hyper.predict.PredictOptions.refine_learning_rate`).
 
     All samples train (no hold-out); the result is whichever of the start and the refined
     weights has the lower training cost, so refinement never makes it worse.

@@ -60,7 +60,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import hashlib
-import inspect
 import itertools
 import json
 import math
@@ -82,6 +81,7 @@ from damcap.appearance.evaluate import evaluate_split
 from damcap.appearance.fit import FitOptions, fit_dam, refine_dam
 from damcap.appearance.hyper.model import predict_dam, predictor_inputs
 from damcap.appearance.hyper.file import load_predictor, shipped_predictor_path
+from damcap.appearance.hyper.predict import PredictOptions
 from damcap.appearance.render import render_frame
 from damcap.appearance.fit import adversarial_frames
 from damcap.appearance.views import load_views, samples_of
@@ -425,7 +425,7 @@ def predict_once(data: dict, predictor, refine_steps: int, seed: int, *, max_abo
         k = ks[0]
         model = predict_dam(predictor, crop, scale)
         t1 = time.perf_counter()
-        refined, before, after = refine_dam(model, data["samples"], refine_steps, seed=seed, progress=tl)
+        refined, before, after = refine_dam(model, data["samples"], refine_steps, PredictOptions.refine_learning_rate, seed=seed, progress=tl)
         return {"model": refined, "input_view": data["train"][k].name, "predict_s": t1 - t0,
                 "refine_s": time.perf_counter() - t1, "before": before, "after": after, "accepted": refined is not model}
 
@@ -758,7 +758,7 @@ def load_shipped_predictor(data: dict[str, dict]) -> dict:
     load_s = time.perf_counter() - t
     for d in data.values():
         _, crop, scale = predictor_inputs(d["train"], net.arch.input_views)
-        refine_dam(predict_dam(net, crop, scale), d["samples"], 5)
+        refine_dam(predict_dam(net, crop, scale), d["samples"], 5, PredictOptions.refine_learning_rate)
     log(f"predictor {path.name}: loaded in {load_s:.2f} s")
     return {"net": net, "name": path.name, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), "load_seconds": load_s,
             "command": meta.get("training", {}).get("command"), "dam_architecture": net.arch.dam.to_json()}
@@ -768,7 +768,7 @@ def predictor_options(predictor: dict, refine_steps: int) -> dict:
     """What a predictor setting runs (its row's options)."""
     return {"method": "predict_dam + refine_dam (damcap predict --refine-steps K)", "predictor": predictor["name"],
             "predictor_sha256": predictor["sha256"], "refine_steps": refine_steps,
-            "refine_learning_rate": inspect.signature(refine_dam).parameters["learning_rate"].default,
+            "refine_learning_rate": PredictOptions.refine_learning_rate,
             "refine_holdout_views": 0, "batch_size": FitOptions().batch_size}
 
 

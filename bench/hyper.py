@@ -40,6 +40,7 @@ from damcap.appearance.evaluate import evaluate_split
 from damcap.appearance.fit import FitOptions, fit_dam, refine_dam
 from damcap.appearance.hyper.file import load_predictor, shipped_predictor_path
 from damcap.appearance.hyper.model import predict_dam, predictor_inputs
+from damcap.appearance.hyper.predict import PredictOptions
 from damcap.appearance.views import load_views, samples_of
 from damcap.common.capture_folder import read_capture
 from damcap.paper.tables import TableOptions, heldout_entries, learning_to_learn_rows
@@ -74,7 +75,7 @@ def bench_capture(path: Path, net, refine_steps: list[int], fit_seeds: list[int]
         times.append(time.perf_counter() - t)
     rec: dict = {"capture": path.name, "input_view": view, "rmpp_novel": base["RM++"].mean, "rm_novel": base["RM"].mean,
                  "predict_ms_median": 1000 * statistics.median(times), "predict_ms_all": [1000 * t for t in times]}
-    refine_dam(model, samples, 5)  # warm-up (first-call allocations), not timed
+    refine_dam(model, samples, 5, PredictOptions.refine_learning_rate)  # warm-up (first-call allocations), not timed
     # SGD = the predictor's own DAM architecture fitted (the paper's comparison); damcap fit's
     # default architecture, when it differs, is reported beside it
     same_arch = fit.for_architecture(model.arch)
@@ -96,7 +97,7 @@ def bench_capture(path: Path, net, refine_steps: list[int], fit_seeds: list[int]
     scores, extra = learning_to_learn_rows(train, test, net, models[0] if models else None,
                                            TableOptions(fit=same_arch, refine_steps=tuple(ks)))
     t = time.perf_counter()
-    _, l1, _ = refine_dam(model, samples, 0)  # K = 0: the predicted DAM as it is (its training L1)
+    _, l1, _ = refine_dam(model, samples, 0, PredictOptions.refine_learning_rate)  # K = 0: the predicted DAM as it is (its training L1)
     extra["seconds"]["refine 0"], extra["train_l1"]["refine 0"] = time.perf_counter() - t, [l1, l1]
     rows = []
     for k in refine_steps:

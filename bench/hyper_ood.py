@@ -5,7 +5,8 @@ saw: closed-form spheres and blobs (``damcap closed-form``) under a directional 
 the analytic sky, the held-out Mitsuba captures of a ``damcap synth-set`` corpus (shadows,
 interreflection, measured environment maps), and the real cape (the realworld bench's cached
 capture). Per capture: RM++, ``damcap fit`` (default options, timed), each predictor alone and
-the newest one refined 100 / 300 steps (timed, as ``damcap predict --refine-steps K``). With
+each refined 100 / 300 steps (timed, as ``damcap predict --refine-steps K``; also at the learning
+rate that was the default before 2026-11-27, ``--compare-lr``) and with ``--refine-steps auto``. With
 ``--snapshots``: predict alone for each snapshot of the predictors' training runs (how
 out-of-distribution error falls with training compute, counted over warm starts).
 
@@ -17,7 +18,8 @@ Run (from the repository root)::
     .venv/bin/python -m bench.hyper_ood --predictors appearance/hyper/predictors/dam-predictor-v1.safetensors \\
         appearance/hyper/predictors/dam-predictor-v3.safetensors
 
-It writes bench/results/hyper_ood.json and bench/hyper_ood.md (``--out DIR`` elsewhere).
+It writes bench/results/hyper_ood.json and bench/hyper_ood.md (``--out DIR`` elsewhere, ``--tag T``:
+hyper_ood_T.*).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from damcap.appearance.evaluate import evaluate_split
 from damcap.appearance.fit import FitOptions, fit_dam, refine_dam
 from damcap.appearance.hyper.file import load_predictor
 from damcap.appearance.hyper.model import predict_dam, predictor_inputs
+from damcap.appearance.hyper.predict import PredictOptions, refine_auto
 from damcap.appearance.views import load_views, samples_of
 from damcap.common.capture_folder import read_capture
 from damcap.paper.tables import heldout_entries
@@ -58,8 +61,22 @@ def closed_form_captures(cache: Path, count: int = len(CLOSED_FORM), resolution:
     return out
 
 
+def refined_names(nets: list[str], refine_steps: list[int], compare_lr: list[float], auto: bool) -> list[str]:
+    """The refined rows' names, in the tables' order.
+
+    >>> refined_names(["v1"], [100], [0.003], True)
+    ['v1 + 100', 'v1 + 100 (lr 0.003)', 'v1 + auto']
+    """
+    out = []
+    for name in nets:
+        for k in refine_steps:
+            out += [f"{name} + {k}"] + [f"{name} + {k} (lr {lr:g})" for lr in compare_lr]
+        out += [f"{name} + auto"] if auto else []
+    return out
+
+
 def bench_capture(kind: str, path: Path, nets: dict[str, torch.nn.Module], refine_steps: list[int], snapshots: dict,
-                  fit: FitOptions = FitOptions(checkpoint_every=0)) -> dict:
+                  fit: FitOptions = FitOptions(checkpoint_every=0), compare_lr: tuple[float, ...] = (), auto: bool = False) -> dict:
     cap = read_capture(path)
     train, test = load_views(cap, "train"), load_views(cap, "test")
     samples = samples_of(train)
@@ -77,10 +94,18 @@ def bench_capture(kind: str, path: Path, nets: dict[str, torch.nn.Module], refin
         models[name] = model
         rec["predict_ms"][name] = 1000 * statistics.median(times)
         if name in nets:
+            lr0 = PredictOptions.refine_learning_rate
             for k in refine_steps:
+                for lr, key in [(lr0, f"{name} + {k}")] + [(lr, f"{name} + {k} (lr {lr:g})") for lr in compare_lr]:
+                    t = time.perf_counter()
+                    models[key] = refine_dam(model, samples, k, lr)[0]
+                    rec["refine_seconds"][key] = time.perf_counter() - t + times[0]
+            if auto:
                 t = time.perf_counter()
-                models[f"{name} + {k}"] = refine_dam(model, samples, k)[0]
-                rec["refine_seconds"][f"{name} + {k}"] = time.perf_counter() - t + times[0]
+                models[f"{name} + auto"], chosen = refine_auto(model, samples, max_steps=PredictOptions.refine_max_steps,
+                                                                patience_steps=PredictOptions.refine_patience)
+                rec["refine_seconds"][f"{name} + auto"] = time.perf_counter() - t + times[0]
+                rec.setdefault("auto_steps", {})[name] = chosen.steps_used
     scores = evaluate_split(train, test, models)
     rec["novel"] = {k: v.mean for k, v in scores.items()}
     log(f"{kind} {path.name}: " + ", ".join(f"{k} {v:.4f}" for k, v in rec["novel"].items()))
@@ -98,15 +123,17 @@ def summarise(per_capture: list[dict]) -> dict:
 
 
 def write_markdown(res: dict, path: Path) -> None:
-    nets, ks = res["predictors"], res["refine_steps"]
-    refined = [f"{n} + {k}" for n in nets for k in ks]
+    nets = res["predictors"]
+    refined = res.get("refined") or [f"{n} + {k}" for n in nets for k in res["refine_steps"]]
     cols = ["RM++", "fit"] + nets + refined
     lines = ["# The predictor on captures unlike its training set (issue 28)", "",
              f"Command (from the repository root): `{res['command']}`", "",
              f"Machine: {res['machine']['cpu_model']} ({res['machine']['nproc']} cores), torch {res['machine']['torch']} with {torch.get_num_threads()} threads; "
              f"{res['date']}. Predictors: " + "; ".join(f"`{n}` ({res['predictor_info'][n]})" for n in nets) + ".", "",
              "Novel-view DSSIM, mean over each kind's captures (ratio to `damcap fit` in brackets). "
-             "`+ K` = the prediction refined K steps (`damcap predict --refine-steps K`).", "",
+             f"`+ K` = the prediction refined K steps (`damcap predict --refine-steps K`) at predict's learning rate "
+             f"({res.get('refine_learning_rate', 3e-3):g}); `(lr X)` at learning rate X instead; `+ auto` = `--refine-steps auto` "
+             "(the steps it chose are in the JSON).", "",
              "| kind | captures | " + " | ".join(cols) + " |", "|---|---:|" + "---:|" * len(cols)]
     for kind, s in res["summary"].items():
         fit = s["novel"]["fit"]
@@ -150,11 +177,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--corpus", type=Path, default=CACHE / "synth_small", help="synth-set corpus whose held-out captures are used")
     ap.add_argument("--real", type=Path, nargs="*", default=[CACHE / "reconstruct" / "realworld" / "cape-8-256"])
     ap.add_argument("--refine-steps", type=int, nargs="+", default=[100, 300])
+    ap.add_argument("--compare-lr", type=float, nargs="*", default=[3e-3],
+                    help="refined rows at these learning rates as well (predict's own: PredictOptions.refine_learning_rate)")
+    ap.add_argument("--auto", action=argparse.BooleanOptionalAction, default=True, help="rows refined with --refine-steps auto")
     ap.add_argument("--closed-form", type=int, default=len(CLOSED_FORM), help="how many of the closed-form captures (smoke runs: fewer)")
     ap.add_argument("--res", type=int, default=128, help="closed-form captures' resolution (smoke runs: smaller)")
     ap.add_argument("--fit-steps", type=int, default=None, help="fit steps (default: FitOptions' default)")
     ap.add_argument("--cache", type=Path, default=CACHE / "hyper_ood", help="where the closed-form captures are rendered once")
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--tag", default="", help="write hyper_ood_TAG.json / .md (a study beside the main table)")
     args = ap.parse_args(argv)
     torch.set_num_threads(2)
     nets, info, before, pred_steps = {}, {}, {}, {}
@@ -184,13 +215,16 @@ def main(argv: list[str] | None = None) -> int:
         log(f"{args.corpus}: no corpus; the Mitsuba kind is left out")
     captures += [("real (cape)", p) for p in args.real if (p / "transforms.json").exists()]
     fit = FitOptions(checkpoint_every=0) if args.fit_steps is None else FitOptions(checkpoint_every=0, steps=args.fit_steps)
-    per = [bench_capture(kind, path, nets, args.refine_steps, snaps, fit) for kind, path in captures]
+    per = [bench_capture(kind, path, nets, args.refine_steps, snaps, fit, tuple(args.compare_lr), args.auto) for kind, path in captures]
     res = {"command": command_line("hyper_ood", argv if argv is not None else __import__("sys").argv[1:]),
            "machine": machine_info(), "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
            "predictors": list(nets), "predictor_info": info, "refine_steps": args.refine_steps,
+           "refine_learning_rate": PredictOptions.refine_learning_rate,
+           "refined": refined_names(list(nets), args.refine_steps, args.compare_lr, args.auto),
            "snapshots": snap_steps, "predictor_steps": pred_steps, "per_capture": per, "summary": summarise(per)}
-    out_json = (args.out or RESULTS) / "hyper_ood.json"
-    out_md = (args.out or BENCH) / "hyper_ood.md"
+    stem = f"hyper_ood_{args.tag}" if args.tag else "hyper_ood"
+    out_json = (args.out or RESULTS) / f"{stem}.json"
+    out_md = (args.out or BENCH) / f"{stem}.md"
     out_json.parent.mkdir(parents=True, exist_ok=True)
     out_json.write_text(json.dumps(res, indent=1, default=float))
     write_markdown(json.loads(out_json.read_text()), out_md)

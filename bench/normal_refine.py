@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     for method, ropts in variants:
         t = time.perf_counter()
         model, nf = refined(base, train, footprint, ropts)
-        row = {"method": method, "seconds": time.perf_counter() - t, "lr_dam": ropts.lr_dam}
+        row = {"method": method, "seconds": time.perf_counter() - t, "lr_dam": ropts.lr_dam, "steps": ropts.steps, "prior": ropts.prior}
         if ropts.lr_offsets > 0:
             tilt = torch.rad2deg(torch.atan(torch.from_numpy(nf.offset).norm(dim=-1)))
             row.update(corners=int(nf.keys.size), tilt_median_deg=float(tilt.median()), tilt_p90_deg=float(tilt.quantile(0.9)))

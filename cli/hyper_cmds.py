@@ -150,6 +150,7 @@ def predict(
     if opts.refine_steps == AUTO:
         t1 = time.perf_counter()
         model, auto = refine_auto(model, samples, max_steps=opts.refine_max_steps, patience_steps=opts.refine_patience,
+                                  learning_rate=opts.refine_learning_rate,
                                   choose_progress=progress_bar(opts.refine_max_steps, "choose refine steps"),
                                   refine_progress=lambda n: progress_bar(n, "refine"))
         record.update(refine_seconds=time.perf_counter() - t1, refine_steps_used=auto.steps_used, refine_steps_run=auto.steps_run,
@@ -160,7 +161,7 @@ def predict(
         extra = f", refined {auto.steps_used} steps (auto: {why}; {auto.steps_run} tried)"
     elif opts.refine_steps:
         t1 = time.perf_counter()
-        model, _, _ = refine_dam(model, samples, opts.refine_steps, progress=progress_bar(opts.refine_steps, "refine"))
+        model, _, _ = refine_dam(model, samples, opts.refine_steps, opts.refine_learning_rate, progress=progress_bar(opts.refine_steps, "refine"))
         record.update(refine_seconds=time.perf_counter() - t1, refine_steps_used=opts.refine_steps)
         extra = f", refined {opts.refine_steps} steps"
     if opts.refine_steps:

@@ -62,7 +62,8 @@ class TableOptions:
     fit: FitOptions = FitOptions(checkpoint_every=0)
     """the SGD fit of the representation and learning-to-learn rows"""
     refine_steps: tuple[int, ...] = field(default=(100, 300), metadata=COUNT_OR_ZERO)
-    """predictor + K refinement steps rows (0 = the predictor alone is always reported)"""
+    """predictor + K refinement steps rows (0 = the predictor alone is always reported), at
+    ``damcap predict``'s learning rate (:attr:`.PredictOptions.refine_learning_rate`)"""
     segment: SegmentOptions = SegmentOptions(materials=3)
     """our segmentation (``materials`` = n, the true count on the synthetic corpus)"""
     kmeans_steps: int = field(default=1500, metadata=COUNT)
@@ -121,6 +122,7 @@ def learning_to_learn_rows(train: list[ViewData], test: list[ViewData], net, fit
     Returns (scores, extra: the input view, seconds of the prediction and of each refinement, and
     each refinement's training L1 before and after, ``{"refine K": [before, after]}``)."""
     from damcap.appearance.hyper.model import predict_dam, predictor_inputs
+    from damcap.appearance.hyper.predict import PredictOptions
 
     ks, crop, scale = predictor_inputs(train, net.arch.input_views)
     k = ks[0]
@@ -137,7 +139,7 @@ def learning_to_learn_rows(train: list[ViewData], test: list[ViewData], net, fit
     seconds, train_l1 = {"predict": predict_s}, {}
     for steps in opts.refine_steps:
         t = time.perf_counter()
-        models[f"predicted + {steps} refine"], before, after = refine_dam(predicted, samples, steps)
+        models[f"predicted + {steps} refine"], before, after = refine_dam(predicted, samples, steps, PredictOptions.refine_learning_rate)
         seconds[f"refine {steps}"] = time.perf_counter() - t
         train_l1[f"refine {steps}"] = [before, after]
     return _both(train, test, models, baselines=False), {"input_view": train[k].name, "seconds": seconds, "train_l1": train_l1}

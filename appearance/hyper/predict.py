@@ -40,8 +40,6 @@ from damcap.appearance.views import ViewData
 
 AUTO = "auto"
 RefineSteps = int | Literal["auto"]
-#: Adam learning rate of refinement (:func:`.fit.refine_dam`'s default)
-REFINE_LEARNING_RATE = 3e-3
 
 
 def parse_refine_steps(text: str) -> RefineSteps:
@@ -81,6 +79,13 @@ class PredictOptions:
     refine_patience: int = field(default=100, metadata=COUNT)
     """--refine-steps auto: stop after this many steps without a lower held-out L1 (evaluated every
     25 steps)"""
+    refine_learning_rate: float = field(default=1e-2, metadata=in_range(0, 10, lo_open=True))
+    """Adam learning rate of the refinement: the initial rate of K steps (cosine-decayed to 5 % of
+    it, as the fit's), and the constant rate at which --refine-steps auto chooses K. On 11 captures
+    unlike the shipped predictor's training set (bench/hyper_ood.md, 2026-11-27), 300 steps from
+    the shipped predictor (about 2 s) reached a mean novel-view DSSIM of 0.106 (x0.86 of the fit) at
+    1e-2 against 0.110 (x0.93) at 3e-3, the rate before 2026-11-27; better on 7 captures, worse on
+    2. Smaller batches at more steps in the same time did no better"""
     refine_threshold: float = field(default=0.10, metadata=in_range(0, 1))
     """the predicted DAM's mean DSSIM on the train views above which predict says refinement is
     needed (the capture lies outside what the predictor learned). Measured with the shipped
@@ -167,7 +172,7 @@ class AutoRefineResult:
 
 def refine_until_holdout_stops(model: DeepAppearanceMap, samples: PixelSamples, *, max_steps: int, patience_steps: int,
                                eval_every: int = 25, holdout_views: int = FitOptions.holdout_views,
-                               learning_rate: float = REFINE_LEARNING_RATE, batch_size: int = FitOptions.batch_size,
+                               learning_rate: float = PredictOptions.refine_learning_rate, batch_size: int = FitOptions.batch_size,
                                seed: int = 0, progress: Callable[[int, int, dict[str, float]], None] | None = None) -> AutoRefineResult:
     """Refine a (predicted) DAM until its held-out training views stop improving.
 
@@ -232,11 +237,13 @@ def refine_until_holdout_stops(model: DeepAppearanceMap, samples: PixelSamples, 
 
 
 def refine_auto(model: DeepAppearanceMap, samples: PixelSamples, *, max_steps: int, patience_steps: int,
+                learning_rate: float = PredictOptions.refine_learning_rate,
                 choose_progress: Callable[[int, int, dict[str, float]], None] | None = None,
                 refine_progress: Callable[[int, int], Callable[[int, int, dict[str, float]], None]] | None = None,
                 ) -> tuple[DeepAppearanceMap, AutoRefineResult]:
     """``--refine-steps auto``: choose K with :func:`refine_until_holdout_stops`, then refine the
-    start for K steps on all samples with :func:`.fit.refine_dam` (nothing when K = 0).
+    start for K steps on all samples with :func:`.fit.refine_dam` (nothing when K = 0), both at
+    ``learning_rate``.
 
     Args:
         choose_progress: progress of the choice; refine_progress: ``refine_progress(K)`` makes
@@ -245,9 +252,10 @@ def refine_auto(model: DeepAppearanceMap, samples: PixelSamples, *, max_steps: i
     Returns:
         (the refined model, the choice: K = ``steps_used``).
     """
-    chosen = refine_until_holdout_stops(model, samples, max_steps=max_steps, patience_steps=patience_steps, progress=choose_progress)
+    chosen = refine_until_holdout_stops(model, samples, max_steps=max_steps, patience_steps=patience_steps,
+                                        learning_rate=learning_rate, progress=choose_progress)
     if chosen.steps_used == 0:
         return model, chosen
-    refined, _, _ = refine_dam(model, samples, chosen.steps_used,
+    refined, _, _ = refine_dam(model, samples, chosen.steps_used, learning_rate,
                                progress=refine_progress(chosen.steps_used) if refine_progress else None)
     return refined, chosen

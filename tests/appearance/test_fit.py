@@ -450,7 +450,7 @@ def test_refinement_never_makes_the_training_cost_worse(small_capture):
     samples = samples_of(load_views(read_capture(small_capture), "train"))
     net = HyperNet(HyperArchitecture(input_size=32, channels=(4, 8)))
     start = predict_dam(net, _crop_of(small_capture))
-    refined, before, after = refine_dam(start, samples, 60)
+    refined, before, after = refine_dam(start, samples, 60, 3e-3)
     assert after <= before and math.isclose(before, training_l1(start, samples), rel_tol=1e-6)
     assert math.isclose(after, training_l1(refined, samples), rel_tol=1e-6)
     # from an already converged model a too-large step size cannot make it worse either

@@ -29,9 +29,12 @@ def test_ood_study_writes_every_method_per_kind(tmp_path, is_dssim):
     doc = json.loads((out / "hyper_ood.json").read_text())
     assert [r["kind"] for r in doc["per_capture"]] == ["closed-form sphere, distant light", "closed-form sphere, environment"]
     for r in doc["per_capture"]:
-        assert set(r["novel"]) == {"fit", "one", "set", "one + 5", "set + 5", "set.step5", "RM++", "RM"}
+        refined = {"one + 5", "one + 5 (lr 0.003)", "one + auto", "set + 5", "set + 5 (lr 0.003)", "set + auto"}
+        assert set(r["novel"]) == {"fit", "one", "set", "set.step5", "RM++", "RM"} | refined
         assert all(is_dssim(v) for v in r["novel"].values())
-        assert set(r["refine_seconds"]) == {"one + 5", "set + 5"} and r["predict_ms"]["set"] > 0
+        assert set(r["refine_seconds"]) == refined and r["predict_ms"]["set"] > 0
+        assert set(r["auto_steps"]) == {"one", "set"} and all(k >= 0 for k in r["auto_steps"].values())
+        assert r["novel"]["one + 5"] != r["novel"]["one + 5 (lr 0.003)"]  # another rate, another model
     assert doc["snapshots"] == {"set.step5": {"step": 5, "total": 15}}  # counted after the 10 steps of the predictor it started from
     s = doc["summary"]["closed-form sphere, environment"]
     assert s["captures"] == 1 and s["novel"]["fit"] == doc["per_capture"][1]["novel"]["fit"]

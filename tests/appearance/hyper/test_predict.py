@@ -148,7 +148,7 @@ def test_predict_reports_its_resynthesis_error_and_refines_until_the_held_out_vi
     assert prov["refine_holdout_curve"] == auto.curve
     assert np.array_equal(model.get_flat_weights().numpy(), refined.get_flat_weights().numpy())
     if auto.steps_used:
-        assert np.array_equal(refined.get_flat_weights().numpy(), refine_dam(predicted, samples, auto.steps_used)[0].get_flat_weights().numpy())
+        assert np.array_equal(refined.get_flat_weights().numpy(), refine_dam(predicted, samples, auto.steps_used, PredictOptions.refine_learning_rate)[0].get_flat_weights().numpy())
     after = resynthesis_error(refined, views, samples)
     assert (prov["train_dssim_refined"], prov["train_l1_refined"]) == (after.dssim, after.l1)
     why = "held-out views stopped improving" if auto.stopped_by == "patience" else "held-out views still improving at --refine-max-steps 60"
@@ -161,7 +161,7 @@ def test_auto_chooses_k_on_held_out_views_then_takes_k_steps_on_all(small_captur
     samples = samples_of(_views_of(small_capture, target))
     model, chosen = refine_auto(start, samples, max_steps=100, patience_steps=50)
     assert chosen.steps_used > 0
-    assert torch.equal(model.get_flat_weights(), refine_dam(start, samples, chosen.steps_used)[0].get_flat_weights())
+    assert torch.equal(model.get_flat_weights(), refine_dam(start, samples, chosen.steps_used, PredictOptions.refine_learning_rate)[0].get_flat_weights())
     assert training_l1(model, samples) < training_l1(start, samples)
     kept, none = refine_auto(target, samples, max_steps=100, patience_steps=25)
     assert none.steps_used == 0 and kept is target  # nothing improved the held-out views: the start is kept

@@ -6,9 +6,9 @@ with and without the spatial albedo factor (``fit --spatial albedo``), against t
 normals were refined by :func:`damcap.appearance.normal_refine.refine_normals` at several voxel
 sizes, step counts and prior weights, the refinement with the DAM's weights trained as well
 (``lr_dam``), and a control that continues the DAM's fit for as many steps with the normals left
-alone (so the gain is the normals', not more steps). The refined model carries its field, so every view, novel ones too,
-is rendered with the refined normals as ``damcap render`` draws them (a surface point has one
-normal in every view).
+alone (so the gain is the normals', not more steps). The refined model carries its field, so
+every view, novel ones too, is rendered with the refined normals as ``damcap render`` draws them
+(a surface point has one normal in every view).
 
 Each row is also scored the way ``--normal-refine auto`` and ``--spatial auto`` decide: refined
 (and the albedo estimated) without the training views the fit held out, then scored on those

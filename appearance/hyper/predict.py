@@ -81,11 +81,12 @@ class PredictOptions:
     25 steps)"""
     refine_learning_rate: float = field(default=1e-2, metadata=in_range(0, 10, lo_open=True))
     """Adam learning rate of the refinement: the initial rate of K steps (cosine-decayed to 5 % of
-    it, as the fit's), and the constant rate at which --refine-steps auto chooses K. On 11 captures
-    unlike the shipped predictor's training set (bench/hyper_ood.md, 2026-11-27), 300 steps from
-    the shipped predictor (about 2 s) reached a mean novel-view DSSIM of 0.106 (x0.86 of the fit) at
-    1e-2 against 0.110 (x0.93) at 3e-3, the rate before 2026-11-27; better on 7 captures, worse on
-    2. Smaller batches at more steps in the same time did no better"""
+    it, as the fit's), and the constant rate at which --refine-steps auto chooses K. On 11
+    captures unlike the shipped predictor's training set (bench/hyper_ood_refine.md, 2026-11-27),
+    300 steps from the shipped predictor (about 2 s) reached a mean novel-view DSSIM of 0.106
+    (x0.86 of the fit) at 1e-2 against 0.110 (x0.93) at 3e-3, the rate before 2026-11-27: better
+    on 7 captures, worse on 2. More, smaller steps did no better (900 steps of 1024 pixels, 3.4 s:
+    x0.87; docs/learning-to-learn.md)"""
     refine_threshold: float = field(default=0.10, metadata=in_range(0, 1))
     """the predicted DAM's mean DSSIM on the train views above which predict says refinement is
     needed (the capture lies outside what the predictor learned). Measured with the shipped

@@ -85,7 +85,7 @@ class PredictOptions:
     captures unlike the shipped predictor's training set (bench/hyper_ood_refine.md, 2026-11-27),
     300 steps from the shipped predictor (about 2 s) reached a mean novel-view DSSIM of 0.106
     (x0.86 of the fit) at 1e-2 against 0.110 (x0.93) at 3e-3, the rate before 2026-11-27: better
-    on 7 captures, worse on 2. More, smaller steps did no better (900 steps of 1024 pixels, 3.4 s:
+    on 7 captures, worse on 3 (by 0.001 to 0.012). More, smaller steps did no better (900 steps of 1024 pixels, 3.4 s:
     x0.87; docs/learning-to-learn.md)"""
     refine_threshold: float = field(default=0.10, metadata=in_range(0, 1))
     """the predicted DAM's mean DSSIM on the train views above which predict says refinement is

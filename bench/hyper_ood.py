@@ -61,18 +61,18 @@ def closed_form_captures(cache: Path, count: int = len(CLOSED_FORM), resolution:
     return out
 
 
-def refined_names(nets: list[str], refine_steps: list[int], compare_lr: list[float], auto: bool) -> list[str]:
-    """The refined rows' names, in the tables' order.
+def refine_runs(name: str, refine_steps: list[int], compare_lr: tuple[float, ...], auto: bool) -> list[tuple[str, int | None, float]]:
+    """A predictor's refined rows, in the tables' order: (row name, steps K or None for
+    ``--refine-steps auto``, learning rate).
 
-    >>> refined_names(["v1"], [100], [0.003], True)
+    >>> [r[0] for r in refine_runs("v1", [100], (0.003,), True)]
     ['v1 + 100', 'v1 + 100 (lr 0.003)', 'v1 + auto']
     """
+    lr0 = PredictOptions.refine_learning_rate
     out = []
-    for name in nets:
-        for k in refine_steps:
-            out += [f"{name} + {k}"] + [f"{name} + {k} (lr {lr:g})" for lr in compare_lr]
-        out += [f"{name} + auto"] if auto else []
-    return out
+    for k in refine_steps:
+        out += [(f"{name} + {k}", k, lr0)] + [(f"{name} + {k} (lr {lr:g})", k, lr) for lr in compare_lr]
+    return out + ([(f"{name} + auto", None, lr0)] if auto else [])
 
 
 def bench_capture(kind: str, path: Path, nets: dict[str, torch.nn.Module], refine_steps: list[int], snapshots: dict,
@@ -93,19 +93,15 @@ def bench_capture(kind: str, path: Path, nets: dict[str, torch.nn.Module], refin
             times.append(time.perf_counter() - t)
         models[name] = model
         rec["predict_ms"][name] = 1000 * statistics.median(times)
-        if name in nets:
-            lr0 = PredictOptions.refine_learning_rate
-            for k in refine_steps:
-                for lr, key in [(lr0, f"{name} + {k}")] + [(lr, f"{name} + {k} (lr {lr:g})") for lr in compare_lr]:
-                    t = time.perf_counter()
-                    models[key] = refine_dam(model, samples, k, lr)[0]
-                    rec["refine_seconds"][key] = time.perf_counter() - t + times[0]
-            if auto:
-                t = time.perf_counter()
-                models[f"{name} + auto"], chosen = refine_auto(model, samples, max_steps=PredictOptions.refine_max_steps,
-                                                                patience_steps=PredictOptions.refine_patience)
-                rec["refine_seconds"][f"{name} + auto"] = time.perf_counter() - t + times[0]
+        for key, k, lr in refine_runs(name, refine_steps, compare_lr, auto) if name in nets else []:
+            t = time.perf_counter()
+            if k is None:
+                models[key], chosen = refine_auto(model, samples, max_steps=PredictOptions.refine_max_steps,
+                                                  patience_steps=PredictOptions.refine_patience, learning_rate=lr)
                 rec.setdefault("auto_steps", {})[name] = chosen.steps_used
+            else:
+                models[key] = refine_dam(model, samples, k, lr)[0]
+            rec["refine_seconds"][key] = time.perf_counter() - t + times[0]
     scores = evaluate_split(train, test, models)
     rec["novel"] = {k: v.mean for k, v in scores.items()}
     log(f"{kind} {path.name}: " + ", ".join(f"{k} {v:.4f}" for k, v in rec["novel"].items()))
@@ -123,8 +119,7 @@ def summarise(per_capture: list[dict]) -> dict:
 
 
 def write_markdown(res: dict, path: Path) -> None:
-    nets = res["predictors"]
-    refined = res.get("refined") or [f"{n} + {k}" for n in nets for k in res["refine_steps"]]
+    nets, refined = res["predictors"], res["refined"]
     cols = ["RM++", "fit"] + nets + refined
     lines = ["# The predictor on captures unlike its training set (issue 28)", "",
              f"Command (from the repository root): `{res['command']}`", "",
@@ -132,7 +127,7 @@ def write_markdown(res: dict, path: Path) -> None:
              f"{res['date']}. Predictors: " + "; ".join(f"`{n}` ({res['predictor_info'][n]})" for n in nets) + ".", "",
              "Novel-view DSSIM, mean over each kind's captures (ratio to `damcap fit` in brackets). "
              f"`+ K` = the prediction refined K steps (`damcap predict --refine-steps K`) at predict's learning rate "
-             f"({res.get('refine_learning_rate', 3e-3):g}); `(lr X)` at learning rate X instead; `+ auto` = `--refine-steps auto` "
+             f"({res['refine_learning_rate']:g}); `(lr X)` at learning rate X instead; `+ auto` = `--refine-steps auto` "
              "(the steps it chose are in the JSON).", "",
              "| kind | captures | " + " | ".join(cols) + " |", "|---|---:|" + "---:|" * len(cols)]
     for kind, s in res["summary"].items():
@@ -220,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
            "machine": machine_info(), "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
            "predictors": list(nets), "predictor_info": info, "refine_steps": args.refine_steps,
            "refine_learning_rate": PredictOptions.refine_learning_rate,
-           "refined": refined_names(list(nets), args.refine_steps, args.compare_lr, args.auto),
+           "refined": [r[0] for n in nets for r in refine_runs(n, args.refine_steps, tuple(args.compare_lr), args.auto)],
            "snapshots": snap_steps, "predictor_steps": pred_steps, "per_capture": per, "summary": summarise(per)}
     stem = f"hyper_ood_{args.tag}" if args.tag else "hyper_ood"
     out_json = (args.out or RESULTS) / f"{stem}.json"

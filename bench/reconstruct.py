@@ -426,11 +426,10 @@ def part_geometry(fresh: bool, cache: Path = CACHE, objects: tuple[str, ...] = (
         runs = [(mode.split(":")[0] + (f" (align {align})" if mode.startswith("mesh") else ""), replace(base, geometry=mode, mesh_align=align))
                 for mode, align in (("visual-hull", "auto"), ("poisson", "auto"), ("sphere", "auto"), ("dense", "auto"),
                                     (f"mesh:{gt_path}", "none"), (f"mesh:{gt_path}", "icp"))]
+        runs = [(key, opts) for key, opts in runs if key in modes]
         runs += [(f"dense ({size} px, {planes} planes)", replace(base, geometry="dense", dense_size=size, dense_planes=planes))
                  for size, planes in dense_knobs]
         for key, opts in runs:
-            if key not in modes and not key.startswith("dense ("):
-                continue
             cap_dir = root / f"capture-{key.replace(' ', '_').replace('(', '').replace(')', '').replace(',', '')}"
             try:
                 with Timer() as t:

@@ -80,7 +80,7 @@ wheel-check: venv
 	bash .ci/wheel_check.sh $(VENV)
 
 # Slow studies (never in CI): results in bench/results/*.json and bench/*.md
-BENCHES ?= dam_core export hyper segment registration_sparse registration_gt
+BENCHES ?= dam_core export hyper segment registration_sparse registration_gt clipped
 bench: venv
 	@set -e; for b in $(BENCHES); do echo "== python -m bench.$$b"; $(PY) -m bench.$$b; done
 

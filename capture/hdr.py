@@ -391,7 +391,7 @@ def write_hdr(path: str | os.PathLike, result: HdrResult, opts: HdrOptions) -> P
         DamcapError: half storage asked for values beyond 65504 (the message names --dtype float).
     """
     from damcap.common.atomic import write_json_atomic
-    from damcap.common.exr import write_exr
+    from damcap.common.exr import CLIPPED_CHANNEL, write_exr
     from damcap.common.version import damcap_version
 
     path = Path(path)
@@ -402,7 +402,7 @@ def write_hdr(path: str | os.PathLike, result: HdrResult, opts: HdrOptions) -> P
     records = [{"file": Path(f).name, **e.to_json(), "factor": float(h)}
                for f, e, h in zip(result.files, result.exposures, result.exposure_factors)]
     pixels = np.concatenate([result.radiance_lin, result.clipped[..., None].astype(np.float32)], axis=-1)
-    write_exr(path, pixels, ("R", "G", "B", "clipped"), dtype=opts.dtype, attributes={
+    write_exr(path, pixels, ("R", "G", "B", CLIPPED_CHANNEL), dtype=opts.dtype, attributes={
         "damcap:colorspace": result.colorspace,
         "damcap:exposures": json.dumps(records),
         "damcap:reference_exposure": float(result.reference_exposure),

@@ -206,7 +206,7 @@ def linearize_files(photos: Sequence[Path], out_dir: Path, opts: LinearizeOption
 def _linearize_into(photos: Sequence[Path], exposures: list[Exposure], factors: np.ndarray, ref: float, out_dir: Path,
                     opts: LinearizeOptions, progress: Callable[[str, int, int], None] | None = None) -> list[dict]:
     """Write every photo's EXR into ``out_dir``; the per-photo records."""
-    from damcap.common.exr import write_exr
+    from damcap.common.exr import CLIPPED_CHANNEL, write_exr
 
     from damcap.capture.hdr import HALF_MAX, read_ldr_codes
 
@@ -229,7 +229,7 @@ def _linearize_into(photos: Sequence[Path], exposures: list[Exposure], factors: 
             raise DamcapError(f"{path}: radiance reaches {float(radiance.max()):.4g}, beyond half precision; use --dtype float")
         out = out_dir / f"{path.stem}.exr"
         write_exr(out, np.concatenate([radiance, clipped[..., None].astype(np.float32)], axis=-1),
-                  ("R", "G", "B", "clipped"), dtype=opts.dtype,
+                  ("R", "G", "B", CLIPPED_CHANNEL), dtype=opts.dtype,
                   attributes={"damcap:colorspace": colorspace, "damcap:exposure_factor": float(h),
                               "damcap:reference_exposure": ref, "damcap:source": path.name})
         records.append({"file": path.name, "output": out.name, "exposure": exp.to_json(), "factor": float(h),

@@ -30,6 +30,10 @@ def _one_line(message: str, path: Path) -> str:
     return lines[-1] if lines else "unknown error"
 
 
+#: the channel that flags pixels whose radiance is only a lower bound (saturated; 1 there, else 0):
+#: damcap hdr and linearize write it, reconstruct reads it from such a photo
+CLIPPED_CHANNEL = "clipped"
+
 #: most channels damcap reads from one image
 MAX_IMAGE_CHANNELS = 1024
 

@@ -59,8 +59,6 @@ MASK_THRESHOLD = 0.5
 EXR_REFERENCE_EXPOSURE = "damcap:reference_exposure"
 #: EXR header attribute: the colour space of the values
 EXR_COLORSPACE = "damcap:colorspace"
-#: EXR channel flagging pixels whose radiance is a lower bound (damcap hdr / linearize)
-CLIPPED_CHANNEL = "clipped"
 #: registration proxies: this percentile of the per-pixel largest channel maps to display white
 PROXY_PERCENTILE = 99.0
 #: version of the proxy encoding (a change makes every proxy be written again)
@@ -411,7 +409,7 @@ def read_linear_rgb(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | N
         DamcapError: unreadable or truncated file, no colour channels, NaN or infinite values,
             radiance in a camera's own RGB or an unknown colour space.
     """
-    from damcap.common.exr import read_exr
+    from damcap.common.exr import CLIPPED_CHANNEL, read_exr
 
     from damcap.capture.working_space import COLORSPACES, working_from_rec709
 

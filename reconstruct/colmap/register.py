@@ -256,12 +256,15 @@ def _features_and_matches(photo_dir: Path, names: list[str], work_dir: Path, opt
         ext.sift.max_num_features = opts.max_num_features
         ext.sift.first_octave = 0 if octave_skipped(sizes, opts) else -1
         ext.sift.peak_threshold = opts.sift_peak_threshold
+        probed: dict[str, tuple[Any, Any]] = {}
         if opts.low_contrast_peak_threshold is not None:
-            ext.sift.peak_threshold = _probed_peak_threshold(photo_dir, names, work_dir / "probe.db", mode, reader, ext, opts)
+            ext.sift.peak_threshold, probed = _probed_peak_threshold(photo_dir, names, work_dir / "probe.db", mode, reader, ext, opts)
         stages.state["sift_peak_threshold"] = float(ext.sift.peak_threshold)
-        for k in range(0, n, EXTRACT_CHUNK):
-            progress("features", k, n)
-            pycolmap.extract_features(str(db_path), str(photo_dir), image_names=names[k:k + EXTRACT_CHUNK], camera_mode=mode,
+        _write_features(db_path, probed)  # the probe's photos, extracted as the set would extract them
+        todo = [nm for nm in names if nm not in probed]
+        for k in range(0, len(todo), EXTRACT_CHUNK):
+            progress("features", len(probed) + k, n)
+            pycolmap.extract_features(str(db_path), str(photo_dir), image_names=todo[k:k + EXTRACT_CHUNK], camera_mode=mode,
                                       reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu)
         progress("features", n, n)
         seconds["features"] = time.perf_counter() - t0
@@ -351,9 +354,14 @@ def peak_threshold_for(median_features: float, budget: int, default: float, low:
 
 
 def _probed_peak_threshold(photo_dir: Path, names: list[str], probe_db: Path, mode: Any, reader: Any, ext: Any,
-                           opts: SfmOptions) -> float:
+                           opts: SfmOptions) -> tuple[float, dict[str, tuple[Any, Any]]]:
     """:func:`peak_threshold_for` on :data:`PEAK_PROBE_PHOTOS` photos spread over ``names``,
-    extracted as the set will be (``reader``, ``ext``) into a scratch database."""
+    extracted as the set will be (``reader``, ``ext``) into a scratch database.
+
+    Returns:
+        the threshold, and when it is the one the probe used, the probed photos' (keypoints,
+        descriptors) by name, so that the set's extraction need not repeat them (else empty).
+    """
     pycolmap = import_pycolmap()
     probe = [names[round(i)] for i in np.linspace(0, len(names) - 1, min(PEAK_PROBE_PHOTOS, len(names)))]
     probe_db.unlink(missing_ok=True)
@@ -363,13 +371,34 @@ def _probed_peak_threshold(photo_dir: Path, names: list[str], probe_db: Path, mo
                               extraction_options=ext, device=pycolmap.Device.cpu)
     db = pycolmap.Database.open(str(probe_db))
     try:
-        counts = [db.num_keypoints_for_image(im.image_id) for im in db.read_all_images()]
+        images = db.read_all_images()
+        counts = [db.num_keypoints_for_image(im.image_id) for im in images]
+        low = opts.low_contrast_peak_threshold
+        assert low is not None
+        threshold = peak_threshold_for(float(np.median(counts)) if counts else 0.0, opts.max_num_features, ext.sift.peak_threshold, low)
+        features = ({im.name: (db.read_keypoints(im.image_id), db.read_descriptors(im.image_id)) for im in images}
+                    if threshold == ext.sift.peak_threshold else {})
     finally:
         db.close()
     probe_db.unlink(missing_ok=True)
-    low = opts.low_contrast_peak_threshold
-    assert low is not None
-    return peak_threshold_for(float(np.median(counts)) if counts else 0.0, opts.max_num_features, opts.sift_peak_threshold, low)
+    return threshold, features
+
+
+def _write_features(db_path: Path, features: dict[str, tuple[Any, Any]]) -> None:
+    """Store (keypoints, descriptors) of images already imported into ``db_path``, by name, where
+    the database has none yet (a resumed extraction may have stored them)."""
+    if not features:
+        return
+    db = import_pycolmap().Database.open(str(db_path))
+    try:
+        for name, (keypoints, descriptors) in features.items():
+            image_id = db.read_image_with_name(name).image_id
+            if not db.exists_keypoints(image_id):
+                db.write_keypoints(image_id, keypoints)
+            if not db.exists_descriptors(image_id):
+                db.write_descriptors(image_id, descriptors)
+    finally:
+        db.close()
 
 
 def octave_skipped(sizes: set[tuple[int, int]], opts: SfmOptions) -> bool:

@@ -155,3 +155,50 @@ def test_when_no_pass_registers_the_first_error_is_raised(tmp_path, monkeypatch)
     monkeypatch.setattr(register_module, "_register_once", once)
     with pytest.raises(DamcapError, match="first pass failed"):
         register_photos(tmp_path / "photos", [f"p{k}.jpg" for k in range(3)], tmp_path / "work", SfmOptions())
+
+
+@pytest.mark.parametrize("budget, reused", [(64, True), (16384, False)])
+def test_the_contrast_probe_s_photos_are_not_extracted_twice(tmp_path, monkeypatch, budget, reused):
+    """With the low-contrast probe on, the probed photos' features are stored from the probe when
+    the set keeps the probe's threshold (a budget the photos fill), exactly as extracting them again
+    would give; at the lower threshold (a budget they leave mostly empty) every photo is extracted."""
+    import pycolmap
+
+    from damcap.common.shapes import bumpy_blob
+    from damcap.synth.photos import default_intrinsics, exposure_series, orbit_cameras, write_photo_set
+
+    n = 6
+    names = write_photo_set(tmp_path / "photos", bumpy_blob(subdivisions=4), orbit_cameras(n, 3.2, (0.0, 30.0), seed=2),
+                            default_intrinsics(128), exposure_series(n, 1), light_dir_world=np.array([0.0, 1.0, 0.0]), seed=2)
+    photos = tmp_path / "photos" / "images"
+    extracted: list[str] = []
+    real = pycolmap.extract_features
+
+    def counting(db, image_dir, image_names, **kw):
+        if not str(db).endswith("probe.db"):
+            extracted.extend(image_names)
+        return real(db, image_dir, image_names=image_names, **kw)
+
+    def features(opts: SfmOptions, work) -> dict:
+        work.mkdir()
+        db_path, _, _ = register_module._features_and_matches(photos, names, work, opts, None, lambda *a: None,
+                                                              register_module._Stages(work), {}, [])
+        db = pycolmap.Database.open(str(db_path))
+        try:
+            return {im.name: (db.read_keypoints(im.image_id), np.asarray(db.read_descriptors(im.image_id).data))
+                    for im in db.read_all_images()}
+        finally:
+            db.close()
+
+    monkeypatch.setattr(pycolmap, "extract_features", counting)
+    opts = SfmOptions(max_num_features=budget, low_contrast_peak_threshold=0.003, num_threads=1)
+    probed = features(opts, tmp_path / "probed")
+    if not reused:
+        assert sorted(extracted) == sorted(names)
+    else:
+        assert len(extracted) == n - register_module.PEAK_PROBE_PHOTOS and len(set(extracted)) == len(extracted)
+        plain = features(replace(opts, low_contrast_peak_threshold=None), tmp_path / "plain")
+        assert plain.keys() == probed.keys()
+        for name in names:
+            np.testing.assert_array_equal(plain[name][0], probed[name][0])
+            np.testing.assert_array_equal(plain[name][1], probed[name][1])

@@ -289,10 +289,12 @@ def main(argv: list[str] | None = None) -> int:
     per_region = {}
     for seg in range(len(export["models"])):
         ours, base, floor, bound, transfer = [], [], [], [], []
+        sums = np.zeros(3)  # summed radiance on the scored pixels: truth, export, object's DAM
         for k, (rad, a, fp) in enumerate(frames):
             mask = region_masks[seg][k]
             r = region_scores(truth[k], rad, mask, constants[seg])
             if r is not None:
+                sums += [truth[k][mask].sum(), rad[mask].sum(), transfer_frames[k][mask].sum() if transfer_frames is not None else 0.0]
                 ours.append(r[0])
                 base.append(r[1])
                 floor.append(region_scores(truth[k], again[k], mask, constants[seg])[0])
@@ -305,10 +307,12 @@ def main(argv: list[str] | None = None) -> int:
                                         "best_dam": statistics.mean(bound) if bound else None,
                                         "object_dam": statistics.mean(transfer) if transfer else None}
         if ours:
+            per_region[f"segment {seg}"]["brightness"] = float(sums[1] / sums[0])
             per_region[f"segment {seg}"]["ratio"] = statistics.mean(ours) / statistics.mean(base)
             per_region[f"segment {seg}"]["best_dam_ratio"] = statistics.mean(bound) / statistics.mean(base)
             if transfer:
                 per_region[f"segment {seg}"]["object_dam_ratio"] = statistics.mean(transfer) / statistics.mean(base)
+                per_region[f"segment {seg}"]["object_dam_brightness"] = float(sums[2] / sums[0])
     whole = [dssim(truth[k], np.where((truth_alpha[k] > INTERIOR)[..., None] & (a > INTERIOR)[..., None], rad, truth[k]),
                    ((truth_alpha[k] > INTERIOR) & (a > INTERIOR)).astype(np.float32)) for k, (rad, a, _) in enumerate(frames)]
     # side by side for one frame: truth | export | constant colours (one display exposure)
@@ -356,16 +360,17 @@ def write_markdown(res: dict, path: Path) -> None:
         lines += ["Object's DAM: per material, a DAM fitted to path-traced HDR renders of the photographed object itself from every "
                   "photo's true camera, with its exact normals and material labels (no clipping, no JPEG, no reconstruction or "
                   f"segmentation error), drawn on the torus: the best a DAM of the object carries to this shape ({res['object_dam_seconds']:.0f} s).", ""]
-    lines += ["| segment | its material (purity in the photos) | frames | export | constant colour | ratio | noise floor | best DAM | its ratio |"
-              + (" object's DAM | its ratio |" if transfer else ""),
-              "|---|---|---:|---:|---:|---:|---:|---:|---:|" + ("---:|---:|" if transfer else "")]
+    lines += ["Brightness: the region's radiance summed over its scored pixels, drawn over the truth's (1: as bright on the whole).", ""]
+    lines += ["| segment | its material (purity in the photos) | frames | export | constant colour | ratio | brightness | noise floor | best DAM | its ratio |"
+              + (" object's DAM | its ratio | its brightness |" if transfer else ""),
+              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|---:|---:|" if transfer else "")]
     for name, d in res["per_region"].items():
         if d["export"] is None:
-            lines.append(f"| {name} | {d['material']} ({d['purity']:.0%}) | 0 | | | | | | |" + (" | |" if transfer else ""))
+            lines.append(f"| {name} | {d['material']} ({d['purity']:.0%}) | 0 | | | | | | | |" + (" | | |" if transfer else ""))
             continue
         lines.append(f"| {name} | {d['material']} ({d['purity']:.0%}) | {d['frames']} | {d['export']:.4f} | {d['constant']:.4f} | "
-                     f"x{d['ratio']:.2f} | {d['noise_floor']:.4f} | {d['best_dam']:.4f} | x{d['best_dam_ratio']:.2f} |"
-                     + (f" {d['object_dam']:.4f} | x{d['object_dam_ratio']:.2f} |" if transfer else ""))
+                     f"x{d['ratio']:.2f} | {d['brightness']:.2f} | {d['noise_floor']:.4f} | {d['best_dam']:.4f} | x{d['best_dam_ratio']:.2f} |"
+                     + (f" {d['object_dam']:.4f} | x{d['object_dam_ratio']:.2f} | {d['object_dam_brightness']:.2f} |" if transfer else ""))
     lines += ["", f"Whole torus: export DSSIM {res['whole_object_export_dssim']:.4f}.", "",
               "`export_truth.png`: the first frame, truth | export | constant colours."]
     path.write_text("\n".join(lines) + "\n")

@@ -30,6 +30,7 @@ import torch
 
 from bench.common import BENCH, CACHE, RESULTS, command_line, log, machine_info
 
+from damcap.appearance.dam import DeepAppearanceMap
 from damcap.appearance.fit import FitOptions, fit_dam
 from damcap.appearance.render import render_frame
 from damcap.appearance.spatial_fit import mean_dssim
@@ -64,7 +65,7 @@ def clipped_views(views: list[ViewData], level: float, treatment: str) -> list[V
     return out
 
 
-def highlight_error(model, views: list[ViewData], level: float) -> tuple[float, int]:
+def highlight_error(model: DeepAppearanceMap, views: list[ViewData], level: float) -> tuple[float, int]:
     """Mean |prediction - truth| over the channels of the object pixels (A > 0.5) whose true
     radiance reaches ``level`` in some channel, in units of ``level``; and how many there are."""
     errs = []

@@ -374,7 +374,8 @@ def write_markdown(res: dict, path: Path) -> None:
     if transfer:
         lines += ["Object's DAM: per material, a DAM fitted to path-traced HDR renders of the photographed object itself from every "
                   "photo's true camera, with its exact normals and material labels (no clipping, no JPEG, no reconstruction or "
-                  "segmentation error), drawn on the torus: the best a DAM of the object carries to this shape. *Train photos*: the "
+                  "segmentation error), fitted as `fit` fits (2000 steps, nothing held out) and drawn on the torus: what a DAM of the "
+                  "object carries to this shape (a reference, not a strict bound). *Train photos*: the "
                   f"same from the {res['object_dam_train_photos']} photos the demo trained on, the information the export had "
                   f"(both {res['object_dam_seconds']:.0f} s).", ""]
     lines += ["Brightness: the region's radiance summed over its scored pixels, drawn over the truth's (1: as bright on the whole).", ""]

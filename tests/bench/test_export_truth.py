@@ -89,3 +89,41 @@ def test_the_best_dam_reproduces_a_function_of_the_normal_but_not_a_cast_shadow(
     # measured: lambert 0.0038, shadowed 0.035
     assert scores["lambert"] < 0.012 < scores["shadowed"]
     assert export_truth.best_dam_on_truth(lambert, [np.zeros_like(m) for m in masks], buffers, centres, arch) is None
+
+
+def test_object_dams_fit_each_material_to_the_photos_asked_for_alone(monkeypatch):
+    """object_dams(photos=mask) renders every camera (one cached render of the whole set) but fits
+    each material's DAM to the picked cameras' frames alone, with those cameras' centres, in order;
+    without a mask it fits them all."""
+    import numpy as np
+
+    from damcap.common.cameras import look_at_world_from_cam
+    from damcap.common.capture_folder import Intrinsics
+    from damcap.synth.studio import StudioOptions
+
+    data = shared_data_dir()
+    opts = StudioOptions(object=str(data / "meshes" / "stanford-bunny.obj"), env=str(data / "envmaps" / "studio.hdr"),
+                         materials="gold,aluminium")
+    cams = np.stack([look_at_world_from_cam(3.4 * np.array([np.sin(a), 0.5, np.cos(a)]), np.zeros(3), np.array([0.0, 1.0, 0.0]))
+                     for a in np.radians([0, 90, 180, 270])])
+    intr = Intrinsics(40.0, 40.0, 16.0, 16.0, 32, 32)
+    renders = []
+
+    def render(o, mesh, face, world_from_cam, i, spp, seed=None, cache=None):  # frame k is k + 1 everywhere
+        renders.append(len(world_from_cam))
+        n = len(world_from_cam)
+        radiance = np.arange(1, n + 1, dtype=np.float32)[:, None, None, None] * np.ones((n, i.h, i.w, 3), np.float32)
+        return radiance, np.ones((n, i.h, i.w), np.float32), False
+
+    fits = []
+    monkeypatch.setattr(export_truth, "rendered_on_shape", render)
+    monkeypatch.setattr(export_truth, "capture_radiance_scale", lambda record: 1.0)
+    monkeypatch.setattr(export_truth, "best_dam_on_truth",
+                        lambda radiance, masks, buffers, centres, arch: fits.append(([float(r[0, 0, 0]) for r in radiance], np.stack(centres))))
+    assert export_truth.object_dams(opts, {}, cams, intr, None, 1, photos=np.array([True, False, True, False])) == [None, None]
+    assert renders == [4] and len(fits) == 2
+    for frames, centres in fits:
+        assert frames == [1.0, 3.0] and np.array_equal(centres, cams[[0, 2], :3, 3])
+    fits.clear()
+    export_truth.object_dams(opts, {}, cams, intr, None, 1)
+    assert [f for f, _ in fits] == [[1.0, 2.0, 3.0, 4.0]] * 2

@@ -13,6 +13,11 @@ A model with a normal field (:mod:`.normal_field`) adds the tensors ``normal_key
 ``normal_offset`` (M, 3) float32 and the metadata object ``normal_field``
 (``kind: "normal_offset_voxels"``, ``origin_world``, ``voxel_size``), and is written as format
 version 3 for the same reason. A model with neither stays version 1.
+
+The optional metadata ``normal_histogram`` (a list of non-negative numbers, one per direction of
+:func:`.coverage.fibonacci_directions`) records the world normals the model was trained on
+(:mod:`.coverage`); ``damcap export`` reads it to say where a new shape leaves them. It changes
+nothing in how the model renders, so it does not raise the format version.
 """
 
 from __future__ import annotations
@@ -48,7 +53,7 @@ METADATA_KEY = "damcap"
 
 
 def save_dam(path: str | os.PathLike, model: DeepAppearanceMap, *, colorspace: str, made_by: str, provenance: dict[str, Any] | None = None,
-             up_world: np.ndarray | None = None) -> None:
+             up_world: np.ndarray | None = None, normal_histogram: np.ndarray | None = None) -> None:
     """Write a model atomically as a ``.dam`` file.
 
     Args:
@@ -59,6 +64,8 @@ def save_dam(path: str | os.PathLike, model: DeepAppearanceMap, *, colorspace: s
         provenance: JSON-serialisable record of how it was made (options, seed, loss, ...).
         up_world: (3,) the capture's up direction (``Capture.up_world``), recorded as the
             metadata ``up_world`` (export orbits about it); None records none.
+        normal_histogram: (k,) the training normals' histogram (:func:`.coverage.normal_histogram`),
+            recorded as the metadata ``normal_histogram``; None records none.
     """
     tensors = {"weights": model.get_flat_weights().float().contiguous()}
     meta: dict[str, Any] = {
@@ -71,6 +78,8 @@ def save_dam(path: str | os.PathLike, model: DeepAppearanceMap, *, colorspace: s
     }
     if up_world is not None:
         meta["up_world"] = [float(x) for x in np.asarray(up_world, np.float64) / np.linalg.norm(up_world)]
+    if normal_histogram is not None:
+        meta["normal_histogram"] = [float(x) for x in np.asarray(normal_histogram, np.float64).reshape(-1)]
     if model.spatial is not None:
         sa = model.spatial
         meta["spatial"] = {"kind": SPATIAL_KIND, "origin_world": [float(x) for x in sa.origin_world], "voxel_size": float(sa.voxel_size)}
@@ -85,6 +94,12 @@ def save_dam(path: str | os.PathLike, model: DeepAppearanceMap, *, colorspace: s
     blob = st_save(tensors, metadata={METADATA_KEY: json.dumps(meta)})
     with atomic_path(path) as tmp:
         tmp.write_bytes(blob)
+
+
+def recorded_normal_histogram(meta: dict[str, Any]) -> np.ndarray | None:
+    """(k,) the training normals' histogram a loaded ``.dam``'s metadata records (None when none)."""
+    h = meta.get("normal_histogram")
+    return None if h is None else np.asarray(h, np.float64)
 
 
 def recorded_up(meta: dict[str, Any]) -> np.ndarray | None:
@@ -162,6 +177,11 @@ def load_dam(path: str | os.PathLike) -> tuple[DeepAppearanceMap, dict[str, Any]
         ok = isinstance(up, list) and len(up) == 3 and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in up)
         if not ok or not np.isfinite(up).all() or np.linalg.norm(up) < 1e-6:
             raise DamcapError(f"{path}: metadata 'up_world' must be 3 finite numbers of non-zero length, got {up!r:.80}")
+    if "normal_histogram" in meta:
+        h = meta["normal_histogram"]
+        ok = isinstance(h, list) and len(h) >= 1 and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in h)
+        if not ok or not np.isfinite(h).all() or min(h) < 0:
+            raise DamcapError(f"{path}: metadata 'normal_histogram' must be a list of finite non-negative numbers, got {h!r:.80}")
     if spatial_meta is not None:
         model.spatial = _spatial_from(path, spatial_meta, tensors)
     if normal_meta is not None:

@@ -57,7 +57,8 @@ from pathlib import Path
 import numpy as np
 
 from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
-from damcap.appearance.dam_file import load_dam
+from damcap.appearance.coverage import direction_bins, observed_directions
+from damcap.appearance.dam_file import load_dam, recorded_normal_histogram
 from damcap.appearance.fit import FitOptions, fit_dam
 from damcap.appearance.metrics import dssim
 from damcap.appearance.pixels import gather_samples
@@ -299,6 +300,11 @@ def main(argv: list[str] | None = None) -> int:
         constants[seg] = np.concatenate(vals).mean(0) if vals else np.zeros(3, np.float32)
     per_region = {}
     for seg in range(len(export["models"])):
+        # the region's pixels whose normal the segment's capture did not show it at (damcap export's unobserved_normals)
+        hist = recorded_normal_histogram(load_dam(export["models"][seg])[1])
+        observed = (None if hist is None else
+                    [observed_directions(hist)[direction_bins(b.normal_world, len(hist))] for b in buffers])
+        abs_err = {True: [], False: []}  # mean |export - truth| over RGB per pixel: observed, unobserved
         ours, base, floor, bound = [], [], [], []
         transfer: dict[str, list[float]] = {key: [] for key in transfer_frames}
         sums = {"truth": 0.0, "export": 0.0, **{key: 0.0 for key in transfer_frames}}  # summed radiance on the scored pixels
@@ -315,6 +321,10 @@ def main(argv: list[str] | None = None) -> int:
                 for key, tf in transfer_frames.items():
                     sums[key] += float(tf[k][mask].sum())
                     transfer[key].append(region_scores(truth[k], tf[k], mask, constants[seg])[0])
+                if observed is not None:
+                    err = np.abs(rad - truth[k]).mean(-1)
+                    for flag in (True, False):
+                        abs_err[flag].append(err[mask & (observed[k] == flag)])
         per_region[f"segment {seg}"] = {"material": names[seg_material[seg]], "purity": purity[seg], "frames": len(ours),
                                         "export": statistics.mean(ours) if ours else None, "constant": statistics.mean(base) if base else None,
                                         "noise_floor": statistics.mean(floor) if floor else None,
@@ -322,6 +332,11 @@ def main(argv: list[str] | None = None) -> int:
                                         **{key: statistics.mean(v) if v else None for key, v in transfer.items()}}
         if ours:
             per_region[f"segment {seg}"]["brightness"] = sums["export"] / sums["truth"]
+            if observed is not None:
+                e_obs, e_not = np.concatenate(abs_err[True]), np.concatenate(abs_err[False])
+                per_region[f"segment {seg}"]["unobserved_share"] = len(e_not) / max(len(e_obs) + len(e_not), 1)
+                per_region[f"segment {seg}"]["abs_error_observed"] = float(e_obs.mean()) if len(e_obs) else None
+                per_region[f"segment {seg}"]["abs_error_unobserved"] = float(e_not.mean()) if len(e_not) else None
             per_region[f"segment {seg}"]["ratio"] = statistics.mean(ours) / statistics.mean(base)
             per_region[f"segment {seg}"]["best_dam_ratio"] = statistics.mean(bound) / statistics.mean(base)
             for key, v in transfer.items():
@@ -390,6 +405,17 @@ def write_markdown(res: dict, path: Path) -> None:
         lines.append(f"| {name} | {d['material']} ({d['purity']:.0%}) | {d['frames']} | {d['export']:.4f} | {d['constant']:.4f} | "
                      f"x{d['ratio']:.2f} | {d['brightness']:.2f} | {d['noise_floor']:.4f} | {d['best_dam']:.4f} | x{d['best_dam_ratio']:.2f} |"
                      + "".join(f" {d[k]:.4f} | x{d[k + '_ratio']:.2f} | {d[k + '_brightness']:.2f} |" for k in keys))
+    rows = [(name, d) for name, d in res["per_region"].items() if d.get("unobserved_share") is not None]
+    if rows:
+        lines += ["", "Normals the capture did not show: the share of each region's scored pixels whose normal falls in a direction "
+                  "the segment's training pixels did not show that material at (`damcap export`'s *unobserved_normals*, "
+                  "appearance/coverage.py), and the export's mean absolute error against the truth (linear radiance, mean over RGB) "
+                  "on those pixels and on the others.", "",
+                  "| segment | its material | unobserved | mean abs error: observed | unobserved | ratio |", "|---|---|---:|---:|---:|---:|"]
+        for name, d in rows:
+            o, u = d["abs_error_observed"], d["abs_error_unobserved"]
+            lines.append(f"| {name} | {d['material']} | {d['unobserved_share']:.1%} | " + (f"{o:.4f}" if o is not None else "") + " | "
+                         + (f"{u:.4f}" if u is not None else "") + " | " + (f"x{u / o:.1f}" if o and u is not None else "") + " |")
     lines += ["", f"Whole torus: export DSSIM {res['whole_object_export_dssim']:.4f}.", "",
               "`export_truth.png`: the first frame, truth | export | constant colours."]
     path.write_text("\n".join(lines) + "\n")

@@ -59,6 +59,7 @@ def fit(
     given: frozenset[str],
 ) -> None:
     """Fit a deep appearance map to a capture (L1 or quantile data cost, optional adversarial cost)."""
+    from damcap.appearance.coverage import training_normal_histogram
     from damcap.appearance.dam_file import save_dam
     from damcap.appearance.fit import adversarial_frames, fit_dam, holdout_frames
     from damcap.appearance.normal_fit import choose_normal_refine
@@ -102,7 +103,7 @@ def fit(
         "split": split, "frames": [v.name for v in views], "pixels": len(samples), "best_step": result.best_step,
         "train_l1": last.get("train_l1"), "holdout_l1": last.get("holdout_l1"), "seconds": result.seconds,
         "history": result.history, "normal_refine": normals.record(), "spatial": spatial.record(),
-    }, up_world=cap.up_world)
+    }, up_world=cap.up_world, normal_histogram=training_normal_histogram(samples))
     ckpt.unlink(missing_ok=True)  # only now that the model is saved
     typer.echo(f"wrote {output} ({result.model.arch.num_weights} weights, {len(samples)} pixels, "
                f"best step {result.best_step}, {result.seconds:.1f} s)")
@@ -136,8 +137,10 @@ def _fit_to_target(capture: Path, cap, views, split: str, target: float, opts, o
     """
     from dataclasses import asdict
 
+    from damcap.appearance.coverage import training_normal_histogram
     from damcap.appearance.dam_file import save_dam
     from damcap.appearance.model_size import fit_to_target, remove_target_checkpoints, target_checkpoint_files
+    from damcap.appearance.views import samples_of
     from damcap.common.version import damcap_version
 
     if width_or_depth_given:
@@ -161,7 +164,7 @@ def _fit_to_target(capture: Path, cap, views, split: str, target: float, opts, o
     save_dam(output, choice.model, colorspace=cap.colorspace, made_by="fit", provenance={
         "damcap_version": damcap_version(), "options": asdict(opts), "capture": str(capture.resolve()), "split": split,
         "frames": [v.name for v in views], "target_dssim": target, "target_reached": choice.reached, "sizes_tried": choice.tried,
-    }, up_world=cap.up_world)
+    }, up_world=cap.up_world, normal_histogram=training_normal_histogram(samples_of(views)))
     n = choice.model.arch.num_weights
     err = next(t["heldout_dssim"] for t in choice.tried if t["width"] == choice.width and t["depth"] == choice.depth)
     if choice.reached:

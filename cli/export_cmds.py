@@ -252,7 +252,8 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
     from damcap.common.exr import write_exr, write_png
     from damcap.common.version import damcap_version
     from damcap.common.colour import display_srgb8, exposure_scale_for
-    from damcap.appearance.dam_file import recorded_up
+    from damcap.appearance.coverage import direction_bins
+    from damcap.appearance.dam_file import recorded_normal_histogram, recorded_up
     from damcap.export.turntable import orbit_intrinsics, orbit_up, render_orbit, shape_and_parts
 
     opts.validate()
@@ -269,6 +270,8 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
     (output / "frames").mkdir(parents=True, exist_ok=True)
     (output / "display").mkdir(parents=True, exist_ok=True)
     writer, tmp_video, scale, cams = None, None, None, []
+    histograms = [recorded_normal_histogram(m) for m in metas]  # each model's training normals (None: not recorded)
+    shown = {len(h): np.zeros((len(dams), len(h))) for h in histograms if h is not None}  # the shape's normals per model, per bin count
     video_ctx = atomic_path(output / "turntable.mp4") if video else None
     try:
         if video_ctx is not None:
@@ -285,6 +288,9 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
             if writer is not None:
                 writer.write(png)
             cams.append(m.tolist())
+            fg = (buf.coverage > 0.5) & (buf.triangle_id >= 0)
+            for k_bins, counts in shown.items():
+                np.add.at(counts, (part[buf.triangle_id[fg]], direction_bins(buf.normal_world[fg], k_bins)), 1)
         if writer is not None:
             writer.close()
             writer = None
@@ -295,6 +301,7 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
             writer.close()
         if video_ctx is not None:
             video_ctx.__exit__(RuntimeError, RuntimeError("aborted"), None)
+    unobserved = _unobserved_normals(model_paths, histograms, shown, mesh_path)
     write_json_atomic(output / "export.json", {
         "damcap_version": damcap_version(), "models": [str(p.resolve()) for p in model_paths],
         "mesh": str(mesh_path.resolve()), "labels": str(labels.resolve()) if labels else None,
@@ -307,7 +314,25 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
                            "render_from_mesh": [[1 / radius, 0, 0, -centre[0] / radius], [0, 1 / radius, 0, -centre[1] / radius],
                                                 [0, 0, 1 / radius, -centre[2] / radius], [0, 0, 0, 1]]},
         "intrinsics": dict(zip(("fl_x", "fl_y", "cx", "cy", "w", "h"), orbit_intrinsics(opts))),
+        # per model: the share of its pixels in these frames whose normal its capture never showed it (None: not recorded)
+        "unobserved_normals": unobserved,
     })
+
+
+def _unobserved_normals(model_paths, histograms, shown, mesh_path: Path) -> list[dict]:
+    """Per model, the share of its pixels in the frames that face directions its training normals
+    did not observe (:func:`damcap.appearance.coverage.unobserved_share`); warns above
+    ``UNOBSERVED_WARNING``."""
+    from damcap.appearance.coverage import UNOBSERVED_WARNING, unobserved_share
+
+    out = []
+    for i, (path, h) in enumerate(zip(model_paths, histograms)):
+        share = None if h is None else unobserved_share(h, shown[len(h)][i])
+        out.append({"model": str(Path(path).resolve()), "share": share})
+        if share is not None and share > UNOBSERVED_WARNING:
+            typer.echo(f"warning: {path}: {share:.0%} of its pixels on {mesh_path.name} face normals its capture never showed this "
+                       "material at; its appearance there is extrapolated, not measured (export.json 'unobserved_normals')", err=True)
+    return out
 
 
 @command(cam="damcap.export.viewer:ViewerCamera")

@@ -112,6 +112,7 @@ def predict(
     milliseconds, say how well it re-synthesises the train views (and whether to refine),
     optionally refine it."""
     from damcap.appearance.dam_file import save_dam
+    from damcap.appearance.coverage import training_normal_histogram
     from damcap.appearance.fit import refine_dam
     from damcap.appearance.hyper.model import predict_dam, predictor_inputs
     from damcap.appearance.hyper.file import load_predictor, predictor_path
@@ -168,6 +169,7 @@ def predict(
         after = resynthesis_error(model, train_views, samples)
         record.update(train_dssim_refined=after.dssim, train_l1_refined=after.l1)
         extra += f": train DSSIM {err.dssim:.4f} -> {after.dssim:.4f}, L1 {err.l1:.4f} -> {after.l1:.4f}"
-    save_dam(output, model, colorspace=cap.colorspace, made_by="predict", provenance=record, up_world=cap.up_world)
+    save_dam(output, model, colorspace=cap.colorspace, made_by="predict", provenance=record, up_world=cap.up_world,
+             normal_histogram=training_normal_histogram(samples))
     source = frame.file_path if len(frames) == 1 else f"{len(frames)} views ({', '.join(f.name for f in frames)})"
     typer.echo(f"wrote {output} (predicted from {source} in {1000 * predict_s:.0f} ms{extra})")

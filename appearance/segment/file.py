@@ -25,7 +25,9 @@ from damcap.common.exr import read_exr_channels, write_exr, write_png
 from damcap.common.validate import (MAX_CHANNELS, MAX_IMAGE_SIDE, MAX_MATERIALS, bounded_int, finite_in, load_json_file,
                                     loads_json)
 
+from damcap.appearance.coverage import normal_histogram
 from damcap.appearance.dam_file import load_dam, read_safetensors_metadata, save_dam
+from damcap.appearance.pixels import FOREGROUND_COVERAGE
 from damcap.appearance.segment.model import SegmentationModel, SegmentationNet
 from damcap.appearance.segment.preview import false_colour
 from damcap.appearance.views import ViewData
@@ -37,15 +39,16 @@ SEGMENT_FORMAT_VERSION = 1
 
 
 def save_segmentation(folder: str | os.PathLike, model: SegmentationModel, *, colorspace: str, provenance: dict[str, Any],
-                      up_world: np.ndarray | None = None) -> list[Path]:
-    """Write the n DAMs and the segmenter (``up_world``: the capture's, recorded in each DAM); returns the DAM paths."""
+                      up_world: np.ndarray | None = None, normal_histograms: list[np.ndarray] | None = None) -> list[Path]:
+    """Write the n DAMs and the segmenter (``up_world``: the capture's, recorded in each DAM;
+    ``normal_histograms``: per material, its training normals' histogram); returns the DAM paths."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
     for k, dam in enumerate(model.dams):
         p = folder / f"material_{k}.dam"
         save_dam(p, dam, colorspace=colorspace, made_by="segment", provenance={**provenance, "material": k, "materials": model.materials},
-                 up_world=up_world)
+                 up_world=up_world, normal_histogram=normal_histograms[k] if normal_histograms is not None else None)
         paths.append(p)
     tensors = {f"psi.{k}": v.detach().cpu().contiguous() for k, v in model.psi.state_dict().items()}
     tensors["points_world"] = torch.from_numpy(np.ascontiguousarray(model.points_world))
@@ -71,9 +74,15 @@ def save_segmentation_folder(folder: str | os.PathLike, model: SegmentationModel
         views: the training views, in the order of ``names`` (one output name each).
     """
     folder = Path(folder)
-    save_segmentation(folder, model, colorspace=colorspace, provenance=provenance, up_world=up_world)
-    for v, name in zip(views, names):
-        w = model.weights_of(v)
+    weights = [model.weights_of(v) for v in views]  # (H, W, n) each
+    fg = [v.data.coverage > FOREGROUND_COVERAGE for v in views]
+    normals = np.concatenate([v.data.normal_world[m] for v, m in zip(views, fg)])
+    # each pixel counts for the material it is assigned to: the soft weights' tails would mark
+    # directions as shown that only other materials' pixels show
+    label = np.concatenate([w[m].argmax(-1) for w, m in zip(weights, fg)])
+    histograms = [normal_histogram(normals, (label == k).astype(np.float64)) for k in range(model.materials)]
+    save_segmentation(folder, model, colorspace=colorspace, provenance=provenance, up_world=up_world, normal_histograms=histograms)
+    for v, name, w in zip(views, names, weights):
         write_exr(folder / WEIGHTS_FOLDER / f"{name}.exr", w, weight_channels(model.materials), dtype="half")
         write_png(folder / "preview" / f"{name}.png", false_colour(w, v.data.coverage))
     write_json_atomic(folder / SUMMARY_FILE, {**provenance, **summary, "materials": model.materials,

@@ -253,3 +253,27 @@ def test_up_direction_is_recorded_and_checked(tmp_path):
         (tmp_path / f"{name}.dam").write_bytes(st_save({"weights": m.get_flat_weights()}, metadata={"damcap": json.dumps(meta)}))
         with pytest.raises(DamcapError, match=f"{name}.dam: metadata 'up_world' must be 3 finite numbers"):
             load_dam(tmp_path / f"{name}.dam")
+
+
+def test_the_training_normals_histogram_round_trips_and_a_bad_one_is_refused(tmp_path):
+    """save_dam records normal_histogram as metadata (the format version unchanged: it does not
+    change how the model renders); load_dam refuses one that is not a list of finite non-negative
+    numbers, naming the file."""
+    import numpy as np
+
+    from damcap.appearance.coverage import normal_histogram
+    from damcap.appearance.dam_file import recorded_normal_histogram
+
+    m = DeepAppearanceMap(DamArchitecture(width=8, depth=2))
+    hist = normal_histogram(np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]), np.array([2.0, 0.5]))
+    save_dam(tmp_path / "h.dam", m, colorspace="lin_rec709", made_by="fit", normal_histogram=hist)
+    _, meta = load_dam(tmp_path / "h.dam")
+    np.testing.assert_array_equal(recorded_normal_histogram(meta), hist)
+    assert meta["format_version"] == 1 and recorded_normal_histogram(meta).sum() == 2.5
+    save_dam(tmp_path / "none.dam", m, colorspace="lin_rec709", made_by="fit")
+    assert recorded_normal_histogram(load_dam(tmp_path / "none.dam")[1]) is None
+    for name, h in {"negative": [1.0, -1.0], "empty": [], "text": ["1"], "inf": [1e400], "object": {"a": 1}}.items():
+        meta = {"format_version": 1, "architecture": m.arch.to_json(), "radiance_scale": 1.0, "normal_histogram": h}
+        (tmp_path / f"{name}.dam").write_bytes(st_save({"weights": m.get_flat_weights()}, metadata={"damcap": json.dumps(meta)}))
+        with pytest.raises(DamcapError, match=f"{name}.dam: metadata 'normal_histogram' must be a list of finite non-negative numbers"):
+            load_dam(tmp_path / f"{name}.dam")

@@ -43,6 +43,22 @@ def test_fit_render_evaluate_end_to_end(small_capture, fitted, tmp_path, capsys)
     assert tree_digest(small_capture) == before
 
 
+def test_fit_records_the_normals_it_was_trained_on(small_capture, fitted):
+    """The .dam records the histogram of its training pixels' normals, weighted by coverage: the
+    train views' covered pixels, all of them."""
+    import numpy as np
+
+    from damcap.appearance.coverage import training_normal_histogram
+    from damcap.appearance.dam_file import load_dam, recorded_normal_histogram
+    from damcap.appearance.views import load_views, samples_of
+    from damcap.common.capture_folder import read_capture
+
+    samples = samples_of(load_views(read_capture(small_capture), "train"))
+    hist = recorded_normal_histogram(load_dam(fitted)[1])
+    np.testing.assert_allclose(hist, training_normal_histogram(samples))
+    assert hist.sum() == pytest.approx(float(samples.weight.sum()), rel=1e-6) and (hist > 0).sum() > 10
+
+
 def test_missing_folder(tmp_path, capsys):
     for cmd in (["inspect", tmp_path / "nope"], ["fit", tmp_path / "nope", "-o", tmp_path / "m.dam"],
                 ["evaluate", tmp_path / "nope"]):

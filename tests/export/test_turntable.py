@@ -224,3 +224,35 @@ def test_orbit_turns_about_the_captures_recorded_up(model_file, bunny, tmp_path,
     assert rec["up_world"] == [0.0, 0.0, 1.0] and "disagree about up" in err
     code, _, err = run_cli(["export", tmp_path / "z.dam", *common, "--up", "sideways", "-o", tmp_path / "bad"], capsys)
     assert_one_line_error(code, err, "--up", "sideways")
+
+
+def test_export_says_how_much_of_the_shape_faces_normals_the_capture_never_showed(model_file, tmp_path, capsys):
+    """A model trained on upward normals only (its recorded histogram: the upper hemisphere),
+    exported on a sphere seen from the equator: about half of its pixels face down, export.json
+    records that share and stderr warns, naming the model; seen from high above, almost none
+    and no warning; a model recording no histogram gets None and no warning."""
+    from damcap.appearance.coverage import normal_histogram
+    from damcap.appearance.dam_file import load_dam
+    from tests.conftest import run_cli
+
+    dam, _ = load_dam(model_file)
+    d = np.random.default_rng(0).normal(size=(50_000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    save_dam(tmp_path / "upper.dam", dam, colorspace="lin_rec709", made_by="fit", normal_histogram=normal_histogram(d[d[:, 1] > 0]),
+             up_world=np.array([0.0, 1.0, 0.0]))
+    save_dam(tmp_path / "none.dam", dam, colorspace="lin_rec709", made_by="fit", up_world=np.array([0.0, 1.0, 0.0]))
+    assert main(["shape", "sphere", str(tmp_path / "sphere.obj")]) == 0
+
+    def export(model, elevation):
+        code, _, err = run_cli(["export", tmp_path / model, "--mesh", tmp_path / "sphere.obj", "--views", "4", "--resolution", "48",
+                                "--elevation", elevation, "-o", tmp_path / f"{model}{elevation}"], capsys)
+        assert code == 0, err
+        return json.loads((tmp_path / f"{model}{elevation}" / "export.json").read_text())["unobserved_normals"], err
+
+    (rec,), err = export("upper.dam", "0")
+    assert rec["model"].endswith("upper.dam") and 0.3 < rec["share"] < 0.5  # the lower half less the bins on the equator
+    assert "warning:" in err and "upper.dam" in err and "extrapolated" in err
+    (rec,), err = export("upper.dam", "80")
+    assert rec["share"] < 0.05 and "warning" not in err
+    (rec,), err = export("none.dam", "0")
+    assert rec["share"] is None and "warning" not in err

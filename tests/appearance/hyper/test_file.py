@@ -56,6 +56,7 @@ def test_shipped_predictor_predicts_the_heldout_sample(tmp_path):
     assert main(["predict", str(sample), "-o", str(out)]) == 0
     dam, meta = load_dam(out)
     assert meta["made_by"] == "predict" and meta["provenance"]["predict_seconds"] < 1.0
+    assert meta["normal_histogram"] and sum(meta["normal_histogram"]) > 0  # the train views' normals, for export's check
     from damcap.appearance.evaluate import evaluate_split
 
     cap = read_capture(sample)

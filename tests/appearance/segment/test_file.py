@@ -23,6 +23,14 @@ def test_segment_command_writes_everything(two_materials, tmp_path, capsys):
     assert (out / "preview" / f"{train[0].name}.png").is_file()
     meta = json.loads((out / "segment.json").read_text())
     assert meta["materials"] == 2 and meta["options"]["seed"] == 0
+    # each DAM records the normals of the training pixels assigned to it: together, every foreground pixel once
+    from damcap.appearance.coverage import normal_histogram
+    from damcap.appearance.dam_file import load_dam, recorded_normal_histogram
+
+    hists = [recorded_normal_histogram(load_dam(out / f"material_{k}.dam")[1]) for k in range(2)]
+    every = normal_histogram(np.concatenate([v.data.normal_world[v.data.coverage > 0.5] for v in train]))
+    np.testing.assert_array_equal(hists[0] + hists[1], every)
+    assert min(h.sum() for h in hists) > 0.1 * every.sum()  # both materials hold pixels
     capsys.readouterr()
     assert main(["evaluate", str(path), "--segmentation", str(out), "--json", str(tmp_path / "e.json")]) == 0
     res = json.loads((tmp_path / "e.json").read_text())["results"]["test"]

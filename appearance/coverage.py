@@ -8,11 +8,12 @@ the share of each material's pixels whose normal falls in a direction the captur
 (:func:`unobserved_share`) and warns when it is large.
 
 Measured on ``make demo``'s segmentation (16 train views, 256 directions, each training pixel
-counted for the material it is assigned to), against the path-traced truth of its torus
-(bench/export_truth.md): 15 % of the torus's aluminium pixels face directions the capture did not
-show aluminium at, and their mean absolute error is 2.8x that of the others (0.42 against 0.15;
-a third of the region's error); with ``segment --seed 1`` 15 % and 3.1x. Gold's and red
-plastic's unobserved shares are 2 % and 1 %. (A throwaway script, 2026-11-27.)
+counted for the material it is assigned to) against the path-traced truth of its torus
+(bench/export_truth.md, *normals the capture did not show*): 15 % of the torus's aluminium pixels
+face directions the capture did not show aluminium at, and their mean absolute error is 2.8x
+that of the others (0.42 against 0.15; a third of the region's error); gold's and red plastic's
+shares are 2 % and 1 %. With ``segment --seed 1`` aluminium's share was 15 % again and its error
+3.1x (a throwaway script, 2026-11-27).
 """
 
 from __future__ import annotations
@@ -50,14 +51,18 @@ def fibonacci_directions(k: int) -> np.ndarray:
     return np.stack([np.cos(azimuth) * np.sin(polar), np.cos(polar), np.sin(azimuth) * np.sin(polar)], 1)
 
 
-def direction_bins(direction_world: np.ndarray, k: int = NORMAL_BINS) -> np.ndarray:
+def direction_bins(direction_world: np.ndarray, k: int = NORMAL_BINS, chunk: int = 1 << 15) -> np.ndarray:
     """(...,) int64 index of the lattice direction nearest to each of (..., 3) unit vectors.
 
     >>> direction_bins(fibonacci_directions(16)[[3, 7]], 16).tolist()
     [3, 7]
     """
     d = np.asarray(direction_world, np.float64)
-    return np.argmax(d.reshape(-1, 3) @ fibonacci_directions(k).T, 1).reshape(d.shape[:-1])
+    flat, lattice = d.reshape(-1, 3), fibonacci_directions(k).T
+    out = np.empty(len(flat), np.int64)
+    for s in range(0, len(flat), chunk):  # (chunk, k) scores at a time: a capture's pixels would need gigabytes at once
+        out[s:s + chunk] = np.argmax(flat[s:s + chunk] @ lattice, 1)
+    return out.reshape(d.shape[:-1])
 
 
 def normal_histogram(normal_world: np.ndarray, weight: np.ndarray | None = None, k: int = NORMAL_BINS) -> np.ndarray:

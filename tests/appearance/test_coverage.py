@@ -18,6 +18,8 @@ def test_lattice_directions_fall_in_their_own_bins_and_bins_are_about_equal_area
     d = fibonacci_directions(NORMAL_BINS)
     np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0)
     assert direction_bins(d).tolist() == list(range(NORMAL_BINS))
+    many = _uniform_sphere(1000).reshape(10, 100, 3)
+    np.testing.assert_array_equal(direction_bins(many, chunk=7), np.argmax(many @ d.T, -1))  # in chunks as at once, any shape
     # uniform normals land about evenly: each bin within 40 % of the uniform share (4 * pi / k of solid angle each)
     counts = normal_histogram(_uniform_sphere(200_000))
     assert counts.sum() == 200_000 and 0.6 < counts.min() / counts.mean() and counts.max() / counts.mean() < 1.4

@@ -103,19 +103,24 @@ def export(
 
 
 def _export_matcap(dam, meta: dict, model_path: Path, output: Path, orbit: OrbitOptions) -> None:
-    from damcap.appearance.dam_file import recorded_up
+    from damcap.appearance.coverage import normal_histogram
+    from damcap.appearance.dam_file import recorded_normal_histogram, recorded_up
     from damcap.common.atomic import write_json_atomic
     from damcap.common.cameras import orbit_world_from_cam
     from damcap.common.capture_folder import RADIANCE_CHANNELS
     from damcap.common.colour import display_srgb8, exposure_scale_for
     from damcap.common.exr import write_exr, write_png
-    from damcap.export.matcap import render_matcap
+    from damcap.export.matcap import matcap_normals, render_matcap
     from damcap.export.turntable import orbit_up
 
     orbit.validate()
     up, up_source, _ = orbit_up(orbit.up, [recorded_up(meta)])
     cam = orbit_world_from_cam(1, orbit.distance, orbit.elevation_deg, orbit.azimuth0_deg, up)[0]
     rad, cover = render_matcap(dam, orbit.resolution, cam)
+    n_cam, inside = matcap_normals(orbit.resolution)
+    hist = recorded_normal_histogram(meta)
+    (unobserved,) = _unobserved_normals([model_path], [hist], [None if hist is None else normal_histogram(n_cam[inside] @ cam[:3, :3].T, k=len(hist))],
+                                        "of the matcap's pixels", "matcap.json 'unobserved_normals'")
     scale = exposure_scale_for(rad, cover > 0.5)
     write_exr(output / "matcap.exr", np.concatenate([rad, cover[..., None]], -1), RADIANCE_CHANNELS + ("A",), dtype="float")
     write_png(output / "matcap.png", np.concatenate([display_srgb8(rad, scale), np.round(cover * 255).astype(np.uint8)[..., None]], -1))
@@ -123,7 +128,9 @@ def _export_matcap(dam, meta: dict, model_path: Path, output: Path, orbit: Orbit
         "model": str(model_path.resolve()), "resolution": orbit.resolution, "exposure_scale": scale,
         # the one view the matcap is exact for: pixels look back along view_dir_world
         "view_dir_world": cam[:3, 2].tolist(), "world_from_cam": cam.tolist(), "up_world": up.tolist(), "up_source": up_source,
-        "projection": "orthographic: pixel (x, y) of the unit disk shows camera-space normal (x, y, sqrt(1 - x^2 - y^2))"})
+        "projection": "orthographic: pixel (x, y) of the unit disk shows camera-space normal (x, y, sqrt(1 - x^2 - y^2))",
+        # the share of the disk's pixels whose normal the model's capture never showed it (None: not recorded)
+        "unobserved_normals": unobserved["share"]})
 
 
 def _first_view_exposure(dams, shape, part, orbit: OrbitOptions, up) -> float:
@@ -140,7 +147,8 @@ def _first_view_exposure(dams, shape, part, orbit: OrbitOptions, up) -> float:
 
 
 def _export_glb(dams, metas, model_paths, mesh_path: Path, labels, path: Path, orbit: OrbitOptions, min_triangles: int) -> None:
-    from damcap.appearance.dam_file import recorded_up
+    from damcap.appearance.coverage import normal_histogram
+    from damcap.appearance.dam_file import recorded_normal_histogram, recorded_up
     from damcap.common.atomic import atomic_path
     from damcap.common.cameras import orbit_world_from_cam
     from damcap.export.gltf import glb_bytes, gltf_from_world, split_parts, subdivide_midpoint, vertex_radiance
@@ -158,12 +166,16 @@ def _export_glb(dams, metas, model_paths, mesh_path: Path, labels, path: Path, o
         shape, part = subdivide_midpoint(shape, part)
     parts = split_parts(shape, part, len(dams))
     colours = [vertex_radiance(d, p.positions, p.normals, cam[:3, 3]) * scale for d, p in zip(dams, parts)]
+    histograms = [recorded_normal_histogram(m) for m in metas]
+    unobserved = _unobserved_normals(model_paths, histograms, [None if h is None else normal_histogram(p.normals, k=len(h))
+                                                               for h, p in zip(histograms, parts)],
+                                     f"of its vertices on {mesh_path.name}", "the GLB's extras 'unobserved_normals'")
     values = np.concatenate([c.ravel() for c in colours])
     clipped = float((values > 1.0).mean()) if values.size else 0.0
     extras = {"damcap": {
         "what": "linear radiance of the DAM(s) seen from the camera 'baked_view', times exposure_scale, clipped to [0, 1], per vertex",
         "models": [str(m.resolve()) for m in model_paths], "mesh": str(mesh_path.resolve()), "exposure_scale": scale,
-        "clipped_fraction": clipped, "up_world": up.tolist(), "up_source": up_source,
+        "clipped_fraction": clipped, "up_world": up.tolist(), "up_source": up_source, "unobserved_normals": unobserved,
         "triangles": {"mesh": given, "baked": len(shape.triangles), "subdivided_to_at_least": min_triangles},
         "view": {"elevation_deg": orbit.elevation_deg, "azimuth_deg": orbit.azimuth0_deg, "distance": orbit.distance,
                  "fov_deg": orbit.fov_deg},
@@ -301,7 +313,8 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
             writer.close()
         if video_ctx is not None:
             video_ctx.__exit__(RuntimeError, RuntimeError("aborted"), None)
-    unobserved = _unobserved_normals(model_paths, histograms, shown, mesh_path)
+    unobserved = _unobserved_normals(model_paths, histograms, [None if h is None else shown[len(h)][i] for i, h in enumerate(histograms)],
+                                     f"of its pixels on {mesh_path.name}", "export.json 'unobserved_normals'")
     write_json_atomic(output / "export.json", {
         "damcap_version": damcap_version(), "models": [str(p.resolve()) for p in model_paths],
         "mesh": str(mesh_path.resolve()), "labels": str(labels.resolve()) if labels else None,
@@ -319,19 +332,26 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
     })
 
 
-def _unobserved_normals(model_paths, histograms, shown, mesh_path: Path) -> list[dict]:
-    """Per model, the share of its pixels in the frames that face directions its training normals
-    did not observe (:func:`damcap.appearance.coverage.unobserved_share`); warns above
-    ``UNOBSERVED_WARNING``."""
+def _unobserved_normals(model_paths, histograms, shown, what: str, record: str) -> list[dict]:
+    """Per model, the share of what the export shows of it that faces directions its training
+    normals did not observe (:func:`damcap.appearance.coverage.unobserved_share`); warns above
+    ``UNOBSERVED_WARNING``.
+
+    Args:
+        histograms: per model, its recorded training-normal histogram (None: not recorded).
+        shown: per model, the histogram of the normals the export shows of it (same directions).
+        what: what was counted, for the warning ("of its pixels on torus.obj").
+        record: where the shares are written, for the warning.
+    """
     from damcap.appearance.coverage import UNOBSERVED_WARNING, unobserved_share
 
     out = []
-    for i, (path, h) in enumerate(zip(model_paths, histograms)):
-        share = None if h is None else unobserved_share(h, shown[len(h)][i])
+    for path, h, seen in zip(model_paths, histograms, shown):
+        share = None if h is None else unobserved_share(h, seen)
         out.append({"model": str(Path(path).resolve()), "share": share})
         if share is not None and share > UNOBSERVED_WARNING:
-            typer.echo(f"warning: {path}: {share:.0%} of its pixels on {mesh_path.name} face normals its capture never showed this "
-                       "material at; its appearance there is extrapolated, not measured (export.json 'unobserved_normals')", err=True)
+            typer.echo(f"warning: {path}: {share:.0%} {what} face normals its capture never showed this material at; its appearance "
+                       f"there is extrapolated, not measured ({record})", err=True)
     return out
 
 

@@ -230,7 +230,8 @@ def test_export_says_how_much_of_the_shape_faces_normals_the_capture_never_showe
     """A model trained on upward normals only (its recorded histogram: the upper hemisphere),
     exported on a sphere seen from the equator: about half of its pixels face down, export.json
     records that share and stderr warns, naming the model; seen from high above, almost none
-    and no warning; a model recording no histogram gets None and no warning."""
+    and no warning; a model recording no histogram gets None and no warning. The matcap and
+    the GLB record and warn the same way."""
     from damcap.appearance.coverage import normal_histogram
     from damcap.appearance.dam_file import load_dam
     from tests.conftest import run_cli
@@ -256,3 +257,14 @@ def test_export_says_how_much_of_the_shape_faces_normals_the_capture_never_showe
     assert rec["share"] < 0.05 and "warning" not in err
     (rec,), err = export("none.dam", "0")
     assert rec["share"] is None and "warning" not in err
+    # the matcap (a sphere seen from the side: its lower half faces down) and the GLB's baked vertices say the same
+    from damcap.export.gltf import read_glb
+
+    code, _, err = run_cli(["export", tmp_path / "upper.dam", "--format", "matcap", "--elevation", "0", "--resolution", "48",
+                            "-o", tmp_path / "matcap"], capsys)
+    assert code == 0 and "of the matcap's pixels" in err and "warning:" in err
+    assert 0.3 < json.loads((tmp_path / "matcap" / "matcap.json").read_text())["unobserved_normals"] < 0.5
+    code, _, err = run_cli(["export", tmp_path / "upper.dam", "--format", "glb", "--mesh", tmp_path / "sphere.obj",
+                            "-o", tmp_path / "s.glb"], capsys)
+    (rec,) = read_glb((tmp_path / "s.glb").read_bytes())[0]["asset"]["extras"]["damcap"]["unobserved_normals"]
+    assert code == 0 and "of its vertices on sphere.obj" in err and 0.3 < rec["share"] < 0.5

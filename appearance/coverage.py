@@ -73,8 +73,8 @@ def normal_histogram(normal_world: np.ndarray, weight: np.ndarray | None = None,
         weight: (N,) their weights (coverage, a material's share), None = 1 each.
         k: directions.
 
-    >>> normal_histogram(np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0]]), k=8).sum()
-    np.float64(2.0)
+    >>> float(normal_histogram(np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0]]), k=8).sum())
+    2.0
     """
     w = np.ones(len(normal_world)) if weight is None else np.asarray(weight, np.float64).reshape(-1)
     return np.bincount(direction_bins(np.asarray(normal_world).reshape(-1, 3), k), weights=w, minlength=k).astype(np.float64)

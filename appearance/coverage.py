@@ -97,6 +97,15 @@ def observed_directions(histogram: np.ndarray) -> np.ndarray:
     return h >= OBSERVED_SHARE * total / len(h) if total > 0 else np.zeros(len(h), bool)
 
 
+def observed_at(histogram: np.ndarray, normal_world: np.ndarray) -> np.ndarray:
+    """(...,) bool: whether each of (..., 3) unit normals falls in a direction the histogram observed.
+
+    >>> observed_at(normal_histogram(np.array([[0.0, 1.0, 0.0]]), k=64), np.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]])).tolist()
+    [True, False]
+    """
+    return observed_directions(histogram)[direction_bins(normal_world, len(histogram))]
+
+
 def unobserved_share(histogram: np.ndarray, shown: np.ndarray) -> float | None:
     """Share of a new shape's pixels whose normals fall in directions the model's training
     normals did not observe.

@@ -57,7 +57,7 @@ from pathlib import Path
 import numpy as np
 
 from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
-from damcap.appearance.coverage import direction_bins, observed_directions
+from damcap.appearance.coverage import observed_at
 from damcap.appearance.dam_file import load_dam, recorded_normal_histogram
 from damcap.appearance.fit import FitOptions, fit_dam
 from damcap.appearance.metrics import dssim
@@ -274,7 +274,8 @@ def main(argv: list[str] | None = None) -> int:
                     for seg in range(len(export["models"]))}
     # the best a DAM of the export's architecture can do on these frames: fitted to the truth itself
     t = time.perf_counter()
-    first_export_dam = load_dam(export["models"][0])[0]
+    export_models = [load_dam(p) for p in export["models"]]  # (model, metadata) each
+    first_export_dam = export_models[0][0]
     arch = first_export_dam.arch
     best = [best_dam_on_truth(list(truth), region_masks[seg], buffers, [m[:3, 3] for m in cams], arch) for seg in range(len(export["models"]))]
     any_dam = next((d for d in best if d is not None), first_export_dam)  # draws regions no frame shows (never scored)
@@ -301,9 +302,8 @@ def main(argv: list[str] | None = None) -> int:
     per_region = {}
     for seg in range(len(export["models"])):
         # the region's pixels whose normal the segment's capture did not show it at (damcap export's unobserved_normals)
-        hist = recorded_normal_histogram(load_dam(export["models"][seg])[1])
-        observed = (None if hist is None else
-                    [observed_directions(hist)[direction_bins(b.normal_world, len(hist))] for b in buffers])
+        hist = recorded_normal_histogram(export_models[seg][1])
+        observed = None if hist is None else [observed_at(hist, b.normal_world) for b in buffers]
         abs_err = {True: [], False: []}  # mean |export - truth| over RGB per pixel: observed, unobserved
         ours, base, floor, bound = [], [], [], []
         transfer: dict[str, list[float]] = {key: [] for key in transfer_frames}

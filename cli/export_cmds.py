@@ -110,17 +110,16 @@ def _export_matcap(dam, meta: dict, model_path: Path, output: Path, orbit: Orbit
     from damcap.common.capture_folder import RADIANCE_CHANNELS
     from damcap.common.colour import display_srgb8, exposure_scale_for
     from damcap.common.exr import write_exr, write_png
-    from damcap.export.matcap import matcap_normals, render_matcap
+    from damcap.export.matcap import matcap_normals_world, render_matcap
     from damcap.export.turntable import orbit_up
 
     orbit.validate()
     up, up_source, _ = orbit_up(orbit.up, [recorded_up(meta)])
     cam = orbit_world_from_cam(1, orbit.distance, orbit.elevation_deg, orbit.azimuth0_deg, up)[0]
     rad, cover = render_matcap(dam, orbit.resolution, cam)
-    n_cam, inside = matcap_normals(orbit.resolution)
     hist = recorded_normal_histogram(meta)
-    (unobserved,) = _unobserved_normals([model_path], [hist], [None if hist is None else normal_histogram(n_cam[inside] @ cam[:3, :3].T, k=len(hist))],
-                                        "of the matcap's pixels", "matcap.json 'unobserved_normals'")
+    shown = None if hist is None else normal_histogram(matcap_normals_world(orbit.resolution, cam)[0], k=len(hist))
+    (unobserved,) = _unobserved_normals([model_path], [hist], [shown], "of the matcap's pixels", "matcap.json 'unobserved_normals'")
     scale = exposure_scale_for(rad, cover > 0.5)
     write_exr(output / "matcap.exr", np.concatenate([rad, cover[..., None]], -1), RADIANCE_CHANNELS + ("A",), dtype="float")
     write_png(output / "matcap.png", np.concatenate([display_srgb8(rad, scale), np.round(cover * 255).astype(np.uint8)[..., None]], -1))
@@ -264,7 +263,7 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
     from damcap.common.exr import write_exr, write_png
     from damcap.common.version import damcap_version
     from damcap.common.colour import display_srgb8, exposure_scale_for
-    from damcap.appearance.coverage import direction_bins
+    from damcap.appearance.coverage import normal_histogram
     from damcap.appearance.dam_file import recorded_normal_histogram, recorded_up
     from damcap.export.turntable import orbit_intrinsics, orbit_up, render_orbit, shape_and_parts
 
@@ -283,7 +282,7 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
     (output / "display").mkdir(parents=True, exist_ok=True)
     writer, tmp_video, scale, cams = None, None, None, []
     histograms = [recorded_normal_histogram(m) for m in metas]  # each model's training normals (None: not recorded)
-    shown = {len(h): np.zeros((len(dams), len(h))) for h in histograms if h is not None}  # the shape's normals per model, per bin count
+    shown = [None if h is None else np.zeros(len(h)) for h in histograms]  # the normals the frames show of each model
     video_ctx = atomic_path(output / "turntable.mp4") if video else None
     try:
         if video_ctx is not None:
@@ -300,9 +299,10 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
             if writer is not None:
                 writer.write(png)
             cams.append(m.tolist())
-            fg = (buf.coverage > 0.5) & (buf.triangle_id >= 0)
-            for k_bins, counts in shown.items():
-                np.add.at(counts, (part[buf.triangle_id[fg]], direction_bins(buf.normal_world[fg], k_bins)), 1)
+            part_px = np.where((buf.coverage > 0.5) & (buf.triangle_id >= 0), part[np.maximum(buf.triangle_id, 0)], -1)
+            for i, counts in enumerate(shown):
+                if counts is not None:
+                    counts += normal_histogram(buf.normal_world[part_px == i], k=len(counts))
         if writer is not None:
             writer.close()
             writer = None
@@ -313,8 +313,7 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
             writer.close()
         if video_ctx is not None:
             video_ctx.__exit__(RuntimeError, RuntimeError("aborted"), None)
-    unobserved = _unobserved_normals(model_paths, histograms, [None if h is None else shown[len(h)][i] for i, h in enumerate(histograms)],
-                                     f"of its pixels on {mesh_path.name}", "export.json 'unobserved_normals'")
+    unobserved = _unobserved_normals(model_paths, histograms, shown, f"of its pixels on {mesh_path.name}", "export.json 'unobserved_normals'")
     write_json_atomic(output / "export.json", {
         "damcap_version": damcap_version(), "models": [str(p.resolve()) for p in model_paths],
         "mesh": str(mesh_path.resolve()), "labels": str(labels.resolve()) if labels else None,

@@ -39,6 +39,18 @@ def matcap_normals(size: int) -> tuple[np.ndarray, np.ndarray]:
     return n, inside
 
 
+def matcap_normals_world(size: int, world_from_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The world normals a matcap shows: (M, 3) float32, one per pixel inside the disk, and the
+    (size, size) bool disk (:func:`matcap_normals` turned by the camera's rotation).
+
+    >>> n, inside = matcap_normals_world(2, np.eye(4))
+    >>> n.shape, bool(inside.all())
+    ((4, 3), True)
+    """
+    n_cam, inside = matcap_normals(size)
+    return (n_cam[inside] @ np.asarray(world_from_cam, np.float64)[:3, :3].T).astype(np.float32), inside
+
+
 def render_matcap(model: DeepAppearanceMap, size: int, world_from_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The DAM's matcap seen by a camera (its rotation alone matters: the projection is orthographic).
 
@@ -51,10 +63,9 @@ def render_matcap(model: DeepAppearanceMap, size: int, world_from_cam: np.ndarra
         radiance_lin (size, size, 3) float32 (0 outside the disk) and coverage (size, size)
         float32 (1 inside, 0 outside).
     """
-    n_cam, inside = matcap_normals(size)
-    rot = np.asarray(world_from_cam, np.float64)[:3, :3]
-    n_world = (n_cam[inside] @ rot.T).astype(np.float32)
-    v_world = np.broadcast_to(rot[:, 2].astype(np.float32), n_world.shape).copy()  # every pixel looks back along the camera's +z
+    n_world, inside = matcap_normals_world(size, world_from_cam)
+    view = np.asarray(world_from_cam, np.float64)[:3, 2].astype(np.float32)
+    v_world = np.broadcast_to(view, n_world.shape).copy()  # every pixel looks back along the camera's +z
     out = np.zeros((size, size, 3), np.float32)
     with torch.no_grad():
         out[inside] = model(torch.from_numpy(v_world), torch.from_numpy(n_world)).numpy()

@@ -4,7 +4,9 @@ Novel-view DSSIM, side by side in one run, on held-out captures of kinds the pre
 saw: closed-form spheres and blobs (``damcap closed-form``) under a directional light and under
 the analytic sky, the held-out Mitsuba captures of a ``damcap synth-set`` corpus (shadows,
 interreflection, measured environment maps), and the real cape (the realworld bench's cached
-capture). Per capture: RM++, ``damcap fit`` (default options, timed), each predictor alone and
+capture). Per capture: RM++, ``damcap fit`` (default options, timed), each predictor alone, with
+its output layer solved on the train pixels (timed, as ``damcap predict`` without refinement;
+``--readout`` iteration counts, ``--readout-samples``) and
 each refined 100 / 300 steps (timed, as ``damcap predict --refine-steps K``; also at the learning
 rate that was the default before 2026-11-27, ``--compare-lr``) and with ``--refine-steps auto``. With
 ``--snapshots``: predict alone for each snapshot of the predictors' training runs (how
@@ -39,6 +41,7 @@ from damcap.appearance.fit import FitOptions, fit_dam, refine_dam
 from damcap.appearance.hyper.file import load_predictor
 from damcap.appearance.hyper.model import predict_dam, predictor_inputs
 from damcap.appearance.hyper.predict import PredictOptions, refine_auto
+from damcap.appearance.readout import solve_output_layer
 from damcap.appearance.views import load_views, samples_of
 from damcap.common.capture_folder import read_capture
 from damcap.paper.tables import heldout_entries
@@ -75,8 +78,21 @@ def refine_runs(name: str, refine_steps: list[int], compare_lr: tuple[float, ...
     return out + ([(f"{name} + auto", None, lr0)] if auto else [])
 
 
+def readout_runs(name: str, iterations: list[int], samples: list[int]) -> list[tuple[str, int, int]]:
+    """A predictor's rows with its output layer solved (``damcap predict`` without refinement):
+    (row name, iterations, samples). Rows at predict's own sample count are named by the
+    iterations alone.
+
+    >>> [r[0] for r in readout_runs("v1", [3], [PredictOptions.readout_samples, 16384])]
+    ['v1 readout 3', 'v1 readout 3 (16384 px)']
+    """
+    return [(f"{name} readout {k}" + ("" if n == PredictOptions.readout_samples else f" ({n} px)"), k, n)
+            for k in iterations for n in samples]
+
+
 def bench_capture(kind: str, path: Path, nets: dict[str, torch.nn.Module], refine_steps: list[int], snapshots: dict,
-                  fit: FitOptions = FitOptions(checkpoint_every=0), compare_lr: tuple[float, ...] = (), auto: bool = False) -> dict:
+                  fit: FitOptions = FitOptions(checkpoint_every=0), compare_lr: tuple[float, ...] = (), auto: bool = False,
+                  readout: tuple[list[int], list[int]] = ([], [])) -> dict:
     cap = read_capture(path)
     train, test = load_views(cap, "train"), load_views(cap, "test")
     samples = samples_of(train)
@@ -93,6 +109,13 @@ def bench_capture(kind: str, path: Path, nets: dict[str, torch.nn.Module], refin
             times.append(time.perf_counter() - t)
         models[name] = model
         rec["predict_ms"][name] = 1000 * statistics.median(times)
+        for key, k, n in readout_runs(name, *readout) if name in nets else []:
+            solve_times = []
+            for _ in range(5):
+                t = time.perf_counter()
+                models[key] = solve_output_layer(model, samples, k, n).model
+                solve_times.append(time.perf_counter() - t)
+            rec.setdefault("readout_ms", {})[key] = rec["predict_ms"][name] + 1000 * statistics.median(solve_times)
         for key, k, lr in refine_runs(name, refine_steps, compare_lr, auto) if name in nets else []:
             t = time.perf_counter()
             if k is None:
@@ -119,8 +142,8 @@ def summarise(per_capture: list[dict]) -> dict:
 
 
 def write_markdown(res: dict, path: Path) -> None:
-    nets, refined = res["predictors"], res["refined"]
-    cols = ["RM++", "fit"] + nets + refined
+    nets, refined, solved = res["predictors"], res["refined"], res.get("readout", [])
+    cols = ["RM++", "fit"] + nets + solved + refined
     lines = ["# The predictor on captures unlike its training set (issue 28)", "",
              f"Command (from the repository root): `{res['command']}`", "",
              f"Machine: {res['machine']['cpu_model']} ({res['machine']['nproc']} cores), torch {res['machine']['torch']} with {torch.get_num_threads()} threads; "
@@ -128,16 +151,18 @@ def write_markdown(res: dict, path: Path) -> None:
              "Novel-view DSSIM, mean over each kind's captures (ratio to `damcap fit` in brackets). "
              f"`+ K` = the prediction refined K steps (`damcap predict --refine-steps K`) at predict's learning rate "
              f"({res['refine_learning_rate']:g}); `(lr X)` at learning rate X instead; `+ auto` = `--refine-steps auto` "
-             "(the steps it chose are in the JSON).", "",
+             "(the steps it chose are in the JSON); `readout K` = the prediction with its output layer solved on the train "
+             "pixels, K iterations (`damcap predict --readout-iterations K`, the default without refinement).", "",
              "| kind | captures | " + " | ".join(cols) + " |", "|---|---:|" + "---:|" * len(cols)]
     for kind, s in res["summary"].items():
         fit = s["novel"]["fit"]
         cells = [f"{s['novel']['RM++']:.4f}", f"{fit:.4f}"] + [f"{s['novel'][c]:.4f} (x{s['novel'][c] / fit:.2f})" for c in cols[2:]]
         lines.append(f"| {kind} | {s['captures']} | " + " | ".join(cells) + " |")
-    lines += ["", "## Time (CPU)", "", "| capture | fit s | " + " | ".join(f"predict {n} ms" for n in nets) + " | "
-              + " | ".join(f"{c} s" for c in refined) + " |", "|---|---:|" + "---:|" * (len(nets) + len(refined))]
+    lines += ["", "## Time (CPU)", "", "| capture | fit s | " + " | ".join(f"predict {n} ms" for n in nets + solved) + " | "
+              + " | ".join(f"{c} s" for c in refined) + " |", "|---|---:|" + "---:|" * (len(nets) + len(solved) + len(refined))]
     for r in res["per_capture"]:
-        lines.append(f"| {Path(r['capture']).name} | {r['fit_seconds']:.1f} | " + " | ".join(f"{r['predict_ms'][n]:.0f}" for n in nets)
+        lines.append(f"| {Path(r['capture']).name} | {r['fit_seconds']:.1f} | "
+                     + " | ".join(f"{r['predict_ms'][n]:.0f}" for n in nets) + "".join(f" | {r['readout_ms'][c]:.0f}" for c in solved)
                      + " | " + " | ".join(f"{r['refine_seconds'][c]:.2f}" for c in refined) + " |")
     lines += ["", "## All captures", "", "| method | mean DSSIM | mean ratio to fit | captures below RM++ |", "|---|---:|---:|---:|"]
     n_caps = len(res["per_capture"])
@@ -174,6 +199,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--refine-steps", type=int, nargs="+", default=[100, 300])
     ap.add_argument("--compare-lr", type=float, nargs="*", default=[3e-3],
                     help="refined rows at these learning rates as well (predict's own: PredictOptions.refine_learning_rate)")
+    ap.add_argument("--readout", type=int, nargs="*", default=[PredictOptions.readout_iterations],
+                    help="rows with the output layer solved, at these iteration counts (predict's own: PredictOptions.readout_iterations)")
+    ap.add_argument("--readout-samples", type=int, nargs="+", default=[PredictOptions.readout_samples],
+                    help="... on at most this many train pixels (predict's own: PredictOptions.readout_samples)")
     ap.add_argument("--auto", action=argparse.BooleanOptionalAction, default=True, help="rows refined with --refine-steps auto")
     ap.add_argument("--closed-form", type=int, default=len(CLOSED_FORM), help="how many of the closed-form captures (smoke runs: fewer)")
     ap.add_argument("--res", type=int, default=128, help="closed-form captures' resolution (smoke runs: smaller)")
@@ -210,11 +239,14 @@ def main(argv: list[str] | None = None) -> int:
         log(f"{args.corpus}: no corpus; the Mitsuba kind is left out")
     captures += [("real (cape)", p) for p in args.real if (p / "transforms.json").exists()]
     fit = FitOptions(checkpoint_every=0) if args.fit_steps is None else FitOptions(checkpoint_every=0, steps=args.fit_steps)
-    per = [bench_capture(kind, path, nets, args.refine_steps, snaps, fit, tuple(args.compare_lr), args.auto) for kind, path in captures]
+    readout = (args.readout, args.readout_samples)
+    per = [bench_capture(kind, path, nets, args.refine_steps, snaps, fit, tuple(args.compare_lr), args.auto, readout) for kind, path in captures]
     res = {"command": command_line("hyper_ood", argv if argv is not None else __import__("sys").argv[1:]),
            "machine": machine_info(), "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
            "predictors": list(nets), "predictor_info": info, "refine_steps": args.refine_steps,
            "refine_learning_rate": PredictOptions.refine_learning_rate,
+           "readout": [r[0] for n in nets for r in readout_runs(n, *readout)],
+           "readout_defaults": {"iterations": PredictOptions.readout_iterations, "samples": PredictOptions.readout_samples},
            "refined": [r[0] for n in nets for r in refine_runs(n, args.refine_steps, tuple(args.compare_lr), args.auto)],
            "snapshots": snap_steps, "predictor_steps": pred_steps, "per_capture": per, "summary": summarise(per)}
     stem = f"hyper_ood_{args.tag}" if args.tag else "hyper_ood"

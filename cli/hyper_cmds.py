@@ -109,14 +109,15 @@ def predict(
     opts: PredictOptions,
 ) -> None:
     """Predict a deep appearance map from one view (a set of views with predictor v3) in
-    milliseconds, say how well it re-synthesises the train views (and whether to refine),
-    optionally refine it."""
+    milliseconds, say how well it re-synthesises the train views (and whether to refine), then
+    either solve its output layer on the train pixels (default) or refine it."""
     from damcap.appearance.dam_file import save_dam
     from damcap.appearance.coverage import training_normal_histogram
     from damcap.appearance.fit import refine_dam
     from damcap.appearance.hyper.model import predict_dam, predictor_inputs
     from damcap.appearance.hyper.file import load_predictor, predictor_path
     from damcap.appearance.hyper.predict import AUTO, refine_auto, refinement_needed, resynthesis_error, resynthesis_line
+    from damcap.appearance.readout import solve_output_layer
     from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import read_capture
     from damcap.common.device import resolve_device
@@ -148,6 +149,16 @@ def predict(
               "train_views": err.views, "train_dssim_predicted": err.dssim, "train_l1_predicted": err.l1,
               "refine_threshold": opts.refine_threshold, "refinement_needed": refinement_needed(err.dssim, opts.refine_threshold)}
     extra = ""
+    if not opts.refine_steps and opts.readout_iterations:
+        t1 = time.perf_counter()
+        solved = solve_output_layer(model, samples, opts.readout_iterations, opts.readout_samples)
+        readout_s = time.perf_counter() - t1
+        model = solved.model
+        after = resynthesis_error(model, train_views, samples)
+        record.update(readout_seconds=readout_s, readout_iterations_used=solved.iterations,
+                      train_dssim_readout=after.dssim, train_l1_readout=after.l1)
+        extra = (f" + {1000 * readout_s:.0f} ms solving its output layer on {min(len(samples), opts.readout_samples)} train pixels "
+                 f"({solved.iterations} iterations): train DSSIM {err.dssim:.4f} -> {after.dssim:.4f}, L1 {err.l1:.4f} -> {after.l1:.4f}")
     if opts.refine_steps == AUTO:
         t1 = time.perf_counter()
         model, auto = refine_auto(model, samples, max_steps=opts.refine_max_steps, patience_steps=opts.refine_patience,

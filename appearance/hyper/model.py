@@ -35,6 +35,7 @@ from damcap.common.validate import MAX_CHANNELS, MAX_CONV_LAYERS, MAX_IMAGE_SIDE
 
 from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap, dam_forward, encode_inputs, init_weights
 from damcap.appearance.views import ViewData, radiance_scale_of
+from damcap.appearance.readout import solved_weights
 from damcap.appearance.pixels import FOREGROUND_COVERAGE, view_dir_world
 
 IN_CHANNELS = 9
@@ -348,7 +349,7 @@ def _normalised_image(x: torch.Tensor, radiance_scale: torch.Tensor) -> torch.Te
 
 
 def predicted_loss(weights: torch.Tensor, view_dir_world: torch.Tensor, normal_world: torch.Tensor, radiance_norm: torch.Tensor,
-                   arch: DamArchitecture, sample_mask: torch.Tensor | None = None) -> torch.Tensor:
+                   arch: DamArchitecture, sample_mask: torch.Tensor | None = None, readout_iterations: int = 0) -> torch.Tensor:
     """The training cost: mean L1 between the predicted DAMs' radiance and the capture's.
 
     Args:
@@ -357,11 +358,22 @@ def predicted_loss(weights: torch.Tensor, view_dir_world: torch.Tensor, normal_w
         radiance_norm: (B, K, 3) their radiance divided by each capture's radiance scale.
         arch: the DAM architecture.
         sample_mask: optional (B, K) bool, the samples that count (default all).
+        readout_iterations: above 0, each DAM's output layer is first solved
+            (:func:`.readout.solved_weights`, differentiably) on the even-numbered samples, and
+            the cost is the L1 on the odd-numbered ones: the predictor is trained for what
+            ``damcap predict`` delivers after its readout solve, scored on pixels the solve did
+            not see.
 
     Returns:
         scalar loss.
     """
-    pred = dam_forward(weights, encode_inputs(view_dir_world, normal_world, arch.encoding), arch)
+    x = encode_inputs(view_dir_world, normal_world, arch.encoding)
+    if readout_iterations:
+        solve_mask = torch.ones_like(x[..., 0], dtype=torch.bool) if sample_mask is None else sample_mask
+        weights = solved_weights(weights, arch, x[:, 0::2], radiance_norm[:, 0::2], solve_mask[:, 0::2].to(x.dtype), readout_iterations)
+        x, radiance_norm = x[:, 1::2], radiance_norm[:, 1::2]
+        sample_mask = None if sample_mask is None else sample_mask[:, 1::2]
+    pred = dam_forward(weights, x, arch)
     err = (pred - radiance_norm).abs()
     if sample_mask is None:
         return err.mean()

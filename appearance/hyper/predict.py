@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from damcap.common.errors import DamcapError
-from damcap.common.validate import COUNT, MAX_COUNT, check_ranges, in_range
+from damcap.common.validate import COUNT, COUNT_OR_ZERO, MAX_COUNT, check_ranges, in_range
 
 from damcap.appearance.dam import DeepAppearanceMap, dam_forward, encode_inputs
 from damcap.appearance.evaluate import score_view
@@ -87,6 +87,21 @@ class PredictOptions:
     (x0.86 of the fit) at 1e-2 against 0.110 (x0.93) at 3e-3, the rate before 2026-11-27: better
     on 7 captures, worse on 3 (by 0.001 to 0.012). More, smaller steps did no better (900 steps of 1024 pixels, 3.4 s:
     x0.87; docs/learning-to-learn.md)"""
+    readout_iterations: int = field(default=3, metadata=COUNT_OR_ZERO)
+    """without refinement (--refine-steps 0): solve the predicted DAM's output layer (its last 96
+    weights; the hidden layers stay as predicted) on the train views' pixels in closed form, at
+    most this many reweighted Gauss-Newton iterations of the fit's L1 cost (appearance/readout.py;
+    0 = the network's output as it is). On 11 captures unlike either shipped predictor's training
+    set (bench/hyper_ood_readout.md, 2026-11-27), 3 iterations lowered predict's mean novel-view
+    DSSIM from 0.201 to 0.166 (x2.51 to x1.98 of the fit) with v1 and from 0.198 to 0.165 (x2.36
+    to x2.05) with v3, prediction and solve together in 47-86 ms; 1 and 5 iterations helped less
+    (x2.05-x2.11, x2.00-x2.06). Refinement starts from the network's own output instead: in a side
+    study on the same captures, 300 steps from the solved output layer ended worse (x0.98 against
+    x0.86 with v1, x0.98 against x0.89 with v3)"""
+    readout_samples: int = field(default=4096, metadata=COUNT)
+    """the output layer is solved on a seeded random subset of at most this many train pixels.
+    16384 gave the same novel-view DSSIM within 0.0015 on average (bench/hyper_ood_readout.md) and
+    took 25-45 ms more"""
     refine_threshold: float = field(default=0.10, metadata=in_range(0, 1))
     """the predicted DAM's mean DSSIM on the train views above which predict says refinement is
     needed (the capture lies outside what the predictor learned). Measured with the shipped

@@ -99,6 +99,11 @@ class HyperTrainOptions:
     """predictor file, or a shipped one by name (v1, v3), whose weights start the run instead of a
     random initialisation: trains a predictor further (the architecture options must match it;
     the learning-rate schedule starts afresh). '' = random initialisation"""
+    readout_iterations: int = field(default=0, metadata=in_range(0, 20))
+    """train (and validate) through ``damcap predict``'s readout solve: each predicted DAM's
+    output layer is solved on half of its samples (this many unrolled reweighted Gauss-Newton
+    steps, appearance/readout.py) and scored on the other half, so the hidden layers learn a basis
+    the capture's own pixels can mix (0 = the paper's cost on the network's own output)"""
     grad_clip: float = field(default=1.0, metadata=in_range(0, 1e6))
     """largest gradient norm of a step (0 = no clipping): a hypernetwork's output weights
     multiply through the DAM's layers, so one bad batch can otherwise throw it far off"""
@@ -337,9 +342,9 @@ def corpus_loader(captures: list[HyperCapture], n: int, opts: HyperTrainOptions,
                                             prefetch_factor=4, persistent_workers=False))
 
 
-def batch_loss(model: torch.nn.Module, batch: Batch, arch: DamArchitecture) -> torch.Tensor:
+def batch_loss(model: torch.nn.Module, batch: Batch, arch: DamArchitecture, readout_iterations: int = 0) -> torch.Tensor:
     return predicted_loss(model(batch.images, batch.view_mask), batch.view_dir_world, batch.normal_world, batch.radiance_norm,
-                          arch, batch.sample_mask)
+                          arch, batch.sample_mask, readout_iterations)
 
 
 def validation_inputs(c: HyperCapture, views: int) -> list[int]:
@@ -349,10 +354,11 @@ def validation_inputs(c: HyperCapture, views: int) -> list[int]:
 
 
 @torch.no_grad()
-def validation_l1(net: HyperNet, captures: list[HyperCapture], pixels: int = 8192) -> float:
+def validation_l1(net: HyperNet, captures: list[HyperCapture], pixels: int = 8192, readout_iterations: int = 0) -> float:
     """Mean L1 (radiance / capture scale) of predictions from each capture's best-covered views
     (:func:`validation_inputs`, up to the predictor's ``input_views``), without augmentation, over
-    its first ``pixels`` kept pixels."""
+    its first ``pixels`` kept pixels (with ``readout_iterations``: the cost of
+    :func:`.model.predicted_loss` after the readout solve)."""
     if not captures:
         return float("nan")
     was_training = net.training
@@ -365,21 +371,21 @@ def validation_l1(net: HyperNet, captures: list[HyperCapture], pixels: int = 819
         w = net(torch.stack(imgs)[None].to(device))
         k = slice(0, pixels)
         loss = predicted_loss(w, c.view_dir_world[None, k].to(device), c.normal_world[None, k].to(device),
-                              (c.radiance_lin[None, k] / c.radiance_scale).to(device), net.arch.dam)
+                              (c.radiance_lin[None, k] / c.radiance_scale).to(device), net.arch.dam, readout_iterations=readout_iterations)
         total += float(loss)
     net.train(was_training)
     return total / len(captures)
 
 
 @torch.no_grad()
-def validation_scenes_l1(net: HyperNet, batches: list[Batch]) -> float:
+def validation_scenes_l1(net: HyperNet, batches: list[Batch], readout_iterations: int = 0) -> float:
     """Mean L1 over fixed validation scene batches."""
     if not batches:
         return float("nan")
     was_training = net.training
     net.eval()
     device = next(net.parameters()).device
-    total = sum(float(batch_loss(net, b.to(device), net.arch.dam)) for b in batches) / len(batches)
+    total = sum(float(batch_loss(net, b.to(device), net.arch.dam, readout_iterations)) for b in batches) / len(batches)
     net.train(was_training)
     return total
 
@@ -565,7 +571,8 @@ def train_hyper(
     corpus_part = corpus_loader(train, per_rank - n_scenes, opts, rank, start, pin=device.type == "cuda")
     def validate() -> tuple[float, float, float]:
         """(corpus L1, scenes L1, the L1 the best step is chosen by)."""
-        v_corpus, v_scenes = validation_l1(net, val), validation_scenes_l1(net, val_scenes)
+        v_corpus = validation_l1(net, val, readout_iterations=opts.readout_iterations)
+        v_scenes = validation_scenes_l1(net, val_scenes, opts.readout_iterations)
         return v_corpus, v_scenes, held_out_l1(v_corpus if val else None, v_scenes if val_scenes else None)
 
     t0 = time.perf_counter()
@@ -581,7 +588,7 @@ def train_hyper(
         if n_scenes:
             gen = _step_generator(opts.seed, rank + 65_537, step, device)
             parts.append(scene_batch(scenes(gen, n_scenes, opts.input_views, opts.pixels), opts.input_size))
-        loss = batch_loss(model, Batch.cat(parts), arch.dam)
+        loss = batch_loss(model, Batch.cat(parts), arch.dam, opts.readout_iterations)
         optim.zero_grad()
         loss.backward()
         if opts.grad_clip > 0:

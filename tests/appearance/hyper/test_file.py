@@ -62,12 +62,14 @@ def test_shipped_predictor_predicts_the_heldout_sample(tmp_path):
     cap = read_capture(sample)
     train, test = load_views(cap, "train"), load_views(cap, "test")
     scores = evaluate_split(train, test, {"predict": dam}, baselines=True)
-    # measured with the shipped predictor (dam-predictor-v1): novel-view DSSIM 0.161, RM++ 0.219, RM 0.247
+    # measured with the shipped predictor (dam-predictor-v1) and predict's default readout solve (3
+    # iterations): novel-view DSSIM 0.113 (0.161 with --readout-iterations 0), RM++ 0.219, RM 0.247
+    assert meta["provenance"]["readout_iterations_used"] >= 1
     assert scores["predict"].mean < PREDICT_SAMPLE_BOUND
     assert scores["predict"].mean < scores["RM++"].mean < scores["RM"].mean
 
 
-PREDICT_SAMPLE_BOUND = 0.20
+PREDICT_SAMPLE_BOUND = 0.14
 
 
 def test_shipped_v3_beats_rm_pp_on_a_closed_form_blob_it_never_saw(tmp_path):
@@ -86,5 +88,6 @@ def test_shipped_v3_beats_rm_pp_on_a_closed_form_blob_it_never_saw(tmp_path):
     cap = read_capture(cap_dir)
     train, test = load_views(cap, "train"), load_views(cap, "test")
     scores = evaluate_split(train, test, {"predict": dam}, baselines=True)
-    # measured: novel-view DSSIM v3 0.098, RM++ 0.150 (v2: 0.106, v1: 0.139)
+    # measured: novel-view DSSIM v3 0.096 with predict's default readout solve (0.098 without;
+    # v1: 0.116 and 0.139), RM++ 0.150
     assert scores["predict"].mean < 0.13 and scores["predict"].mean < scores["RM++"].mean

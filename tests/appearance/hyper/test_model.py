@@ -10,7 +10,9 @@ import torch.nn.functional as F
 
 from damcap.appearance.dam_file import load_dam
 from damcap.appearance.hyper.file import save_predictor
-from damcap.appearance.hyper.model import HyperArchitecture, HyperNet, predict_dam, predictor_image, predictor_images, rotation_y
+from damcap.appearance.dam import DamArchitecture, encode_inputs
+from damcap.appearance.hyper.model import (HyperArchitecture, HyperNet, predict_dam, predicted_loss, predictor_image, predictor_images,
+                                           rotation_y)
 from damcap.cli.main import main
 
 from tests.appearance.conftest import _crop_of
@@ -112,3 +114,23 @@ def test_prediction_does_not_depend_on_exposure(small_capture):
     a, b = predict_dam(net, crops, 0.5), predict_dam(net, brighter, 500.0)
     assert torch.allclose(a.get_flat_weights(), b.get_flat_weights(), atol=1e-5)
     assert math.isclose(b.radiance_scale, 1000 * a.radiance_scale, rel_tol=1e-9)
+
+
+def test_predicted_loss_with_a_readout_solves_on_even_samples_and_scores_odd_ones():
+    from damcap.appearance.readout import solved_weights
+
+    arch = DamArchitecture()
+    g = torch.Generator().manual_seed(4)
+    w = torch.randn(2, arch.num_weights, generator=g) * 0.3
+    w.requires_grad_(True)
+    v = torch.nn.functional.normalize(torch.randn(2, 64, 3, generator=g), dim=-1)
+    n = torch.nn.functional.normalize(torch.randn(2, 64, 3, generator=g), dim=-1)
+    y = torch.rand(2, 64, 3, generator=g)
+    mask = torch.rand(2, 64, generator=g) > 0.2
+    loss = predicted_loss(w, v, n, y, arch, mask, readout_iterations=2)
+    x = encode_inputs(v, n, arch.encoding)
+    solved = solved_weights(w, arch, x[:, 0::2], y[:, 0::2], mask[:, 0::2].float(), 2)
+    assert torch.allclose(loss, predicted_loss(solved, v[:, 1::2], n[:, 1::2], y[:, 1::2], arch, mask[:, 1::2]))
+    assert not torch.equal(solved[:, -96:], w[:, -96:]) and torch.equal(solved[:, :-96], w[:, :-96])
+    loss.backward()
+    assert torch.isfinite(w.grad).all() and w.grad[:, :-96].abs().sum() > 0  # the hidden layers learn through the solve

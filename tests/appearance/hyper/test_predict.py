@@ -191,6 +191,8 @@ def test_predict_threshold_and_integer_refinement(tmp_path, small_capture, tiny_
     (["--refine-threshold", "nan"], ["--refine-threshold", "nan"]),
     (["--refine-max-steps", "0"], ["--refine-max-steps", "0"]),
     (["--refine-patience", "0"], ["--refine-patience", "0"]),
+    (["--readout-iterations", "-1"], ["--readout-iterations", "-1"]),
+    (["--readout-samples", "0"], ["--readout-samples", "0"]),
 ])
 def test_predict_bad_refinement_options_are_one_line_errors(tmp_path, small_capture, tiny_predictor, capsys, args, needles):
     out = tmp_path / "x.dam"
@@ -207,3 +209,30 @@ def test_predict_auto_on_two_train_views_is_a_one_line_error(tmp_path, tiny_pred
     code, _, err = run(["predict", tmp_path / "two", "-o", out, "--predictor", tiny_predictor, "--refine-steps", "auto"], capsys)
     assert_one_line_error(code, err, "--refine-steps auto", "give a number of steps")
     assert not out.exists()
+
+
+def test_predict_solves_the_output_layer_without_refinement_and_not_with_it(tmp_path, small_capture, tiny_predictor, capsys):
+    from damcap.appearance.readout import solve_output_layer
+
+    code, stdout, err = run(["predict", small_capture, "-o", tmp_path / "a.dam", "--predictor", tiny_predictor], capsys)
+    assert code == 0, err
+    model, meta = load_dam(tmp_path / "a.dam")
+    prov = meta["provenance"]
+    net, _ = load_predictor(tiny_predictor)
+    views = load_views(read_capture(small_capture), "train")
+    _, crop, scale = predictor_input(views)
+    predicted, samples = predict_dam(net, crop, scale), samples_of(views)
+    opts = PredictOptions()
+    solved = solve_output_layer(predicted, samples, opts.readout_iterations, opts.readout_samples)
+    assert torch.equal(model.get_flat_weights(), solved.model.get_flat_weights())  # the library's solve, at the options' defaults
+    assert prov["readout_iterations_used"] == solved.iterations >= 1
+    after = resynthesis_error(solved.model, views, samples)
+    assert (prov["train_dssim_readout"], prov["train_l1_readout"]) == (after.dssim, after.l1)
+    assert prov["train_l1_readout"] < prov["train_l1_predicted"]  # the hidden layers' features mixed to the capture's pixels
+    assert f"solving its output layer on {min(len(samples), opts.readout_samples)} train pixels ({solved.iterations} iterations)" in stdout
+    # refinement starts from the network's own output; --readout-iterations 0 keeps that output
+    for args, name in ((["--refine-steps", "5"], "b.dam"), (["--readout-iterations", "0"], "c.dam")):
+        code, _, err = run(["predict", small_capture, "-o", tmp_path / name, "--predictor", tiny_predictor, *args], capsys)
+        assert code == 0, err
+        assert "readout_iterations_used" not in load_dam(tmp_path / name)[1]["provenance"]
+    assert torch.equal(load_dam(tmp_path / "c.dam")[0].get_flat_weights(), predicted.get_flat_weights())

@@ -150,7 +150,7 @@ class ReadoutResult:
 
 
 @torch.no_grad()
-def solve_output_layer(model: DeepAppearanceMap, samples: PixelSamples, iterations: int, max_samples: int = 16384,
+def solve_output_layer(model: DeepAppearanceMap, samples: PixelSamples, iterations: int, max_samples: int,
                        seed: int = 0) -> ReadoutResult:
     """Lower the fit's data cost by re-solving the DAM's output layer on the given pixels.
 
@@ -159,12 +159,16 @@ def solve_output_layer(model: DeepAppearanceMap, samples: PixelSamples, iteratio
     float64.
 
     Args:
-        model: the DAM (not modified); its radiance scale and hidden layers are kept.
+        model: a plain DAM (no spatial albedo or normal field; not modified); its radiance scale
+            and hidden layers are kept.
         samples: covered pixels with known radiance (for ``damcap predict``: all train views').
         iterations: most iterations (0 = the model as it is).
-        max_samples: a seeded random subset of at most this many samples is used.
+        max_samples: a seeded random subset of at most this many samples is used (``damcap
+            predict``: ``PredictOptions.readout_samples``).
         seed: the subset's seed.
     """
+    if model.has_surface_factors:
+        raise ValueError("the readout solve takes a plain DAM; this one has a spatial albedo or a normal field")
     arch = model.arch
     flat = model.get_flat_weights().detach().double()
     if iterations <= 0 or len(samples) == 0:

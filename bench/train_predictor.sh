@@ -9,6 +9,11 @@
 # e.g. on a GPU:      NAME=dam-predictor-v2 bench/train_predictor.sh runs/v2 390
 #      v3 = v2 trained further (v2 from the history: git show f25b5a5:appearance/hyper/predictors/dam-predictor-v2.safetensors):
 #                        NAME=dam-predictor-v3 bench/train_predictor.sh runs/v3 470 --init v2.safetensors --learning-rate 2e-4
+#      v4 = v3 trained through predict's readout solve (ran on the 2-core CPU, 1489 s; its .json holds the command):
+#        damcap train-hyper -o v4.safetensors --procedural 1 --input-views 4 --input-size 128 --channels 16,32,64,128,128,256,256
+#          --pixels 4096 --scene-px 64 --scene-env-grid 8 --device cpu --init v3 --checkpoint-every 100 --learning-rate 1e-4
+#          --batch-size 8 --steps 400 --eval-every 50 --val-scenes 16 --readout-iterations 3
+#        (on a GPU: this script with --init v3 --readout-iterations 3 --learning-rate 1e-4)
 # On a machine where damcap is not installed, put it on the module path first (a damcap/ folder
 # whose rooms link to the repository's; see docs/learning-to-learn.md) and run from outside the repository.
 #      several GPUs:  PYTHON="torchrun --nproc-per-node 4 -m" would need the module form below

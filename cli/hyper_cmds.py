@@ -102,7 +102,8 @@ def predict(
     view: Optional[str] = typer.Option(None, "--view", help="(first) input frame (a train-split file_path or its stem); default: the best "
                                        "covered lit one; a predictor reading several views adds the lit views that spread the cameras most"),
     predictor: Optional[str] = typer.Option(None, "--predictor", help="predictor file, or a shipped one by name: v1 (one view, "
-                                            "trained on Mitsuba captures) or v3 (up to 4 views, random closed-form scenes); "
+                                            "trained on Mitsuba captures), v3 (up to 4 views, random closed-form scenes) or v4 "
+                                            "(v3 trained through the readout solve: the best with it, docs/learning-to-learn.md); "
                                             "default: the shipped default (docs/learning-to-learn.md)"),
     device: str = typer.Option("cpu", help="cpu | cuda | auto"),
     *,

@@ -29,12 +29,15 @@ KIND = "dam-predictor"
 SHIPPED = {
     "v1": "dam-predictor-v1.safetensors",
     "v3": "dam-predictor-v3.safetensors",
+    "v4": "dam-predictor-v4.safetensors",
 }
 """the trained predictors shipped in ``damcap.appearance.hyper/predictors/`` by name (each one's
 recipe: the .json beside it; docs/learning-to-learn.md compares them): v1 reads one view and was
 trained on 202 Mitsuba captures; v3 reads up to 4 views and was trained on random closed-form
 scenes rendered on a GPU (v2, 900 steps, trained 700 steps further; v2 itself is no longer
-shipped: it is in the repository's history at commit f25b5a5)"""
+shipped: it is in the repository's history at commit f25b5a5); v4 is v3 trained 400 steps further
+through predict's readout solve (``train-hyper --readout-iterations 3``, on the CPU), for use
+with that solve"""
 DEFAULT_SHIPPED = "v1"
 """the predictor ``damcap predict`` uses when none is named"""
 SHIPPED_NAME = SHIPPED[DEFAULT_SHIPPED]
@@ -53,7 +56,7 @@ def shipped_predictor_path(name: str = DEFAULT_SHIPPED) -> Path:
 
 def predictor_path(choice: str | os.PathLike | None) -> Path:
     """The predictor a ``--predictor`` value names: None = the default shipped one, a shipped
-    name (``v1``, ``v3``), or a file path.
+    name (``v1``, ``v3``, ``v4``), or a file path.
 
     >>> predictor_path("v3").name, predictor_path("my.safetensors").name
     ('dam-predictor-v3.safetensors', 'my.safetensors')

@@ -76,7 +76,7 @@ def test_the_solve_recovers_a_known_output_layer_and_keeps_the_hidden_layers(arc
     w_true = output_layer(truth.get_flat_weights(), arch)
     start = DeepAppearanceMap(arch, 2.0, with_output_layer(truth.get_flat_weights(), arch,
                                                             w_true + 0.3 * torch.randn(w_true.shape, generator=torch.Generator().manual_seed(7))))
-    res = solve_output_layer(start, s, iterations=30)
+    res = solve_output_layer(start, s, iterations=30, max_samples=3000)
     assert res.l1_after < 1e-3 * res.l1_before and 1 <= res.iterations <= 30
     torch.testing.assert_close(output_layer(res.model.get_flat_weights(), arch), w_true, atol=2e-3, rtol=0)
     n_out = w_true.numel()
@@ -95,7 +95,7 @@ def test_the_solve_never_raises_the_cost_and_zero_iterations_keep_the_model():
         previous = res.l1_after
     again = solve_output_layer(model, s, 5, max_samples=1000)  # the subset is seeded
     assert torch.equal(again.model.get_flat_weights(), res.model.get_flat_weights())
-    kept = solve_output_layer(model, s, 0)
+    kept = solve_output_layer(model, s, 0, max_samples=1000)
     assert kept.model is model and kept.iterations == 0
     # the reported cost is the cost of the returned layer on the solve's samples
     x = encode_inputs(s.view_dir_world, s.normal_world, "nr").double()

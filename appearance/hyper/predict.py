@@ -95,14 +95,14 @@ class PredictOptions:
     set (bench/hyper_ood_readout.md, 2026-11-27), 3 iterations lowered predict's mean novel-view
     DSSIM from 0.201 to 0.166 (x2.51 to x1.98 of the fit) with v1 and from 0.198 to 0.165 (x2.36
     to x2.05) with v3 (and to 0.146, x1.64, with v4, trained through the solve), prediction and
-    solve together in 45-86 ms; 1 and 5 iterations helped less
+    solve together in 44-72 ms; 1 and 5 iterations helped less
     (x2.05-x2.11, x2.00-x2.06). Refinement starts from the network's own output instead: in a side
     study on the same captures, 300 steps from the solved output layer ended worse (x0.98 against
     x0.86 with v1, x0.98 against x0.89 with v3)"""
     readout_samples: int = field(default=4096, metadata=COUNT)
     """the output layer is solved on a seeded random subset of at most this many train pixels.
     16384 gave the same novel-view DSSIM within 0.0015 on average (bench/hyper_ood_readout.md) and
-    took 25-45 ms more"""
+    took 22-55 ms more"""
     refine_threshold: float = field(default=0.10, metadata=in_range(0, 1))
     """the predicted DAM's mean DSSIM on the train views above which predict says refinement is
     needed (the capture lies outside what the predictor learned). Measured with the shipped

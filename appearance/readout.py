@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap, encode_inputs, hidden_activation, split_weights
+from damcap.appearance.fit import weighted_quantile_cost
 from damcap.appearance.pixels import PixelSamples
 
 #: IRLS floor of |residual| (radiance in units of the model's scale): an L1 weight 1/|r| is at most 1000
@@ -81,8 +82,9 @@ def with_output_layer(weights_flat: torch.Tensor, arch: DamArchitecture, w_out: 
 
 
 def l1_cost(h: torch.Tensor, w_out: torch.Tensor, target: torch.Tensor, weight: torch.Tensor) -> float:
-    """Weighted mean L1 of softplus(h W^T) against the target: (N, F), (3, F), (N, 3), (N,)."""
-    return float((weight[:, None] * (F.softplus(h @ w_out.T) - target).abs()).sum() / weight.sum().clamp_min(1e-30))
+    """The fit's data cost (:func:`.fit.weighted_quantile_cost` at 0.5: weighted mean over samples
+    of the channel-mean L1) of softplus(h W^T) against the target: (N, F), (3, F), (N, 3), (N,)."""
+    return float(weighted_quantile_cost(F.softplus(h @ w_out.T), target, weight))
 
 
 def irls_step(h: torch.Tensor, w_out: torch.Tensor, target: torch.Tensor, weight: torch.Tensor,

@@ -90,9 +90,29 @@ def readout_runs(name: str, iterations: list[int], samples: list[int]) -> list[t
             for k in iterations for n in samples]
 
 
+def solved_refine_runs(name: str, refine_steps: list[int]) -> list[tuple[str, int]]:
+    """A predictor's rows refined from its solved output layer instead of its own output (predict's
+    readout defaults, then K steps at predict's learning rate): (row name, K).
+
+    >>> solved_refine_runs("v4", [100, 300])
+    [('v4 readout + 100', 100), ('v4 readout + 300', 300)]
+    """
+    return [(f"{name} readout + {k}", k) for k in refine_steps]
+
+
+def snapshot_readout_key(name: str, readout: tuple[list[int], list[int]]) -> str | None:
+    """The row of a snapshot with its output layer solved (the first ``--readout`` count and
+    sample size), or None without ``--readout``.
+
+    >>> snapshot_readout_key("v5.step200", ([3, 5], [4096])), snapshot_readout_key("v5.step200", ([], [4096]))
+    ('v5.step200 readout 3', None)
+    """
+    return readout_runs(name, readout[0][:1], readout[1][:1])[0][0] if readout[0] else None
+
+
 def bench_capture(kind: str, path: Path, nets: dict[str, torch.nn.Module], refine_steps: list[int], snapshots: dict,
                   fit: FitOptions = FitOptions(checkpoint_every=0), compare_lr: tuple[float, ...] = (), auto: bool = False,
-                  readout: tuple[list[int], list[int]] = ([], [])) -> dict:
+                  readout: tuple[list[int], list[int]] = ([], []), refine_from_readout: bool = False) -> dict:
     cap = read_capture(path)
     train, test = load_views(cap, "train"), load_views(cap, "test")
     samples = samples_of(train)
@@ -116,6 +136,9 @@ def bench_capture(kind: str, path: Path, nets: dict[str, torch.nn.Module], refin
                 models[key] = solve_output_layer(model, samples, k, n).model
                 solve_times.append(time.perf_counter() - t)
             rec.setdefault("readout_ms", {})[key] = rec["predict_ms"][name] + 1000 * statistics.median(solve_times)
+        snap_key = snapshot_readout_key(name, readout) if name in snapshots else None
+        if snap_key:
+            models[snap_key] = solve_output_layer(model, samples, readout[0][0], readout[1][0]).model
         for key, k, lr in refine_runs(name, refine_steps, compare_lr, auto) if name in nets else []:
             t = time.perf_counter()
             if k is None:
@@ -124,6 +147,11 @@ def bench_capture(kind: str, path: Path, nets: dict[str, torch.nn.Module], refin
                 rec.setdefault("auto_steps", {})[name] = chosen.steps_used
             else:
                 models[key] = refine_dam(model, samples, k, lr)[0]
+            rec["refine_seconds"][key] = time.perf_counter() - t + times[0]
+        for key, k in solved_refine_runs(name, refine_steps) if name in nets and refine_from_readout else []:
+            t = time.perf_counter()
+            solved = solve_output_layer(model, samples, PredictOptions.readout_iterations, PredictOptions.readout_samples).model
+            models[key] = refine_dam(solved, samples, k, PredictOptions.refine_learning_rate)[0]
             rec["refine_seconds"][key] = time.perf_counter() - t + times[0]
     scores = evaluate_split(train, test, models)
     rec["novel"] = {k: v.mean for k, v in scores.items()}
@@ -172,17 +200,24 @@ def write_markdown(res: dict, path: Path) -> None:
         below = sum(r["novel"][c] < r["novel"]["RM++"] for r in res["per_capture"])
         lines.append(f"| {c} | {statistics.mean(vals):.4f} | x{ratio:.2f} | {below} of {n_caps} |")
     if res["snapshots"]:
+        solved_rows = res.get("snapshot_readout") or {}
         lines += ["", "## Out-of-distribution error against training compute", "",
                   "Predict alone, mean novel-view DSSIM over all captures above, for snapshots of the predictors' training runs and "
-                  "the predictors themselves (their best validation step). Total steps count the steps of the predictor a run "
-                  "started from (`train-hyper --init`).", "",
-                  "| model | run step | total steps | mean DSSIM |", "|---|---:|---:|---:|"]
+                  "the predictors themselves (their best validation step), and with the output layer solved (the first `--readout` "
+                  "count). Total steps count the steps of the predictor a run started from (`train-hyper --init`).", "",
+                  "| model | run step | total steps | mean DSSIM | mean ratio to fit |" + (" solved: mean DSSIM | solved: ratio to fit |" if solved_rows else ""),
+                  "|---|---:|---:|---:|---:|" + ("---:|---:|" if solved_rows else "")]
         points = [(name, d["step"], d["total"]) for name, d in res["snapshots"].items()]
         runs = {name.rsplit(".step", 1)[0] for name in res["snapshots"]}  # predictors whose run has snapshots
         points += [(n, res["predictor_steps"][n]["step"], res["predictor_steps"][n]["total"]) for n in nets if n in runs]
+        def cells(key: str) -> str:
+            if any(key not in r["novel"] for r in res["per_capture"]):
+                return " | |"
+            vals = [r["novel"][key] for r in res["per_capture"]]
+            ratio = statistics.mean(r["novel"][key] / r["novel"]["fit"] for r in res["per_capture"])
+            return f" {statistics.mean(vals):.4f} | x{ratio:.2f} |"
         for name, step, total in sorted(points, key=lambda x: x[2]):
-            vals = [r["novel"][name] for r in res["per_capture"]]
-            lines.append(f"| {name} | {step} | {total} | {statistics.mean(vals):.4f} |")
+            lines.append(f"| {name} | {step} | {total} |" + cells(name) + (cells(solved_rows.get(name, "")) if solved_rows else ""))
     lines += ["", "## Per capture", "", "| kind | capture | " + " | ".join(cols) + " |", "|---|---|" + "---:|" * len(cols)]
     for r in res["per_capture"]:
         lines.append(f"| {r['kind']} | {Path(r['capture']).name} | " + " | ".join(f"{r['novel'][c]:.4f}" for c in cols) + " |")
@@ -203,6 +238,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="rows with the output layer solved, at these iteration counts (predict's own: PredictOptions.readout_iterations)")
     ap.add_argument("--readout-samples", type=int, nargs="+", default=[PredictOptions.readout_samples],
                     help="... on at most this many train pixels (predict's own: PredictOptions.readout_samples)")
+    ap.add_argument("--refine-from-readout", action="store_true",
+                    help="rows refined from the solved output layer (predict's readout defaults) as well as from the network's own output")
     ap.add_argument("--auto", action=argparse.BooleanOptionalAction, default=True, help="rows refined with --refine-steps auto")
     ap.add_argument("--closed-form", type=int, default=len(CLOSED_FORM), help="how many of the closed-form captures (smoke runs: fewer)")
     ap.add_argument("--res", type=int, default=128, help="closed-form captures' resolution (smoke runs: smaller)")
@@ -240,15 +277,19 @@ def main(argv: list[str] | None = None) -> int:
     captures += [("real (cape)", p) for p in args.real if (p / "transforms.json").exists()]
     fit = FitOptions(checkpoint_every=0) if args.fit_steps is None else FitOptions(checkpoint_every=0, steps=args.fit_steps)
     readout = (args.readout, args.readout_samples)
-    per = [bench_capture(kind, path, nets, args.refine_steps, snaps, fit, tuple(args.compare_lr), args.auto, readout) for kind, path in captures]
+    per = [bench_capture(kind, path, nets, args.refine_steps, snaps, fit, tuple(args.compare_lr), args.auto, readout, args.refine_from_readout)
+           for kind, path in captures]
     res = {"command": command_line("hyper_ood", argv if argv is not None else __import__("sys").argv[1:]),
            "machine": machine_info(), "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
            "predictors": list(nets), "predictor_info": info, "refine_steps": args.refine_steps,
            "refine_learning_rate": PredictOptions.refine_learning_rate,
            "readout": [r[0] for n in nets for r in readout_runs(n, *readout)],
            "readout_defaults": {"iterations": PredictOptions.readout_iterations, "samples": PredictOptions.readout_samples},
-           "refined": [r[0] for n in nets for r in refine_runs(n, args.refine_steps, tuple(args.compare_lr), args.auto)],
-           "snapshots": snap_steps, "predictor_steps": pred_steps, "per_capture": per, "summary": summarise(per)}
+           "refined": [r[0] for n in nets for r in refine_runs(n, args.refine_steps, tuple(args.compare_lr), args.auto)]
+           + ([r[0] for n in nets for r in solved_refine_runs(n, args.refine_steps)] if args.refine_from_readout else []),
+           "snapshots": snap_steps,
+           "snapshot_readout": {n: snapshot_readout_key(n, readout) for n in [*snaps, *nets]} if args.readout and snaps else {},
+           "predictor_steps": pred_steps, "per_capture": per, "summary": summarise(per)}
     stem = f"hyper_ood_{args.tag}" if args.tag else "hyper_ood"
     out_json = (args.out or RESULTS) / f"{stem}.json"
     out_md = (args.out or BENCH) / f"{stem}.md"

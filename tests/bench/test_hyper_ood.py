@@ -24,23 +24,27 @@ def test_ood_study_writes_every_method_per_kind(tmp_path, is_dssim):
     out = tmp_path / "out"
     argv = ["--predictors", *map(str, paths), "--snapshots", str(snap), "--corpus", str(tmp_path / "none"), "--real",
             "--closed-form", "2", "--res", "24", "--fit-steps", "20", "--refine-steps", "5", "--cache", str(tmp_path / "cache"),
-            "--out", str(out), "--readout", "3"]
+            "--out", str(out), "--readout", "3", "--refine-from-readout"]
     assert hyper_ood.main(argv) == 0
     doc = json.loads((out / "hyper_ood.json").read_text())
     assert [r["kind"] for r in doc["per_capture"]] == ["closed-form sphere, distant light", "closed-form sphere, environment"]
     for r in doc["per_capture"]:
-        refined = {"one + 5", "one + 5 (lr 0.003)", "one + auto", "set + 5", "set + 5 (lr 0.003)", "set + auto"}
+        refined = {"one + 5", "one + 5 (lr 0.003)", "one + auto", "set + 5", "set + 5 (lr 0.003)", "set + auto",
+                   "one readout + 5", "set readout + 5"}  # the last two refined from the solved output layer
         solved = {"one readout 3", "set readout 3"}
-        assert set(r["novel"]) == {"fit", "one", "set", "set.step5", "RM++", "RM"} | refined | solved
+        assert set(r["novel"]) == {"fit", "one", "set", "set.step5", "set.step5 readout 3", "RM++", "RM"} | refined | solved
         assert set(r["readout_ms"]) == solved and r["readout_ms"]["one readout 3"] > r["predict_ms"]["one"]
         assert all(is_dssim(v) for v in r["novel"].values())
         assert set(r["refine_seconds"]) == refined and r["predict_ms"]["set"] > 0
         assert set(r["auto_steps"]) == {"one", "set"} and all(k >= 0 for k in r["auto_steps"].values())
         assert r["novel"]["one + 5"] != r["novel"]["one + 5 (lr 0.003)"]  # another rate, another model
+        assert r["novel"]["set.step5 readout 3"] != r["novel"]["set.step5"]
     assert doc["snapshots"] == {"set.step5": {"step": 5, "total": 15}}  # counted after the 10 steps of the predictor it started from
     s = doc["summary"]["closed-form sphere, environment"]
     assert s["captures"] == 1 and s["novel"]["fit"] == doc["per_capture"][1]["novel"]["fit"]
     md = (out / "hyper_ood.md").read_text()
-    assert "| closed-form sphere, environment | 1 |" in md and "| set.step5 | 5 | 15 |" in md and "| set | 7 | 17 |" in md
+    assert "| closed-form sphere, environment | 1 |" in md and "| set.step5 | 5 | 15 | " in md and "| set | 7 | 17 | " in md
+    curve = md.split("against training compute")[1].split("## Per capture")[0]
+    assert "solved: mean DSSIM" in curve and all(line.count("| x") == 2 for line in curve.splitlines() if line.startswith("| set"))
     assert "| one readout 3 | " in md and "predict set readout 3 ms" in md
-    assert "## All captures" in md and "| one | " not in md.split("against training compute")[1].split("## Per capture")[0]
+    assert "## All captures" in md and "| one | " not in curve and "| one readout + 5 | " in md

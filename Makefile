@@ -44,7 +44,7 @@ DEMO_OUT ?= demo_out
 # red plastic, gold and aluminium on a printed board, with masks; samples/README.md): register and
 # reconstruct a capture folder (16 train views spread over both camera rings, the other 8 kept as
 # novel views), validate it, segment it into its 3 materials, fit one DAM,
-# predict one with the shipped predictor (+100 refinement steps), render the fitted one into the
+# predict one with the shipped predictor (+300 refinement steps), render the fitted one into the
 # novel views, evaluate all of them, carry the segmentation onto a new shape (a torus damcap
 # generates) and export the three materials on it as a turntable, and write the viewer page.
 demo: venv
@@ -52,7 +52,7 @@ demo: venv
 	$(DAMCAP) inspect $(DEMO_OUT)/capture
 	$(DAMCAP) segment $(DEMO_OUT)/capture -o $(DEMO_OUT)/segmentation --materials 3
 	$(DAMCAP) fit $(DEMO_OUT)/capture -o $(DEMO_OUT)/model.dam
-	$(DAMCAP) predict $(DEMO_OUT)/capture -o $(DEMO_OUT)/predicted.dam --refine-steps 100
+	$(DAMCAP) predict $(DEMO_OUT)/capture -o $(DEMO_OUT)/predicted.dam --refine-steps 300
 	$(DAMCAP) render $(DEMO_OUT)/model.dam $(DEMO_OUT)/capture -o $(DEMO_OUT)/renders --split test
 	$(DAMCAP) evaluate $(DEMO_OUT)/capture --model $(DEMO_OUT)/model.dam --model $(DEMO_OUT)/predicted.dam --segmentation $(DEMO_OUT)/segmentation --json $(DEMO_OUT)/evaluation.json
 	$(DAMCAP) shape torus $(DEMO_OUT)/torus.obj
@@ -64,7 +64,7 @@ demo: venv
 	@echo "  capture/           the capture folder reconstructed from $(PHOTOS)/images (cameras, geometry, linear radiance)"
 	@echo "  segmentation/      the 3 materials: material_*.dam (one DAM each), weights/*.exr, preview/*.png (which pixel is which)"
 	@echo "  model.dam          one deep appearance map fitted to the whole object (safetensors + JSON metadata)"
-	@echo "  predicted.dam      the DAM predicted from one view by the shipped predictor, refined 100 steps"
+	@echo "  predicted.dam      the DAM predicted from 4 train views by the shipped predictor, refined 300 steps"
 	@echo "  renders/*.exr      the fitted model rendered into the test (novel) views (linear EXR)"
 	@echo "  evaluation.json    mean and per-frame DSSIM of the models, the segmentation, RM++ and RM, same and novel view"
 	@echo "  evaluation.png     per-frame DSSIM sorted, one curve per method"

@@ -80,7 +80,7 @@ from damcap.appearance.views import ViewData
 from damcap.appearance.evaluate import evaluate_split
 from damcap.appearance.fit import FitOptions, fit_dam, refine_dam
 from damcap.appearance.hyper.model import predict_dam, predictor_inputs
-from damcap.appearance.hyper.file import load_predictor, shipped_predictor_path
+from damcap.appearance.hyper.file import PAPER_SHIPPED, load_predictor, shipped_predictor_path
 from damcap.appearance.hyper.predict import PredictOptions
 from damcap.appearance.render import render_frame
 from damcap.appearance.fit import adversarial_frames
@@ -752,7 +752,7 @@ def load_shipped_predictor(data: dict[str, dict]) -> dict:
     """The shipped predictor (loaded once; loading is not part of a setting's time), its file's
     hash (part of the run keys) and one untimed warm-up prediction + refinement per capture
     (first-call allocations; fits get theirs from earlier fits in the same process)."""
-    path = shipped_predictor_path()
+    path = shipped_predictor_path(PAPER_SHIPPED)
     t = time.perf_counter()
     net, meta = load_predictor(path)
     load_s = time.perf_counter() - t

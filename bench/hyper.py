@@ -38,7 +38,7 @@ from bench.common import BENCH, CACHE, RESULTS, CpuMeter, command_line, log, mac
 
 from damcap.appearance.evaluate import evaluate_split
 from damcap.appearance.fit import FitOptions, fit_dam, refine_dam
-from damcap.appearance.hyper.file import load_predictor, shipped_predictor_path
+from damcap.appearance.hyper.file import PAPER_SHIPPED, load_predictor, shipped_predictor_path
 from damcap.appearance.hyper.model import predict_dam, predictor_inputs
 from damcap.appearance.hyper.predict import PredictOptions
 from damcap.appearance.views import load_views, samples_of
@@ -250,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(2)
     fit = FitOptions(checkpoint_every=0) if args.fit_steps is None else FitOptions(checkpoint_every=0, steps=args.fit_steps)
-    pred_path = args.predictor or shipped_predictor_path()
+    pred_path = args.predictor or shipped_predictor_path(PAPER_SHIPPED)
     net, meta = load_predictor(pred_path)
     if not (args.corpus / "corpus.json").is_file():
         from damcap.synth.corpus import make_corpus

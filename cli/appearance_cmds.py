@@ -228,7 +228,7 @@ def evaluate(
     table1: Optional[list[Path]] = typer.Option(None, "--table1", help="the paper's Table 1 on the held-out captures of this synth-set corpus (repeatable: corpora are pooled)"),
     table2: Optional[Path] = typer.Option(None, "--table2", help="the paper's Table 2 (all three tasks) on this real capture"),
     out: Optional[Path] = typer.Option(None, "--out", help="folder for the --table1 / --table2 markdown, JSON and plots"),
-    predictor: Optional[Path] = typer.Option(None, "--predictor", help="--table1/--table2: predictor file (default: the shipped one)"),
+    predictor: Optional[Path] = typer.Option(None, "--predictor", help="--table1/--table2: predictor file (default: the shipped v1, the paper's one-view predictor, whatever predict's default)"),
     table_materials: str = typer.Option("auto", "--table-materials", help="--table2: materials of the segmentation, a number or 'auto'"),
     fresh: bool = typer.Option(False, "--fresh", help="--table1: recompute every capture instead of resuming"),
     *,

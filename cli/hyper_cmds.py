@@ -101,15 +101,14 @@ def predict(
     output: Path = typer.Option(..., "-o", "--output", help="model file to write (.dam)"),
     view: Optional[str] = typer.Option(None, "--view", help="(first) input frame (a train-split file_path or its stem); default: the best "
                                        "covered lit one; a predictor reading several views adds the lit views that spread the cameras most"),
-    predictor: Optional[str] = typer.Option(None, "--predictor", help="predictor file, or a shipped one by name: v1 (one view, "
-                                            "trained on Mitsuba captures), v3 (up to 4 views, random closed-form scenes) or v4 "
-                                            "(v3 trained through the readout solve: the best with it, docs/learning-to-learn.md); "
-                                            "default: the shipped default (docs/learning-to-learn.md)"),
+    predictor: Optional[str] = typer.Option(None, "--predictor", help="predictor file, or a shipped one by name: v6 (the default: up to 4 views, random "
+                                            "closed-form scenes, trained through the readout solve), v3 (v6 before that training) or v1 "
+                                            "(one view, trained on Mitsuba captures: the paper's); docs/learning-to-learn.md compares them"),
     device: str = typer.Option("cpu", help="cpu | cuda | auto"),
     *,
     opts: PredictOptions,
 ) -> None:
-    """Predict a deep appearance map from one view (a set of views with predictor v3) in
+    """Predict a deep appearance map from a set of up to 4 views (one view with predictor v1) in
     milliseconds, say how well it re-synthesises the train views (and whether to refine), then
     either solve its output layer on the train pixels (default) or refine it."""
     from damcap.appearance.dam_file import save_dam
@@ -142,24 +141,25 @@ def predict(
     predict_s = time.perf_counter() - t0
     samples = samples_of(train_views)
     err = resynthesis_error(model, train_views, samples)
-    typer.echo(resynthesis_line(err, opts.refine_threshold))
     record = {"damcap_version": damcap_version(), "capture": str(capture.resolve()), "predictor": str(Path(pred_path).resolve()),
               "predictor_command": meta.get("training", {}).get("command"), "view": frame.file_path,
               "input_views": [f.file_path for f in frames],
               "predict_seconds": predict_s, "options": asdict(opts), "refine_steps": opts.refine_steps,
               "train_views": err.views, "train_dssim_predicted": err.dssim, "train_l1_predicted": err.l1,
-              "refine_threshold": opts.refine_threshold, "refinement_needed": refinement_needed(err.dssim, opts.refine_threshold)}
-    extra = ""
+              "refine_threshold": opts.refine_threshold}
+    extra, judged = "", err  # whether refinement is needed is judged on the model predict writes without it
     if not opts.refine_steps and opts.readout_iterations:
         t1 = time.perf_counter()
         solved = solve_output_layer(model, samples, opts.readout_iterations, opts.readout_samples)
         readout_s = time.perf_counter() - t1
         model = solved.model
-        after = resynthesis_error(model, train_views, samples)
+        after = judged = resynthesis_error(model, train_views, samples)
         record.update(readout_seconds=readout_s, readout_iterations_used=solved.iterations,
                       train_dssim_readout=after.dssim, train_l1_readout=after.l1)
         extra = (f" + {1000 * readout_s:.0f} ms solving its output layer on {min(len(samples), opts.readout_samples)} train pixels "
                  f"({solved.iterations} iterations): train DSSIM {err.dssim:.4f} -> {after.dssim:.4f}, L1 {err.l1:.4f} -> {after.l1:.4f}")
+    typer.echo(resynthesis_line(judged, opts.refine_threshold, solved=judged is not err))
+    record["refinement_needed"] = refinement_needed(judged.dssim, opts.refine_threshold)
     if opts.refine_steps == AUTO:
         t1 = time.perf_counter()
         model, auto = refine_auto(model, samples, max_steps=opts.refine_max_steps, patience_steps=opts.refine_patience,

@@ -25,9 +25,9 @@ def _command() -> str:
 
 
 def _predictor(path: Optional[Path]):
-    from damcap.appearance.hyper.file import load_predictor, shipped_predictor_path
+    from damcap.appearance.hyper.file import PAPER_SHIPPED, load_predictor, shipped_predictor_path
 
-    return load_predictor(path or shipped_predictor_path())[0]
+    return load_predictor(path or shipped_predictor_path(PAPER_SHIPPED))[0]
 
 
 def _options_record(opts, predictor: Optional[Path]) -> dict:

@@ -29,18 +29,23 @@ KIND = "dam-predictor"
 SHIPPED = {
     "v1": "dam-predictor-v1.safetensors",
     "v3": "dam-predictor-v3.safetensors",
-    "v4": "dam-predictor-v4.safetensors",
+    "v6": "dam-predictor-v6.safetensors",
 }
 """the trained predictors shipped in ``damcap.appearance.hyper/predictors/`` by name (each one's
 recipe: the .json beside it; docs/learning-to-learn.md compares them): v1 reads one view and was
-trained on 202 Mitsuba captures; v3 reads up to 4 views and was trained on random closed-form
-scenes rendered on a GPU (v2, 900 steps, trained 700 steps further; v2 itself is no longer
-shipped: it is in the repository's history at commit f25b5a5); v4 is v3 trained 400 steps further
-through predict's readout solve (``train-hyper --readout-iterations 3``, on the CPU), for use
-with that solve"""
-DEFAULT_SHIPPED = "v1"
+trained on 202 Mitsuba captures (the paper's method); v3 reads up to 4 views and was trained on
+random closed-form scenes rendered on a GPU (v2, 900 steps, trained 700 steps further); v6 is v3
+trained further through predict's readout solve (``train-hyper --readout-iterations 3``, on the
+CPU: 400 steps to v4, 800 to v5, 800 to v6), for use with that solve"""
+RETIRED = {"v2": "f25b5a5", "v4": "db45094"}
+"""predictors shipped once and no longer, by name: the commit whose
+``appearance/hyper/predictors/`` still holds them (v2 became v3, v4 became v6 by further training)"""
+DEFAULT_SHIPPED = "v6"
 """the predictor ``damcap predict`` uses when none is named"""
-SHIPPED_NAME = SHIPPED[DEFAULT_SHIPPED]
+PAPER_SHIPPED = "v1"
+"""the predictor the paper's reproductions use whatever the default (``damcap evaluate --table1 /
+--table2`` and bench/hyper.py, bench/dam_core.py): the paper's method, one input view and the
+network's own output, so their published numbers stay the ones measured with it"""
 
 
 def shipped_predictor_path(name: str = DEFAULT_SHIPPED) -> Path:
@@ -56,15 +61,21 @@ def shipped_predictor_path(name: str = DEFAULT_SHIPPED) -> Path:
 
 def predictor_path(choice: str | os.PathLike | None) -> Path:
     """The predictor a ``--predictor`` value names: None = the default shipped one, a shipped
-    name (``v1``, ``v3``, ``v4``), or a file path.
+    name (``v1``, ``v3``, ``v6``), or a file path.
 
     >>> predictor_path("v3").name, predictor_path("my.safetensors").name
     ('dam-predictor-v3.safetensors', 'my.safetensors')
+
+    Raises:
+        DamcapError: a retired shipped name (:data:`RETIRED`) that is not also a file here.
     """
     if choice is None:
         return shipped_predictor_path()
     if str(choice) in SHIPPED:
         return shipped_predictor_path(str(choice))
+    if str(choice) in RETIRED and not Path(choice).exists():
+        raise DamcapError(f"--predictor {choice}: damcap no longer ships {choice} (shipped: {', '.join(SHIPPED)}; "
+                          f"default {DEFAULT_SHIPPED}); its file is in appearance/hyper/predictors/ at commit {RETIRED[str(choice)]}")
     return Path(choice)
 
 

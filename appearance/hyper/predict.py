@@ -82,8 +82,8 @@ class PredictOptions:
     refine_learning_rate: float = field(default=1e-2, metadata=in_range(0, 10, lo_open=True))
     """Adam learning rate of the refinement: the initial rate of K steps (cosine-decayed to 5 % of
     it, as the fit's), and the constant rate at which --refine-steps auto chooses K. On 11
-    captures unlike the shipped predictor's training set (bench/hyper_ood_refine.md, 2026-11-27),
-    300 steps from the shipped predictor (about 2 s) reached a mean novel-view DSSIM of 0.106
+    captures unlike v1's training set (bench/hyper_ood_refine.md, 2026-11-27),
+    300 steps from v1 (about 2 s) reached a mean novel-view DSSIM of 0.106
     (x0.86 of the fit) at 1e-2 against 0.110 (x0.93) at 3e-3, the rate before 2026-11-27: better
     on 7 captures, worse on 3 (by 0.001 to 0.012). More, smaller steps did no better (900 steps of 1024 pixels, 3.4 s:
     x0.87; docs/learning-to-learn.md)"""
@@ -96,9 +96,11 @@ class PredictOptions:
     DSSIM from 0.201 to 0.166 (x2.51 to x1.98 of the fit) with v1 and from 0.198 to 0.165 (x2.36
     to x2.05) with v3 (and to 0.146, x1.64, with v4, trained through the solve), prediction and
     solve together in 44-72 ms; 1 and 5 iterations helped less
-    (x2.05-x2.11, x2.00-x2.06). Refinement starts from the network's own output instead: in a side
-    study on the same captures, 300 steps from the solved output layer ended worse (x0.98 against
-    x0.86 with v1, x0.98 against x0.89 with v3)"""
+    (x2.05-x2.11, x2.00-x2.06). v6, the default since, reached 0.132 (x1.45; bench/hyper_ood_v5.md).
+    Refinement starts from the network's own output instead: on the same captures, 300 steps from
+    the solved output layer ended worse with v1, v3 and v4 (x0.98 against x0.86, x0.98 against
+    x0.89 in a side study; x0.86 against x0.80, bench/hyper_ood_v5.md) and no better with v6
+    (mean DSSIM 0.0976 against 0.0967)"""
     readout_samples: int = field(default=4096, metadata=COUNT)
     """the output layer is solved on a seeded random subset of at most this many train pixels.
     16384 gave the same novel-view DSSIM within 0.0015 on average (bench/hyper_ood_readout.md) and
@@ -155,13 +157,16 @@ def refinement_needed(train_dssim: float, threshold: float) -> bool:
     return not train_dssim <= threshold
 
 
-def resynthesis_line(err: Resynthesis, threshold: float) -> str:
-    """The one line predict prints about its re-synthesis error and what it means.
+def resynthesis_line(err: Resynthesis, threshold: float, solved: bool = False) -> str:
+    """The one line predict prints about its re-synthesis error and what it means (``solved``:
+    the error is the prediction's after its output layer was solved, what predict writes).
 
     >>> resynthesis_line(Resynthesis(0.0312, 0.0456, 10), 0.05)
     're-synthesis of the 10 train views: DSSIM 0.0312, L1 0.0456; within --refine-threshold 0.05: the prediction can be used as it is'
+    >>> resynthesis_line(Resynthesis(0.0312, 0.0456, 10), 0.05, solved=True)[:55]
+    're-synthesis of the 10 train views, output layer solved'
     """
-    head = f"re-synthesis of the {err.views} train views: DSSIM {err.dssim:.4f}, L1 {err.l1:.4f}; "
+    head = f"re-synthesis of the {err.views} train views{', output layer solved' if solved else ''}: DSSIM {err.dssim:.4f}, L1 {err.l1:.4f}; "
     if refinement_needed(err.dssim, threshold):
         return head + (f"above --refine-threshold {threshold:g}: this capture is unlike the predictor's training set, "
                        f"refinement needed (--refine-steps auto)")

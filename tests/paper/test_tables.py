@@ -8,7 +8,7 @@ import statistics
 import pytest
 
 from damcap.appearance.fit import FitOptions
-from damcap.appearance.hyper.file import load_predictor, shipped_predictor_path
+from damcap.appearance.hyper.file import PAPER_SHIPPED, load_predictor, shipped_predictor_path
 from damcap.appearance.segment.options import SegmentOptions
 from damcap.paper.tables import (
     TableOptions, heldout_entries, rows_from_json, summarise, table1_markdown, table1_rows, table2_markdown, table2_rows,
@@ -45,7 +45,7 @@ def corpus(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def predictor():
-    return load_predictor(shipped_predictor_path())[0]
+    return load_predictor(shipped_predictor_path(PAPER_SHIPPED))[0]
 
 
 PROGRESS: list[tuple[str, int, int]] = []

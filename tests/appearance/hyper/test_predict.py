@@ -173,6 +173,13 @@ def test_predict_threshold_and_integer_refinement(tmp_path, small_capture, tiny_
     assert "within --refine-threshold 1:" in stdout
     prov = load_dam(tmp_path / "a.dam")[1]["provenance"]
     assert prov["refinement_needed"] is False and prov["refine_steps"] == 0 and "train_l1_refined" not in prov
+    # without refinement the verdict is on what predict writes: the prediction with its output layer solved
+    solved, raw = prov["train_dssim_readout"], prov["train_dssim_predicted"]
+    assert solved < raw
+    code, stdout, err = run(["predict", small_capture, "-o", tmp_path / "s.dam", "--predictor", tiny_predictor, "--refine-threshold", str(solved)], capsys)
+    assert code == 0, err
+    assert f"train views, output layer solved: DSSIM {solved:.4f}" in stdout and f"within --refine-threshold {solved:g}:" in stdout
+    assert load_dam(tmp_path / "s.dam")[1]["provenance"]["refinement_needed"] is False
     code, stdout, err = run(["predict", small_capture, "-o", tmp_path / "b.dam", "--predictor", tiny_predictor, "--refine-threshold", "0",
                              "--refine-steps", "20"], capsys)
     assert code == 0, err

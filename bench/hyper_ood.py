@@ -10,7 +10,9 @@ its output layer solved on the train pixels (timed, as ``damcap predict`` withou
 each refined 100 / 300 steps (timed, as ``damcap predict --refine-steps K``; also at the learning
 rate that was the default before 2026-11-27, ``--compare-lr``) and with ``--refine-steps auto``. With
 ``--snapshots``: predict alone for each snapshot of the predictors' training runs (how
-out-of-distribution error falls with training compute, counted over warm starts).
+out-of-distribution error falls with training compute, counted over warm starts), also with its output
+layer solved (the first ``--readout`` count). With ``--refine-from-readout``: each predictor refined
+100 / 300 steps from its solved output layer as well (rows ``NAME readout + K``).
 
 Targets (issue 28): predict alone at most 1.15x the fit's DSSIM on every kind and never worse
 than RM++; predict + refinement within 2 s at most 1.0x the fit; prediction under 100 ms on CPU.

@@ -74,7 +74,7 @@ def predictor_path(choice: str | os.PathLike | None) -> Path:
     if str(choice) in SHIPPED:
         return shipped_predictor_path(str(choice))
     if str(choice) in RETIRED and not Path(choice).exists():
-        raise DamcapError(f"--predictor {choice}: damcap no longer ships {choice} (shipped: {', '.join(SHIPPED)}; "
+        raise DamcapError(f"{choice}: damcap no longer ships predictor {choice} (shipped: {', '.join(SHIPPED)}; "
                           f"default {DEFAULT_SHIPPED}); its file is in appearance/hyper/predictors/ at commit {RETIRED[str(choice)]}")
     return Path(choice)
 

@@ -57,11 +57,12 @@ def test_every_shipped_predictor_loads_and_a_retired_name_says_which_commit_hold
     monkeypatch.chdir(tmp_path)  # no file called v4 here
     for name, commit in RETIRED.items():
         assert name not in SHIPPED
-        with pytest.raises(DamcapError, match=f"no longer ships {name} .* at commit {commit}"):
+        with pytest.raises(DamcapError, match=f"no longer ships predictor {name} .* at commit {commit}"):
             predictor_path(name)
     assert main(["predict", str(tmp_path / "cap"), "-o", str(tmp_path / "o.dam"), "--predictor", "v4"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--predictor v4" in err[0] and RETIRED["v4"] in err[0] and "Traceback" not in err[0]
+    assert len(err) == 1 and "v4: damcap no longer ships" in err[0] and RETIRED["v4"] in err[0] and "Traceback" not in err[0]
+    assert main(["train-hyper", "-o", str(tmp_path / "p.safetensors"), "--procedural", "1", "--init", "v4"]) == 2
     (tmp_path / "v4").write_bytes(b"")  # a file by that name is the user's file, not the retired predictor
     assert predictor_path("v4") == Path("v4")
 

@@ -141,25 +141,24 @@ def predict(
     predict_s = time.perf_counter() - t0
     samples = samples_of(train_views)
     err = resynthesis_error(model, train_views, samples)
+    typer.echo(resynthesis_line(err, opts.refine_threshold))
     record = {"damcap_version": damcap_version(), "capture": str(capture.resolve()), "predictor": str(Path(pred_path).resolve()),
               "predictor_command": meta.get("training", {}).get("command"), "view": frame.file_path,
               "input_views": [f.file_path for f in frames],
               "predict_seconds": predict_s, "options": asdict(opts), "refine_steps": opts.refine_steps,
               "train_views": err.views, "train_dssim_predicted": err.dssim, "train_l1_predicted": err.l1,
-              "refine_threshold": opts.refine_threshold}
-    extra, judged = "", err  # whether refinement is needed is judged on the model predict writes without it
+              "refine_threshold": opts.refine_threshold, "refinement_needed": refinement_needed(err.dssim, opts.refine_threshold)}
+    extra = ""
     if not opts.refine_steps and opts.readout_iterations:
         t1 = time.perf_counter()
         solved = solve_output_layer(model, samples, opts.readout_iterations, opts.readout_samples)
         readout_s = time.perf_counter() - t1
         model = solved.model
-        after = judged = resynthesis_error(model, train_views, samples)
+        after = resynthesis_error(model, train_views, samples)
         record.update(readout_seconds=readout_s, readout_iterations_used=solved.iterations,
                       train_dssim_readout=after.dssim, train_l1_readout=after.l1)
         extra = (f" + {1000 * readout_s:.0f} ms solving its output layer on {min(len(samples), opts.readout_samples)} train pixels "
                  f"({solved.iterations} iterations): train DSSIM {err.dssim:.4f} -> {after.dssim:.4f}, L1 {err.l1:.4f} -> {after.l1:.4f}")
-    typer.echo(resynthesis_line(judged, opts.refine_threshold, solved=judged is not err))
-    record["refinement_needed"] = refinement_needed(judged.dssim, opts.refine_threshold)
     if opts.refine_steps == AUTO:
         t1 = time.perf_counter()
         model, auto = refine_auto(model, samples, max_steps=opts.refine_max_steps, patience_steps=opts.refine_patience,

@@ -157,16 +157,13 @@ def refinement_needed(train_dssim: float, threshold: float) -> bool:
     return not train_dssim <= threshold
 
 
-def resynthesis_line(err: Resynthesis, threshold: float, solved: bool = False) -> str:
-    """The one line predict prints about its re-synthesis error and what it means (``solved``:
-    the error is the prediction's after its output layer was solved, what predict writes).
+def resynthesis_line(err: Resynthesis, threshold: float) -> str:
+    """The one line predict prints about its re-synthesis error and what it means.
 
     >>> resynthesis_line(Resynthesis(0.0312, 0.0456, 10), 0.05)
     're-synthesis of the 10 train views: DSSIM 0.0312, L1 0.0456; within --refine-threshold 0.05: the prediction can be used as it is'
-    >>> resynthesis_line(Resynthesis(0.0312, 0.0456, 10), 0.05, solved=True)[:55]
-    're-synthesis of the 10 train views, output layer solved'
     """
-    head = f"re-synthesis of the {err.views} train views{', output layer solved' if solved else ''}: DSSIM {err.dssim:.4f}, L1 {err.l1:.4f}; "
+    head = f"re-synthesis of the {err.views} train views: DSSIM {err.dssim:.4f}, L1 {err.l1:.4f}; "
     if refinement_needed(err.dssim, threshold):
         return head + (f"above --refine-threshold {threshold:g}: this capture is unlike the predictor's training set, "
                        f"refinement needed (--refine-steps auto)")

@@ -173,13 +173,15 @@ def test_predict_threshold_and_integer_refinement(tmp_path, small_capture, tiny_
     assert "within --refine-threshold 1:" in stdout
     prov = load_dam(tmp_path / "a.dam")[1]["provenance"]
     assert prov["refinement_needed"] is False and prov["refine_steps"] == 0 and "train_l1_refined" not in prov
-    # without refinement the verdict is on what predict writes: the prediction with its output layer solved
-    solved, raw = prov["train_dssim_readout"], prov["train_dssim_predicted"]
-    assert solved < raw
-    code, stdout, err = run(["predict", small_capture, "-o", tmp_path / "s.dam", "--predictor", tiny_predictor, "--refine-threshold", str(solved)], capsys)
+    # the verdict is on the network's own output, also when predict then solves its output layer (the
+    # solved model's train error predicted refinement's gain worse: docs/learning-to-learn.md)
+    raw = prov["train_dssim_predicted"]
+    assert prov["train_dssim_readout"] < raw
+    code, stdout, err = run(["predict", small_capture, "-o", tmp_path / "s.dam", "--predictor", tiny_predictor, "--refine-threshold",
+                             str(prov["train_dssim_readout"])], capsys)
     assert code == 0, err
-    assert f"train views, output layer solved: DSSIM {solved:.4f}" in stdout and f"within --refine-threshold {solved:g}:" in stdout
-    assert load_dam(tmp_path / "s.dam")[1]["provenance"]["refinement_needed"] is False
+    assert f"train views: DSSIM {raw:.4f}" in stdout and "refinement needed" in stdout
+    assert load_dam(tmp_path / "s.dam")[1]["provenance"]["refinement_needed"] is True
     code, stdout, err = run(["predict", small_capture, "-o", tmp_path / "b.dam", "--predictor", tiny_predictor, "--refine-threshold", "0",
                              "--refine-steps", "20"], capsys)
     assert code == 0, err

@@ -49,13 +49,21 @@ class ProceduralOptions:
     """most spheres in a blob (one = a sphere)"""
     scene_min_alpha: float = field(default=0.03, metadata=in_range(1e-3, 1))
     """smallest GGX alpha drawn (log-uniform up to 1): how mirror-like a material may be"""
+    scene_env_only: float = field(default=0.4, metadata=in_range(0, 1))
+    """fraction of scenes lit by an environment alone (:func:`random_lighting`)"""
+    scene_lights_only: float = field(default=0.35, metadata=in_range(0, 1))
+    """fraction lit by 1 to 3 directional lights and a dim environment; the rest of the scenes have
+    both at comparable power"""
 
     def validate(self) -> None:
+        from damcap.common.errors import DamcapError
+
         check_ranges(self)
         if self.scene_views_min > self.scene_views_max:
-            from damcap.common.errors import DamcapError
-
             raise DamcapError(f"--scene-views-min {self.scene_views_min} is above --scene-views-max {self.scene_views_max}")
+        if self.scene_env_only + self.scene_lights_only > 1:
+            raise DamcapError(f"--scene-env-only {self.scene_env_only} and --scene-lights-only {self.scene_lights_only} "
+                              "add up to more than 1 (they are fractions of the scenes); lower one")
 
 
 @dataclass
@@ -123,14 +131,16 @@ def random_materials(gen: torch.Generator, b: int, min_alpha: float) -> Material
     return Materials(albedo, alpha, f0)
 
 
-def random_lighting(gen: torch.Generator, b: int, env_grid: int, exposure_decades: float, max_lights: int = 3
-                    ) -> tuple[torch.Tensor, torch.Tensor]:
+def random_lighting(gen: torch.Generator, b: int, env_grid: int, exposure_decades: float, max_lights: int = 3,
+                    env_only: float = 0.4, lights_only: float = 0.35) -> tuple[torch.Tensor, torch.Tensor]:
     """Distant illumination of b scenes as directions with radiance x solid angle.
 
-    40% of scenes are lit by an environment only (sky gradient about a random up direction plus
-    0-3 spherical-Gaussian lobes, sharpness 2-300), 35% by 1-3 directional lights and a dim
-    environment (0-10% of their power), 25% by both at comparable power. Then every scene's power is
-    multiplied by an exposure scale 10^U(-d, d).
+    A fraction ``env_only`` of scenes (default 40%) is lit by an environment only (sky gradient
+    about a random up direction plus 0-3 spherical-Gaussian lobes, sharpness 2-300), ``lights_only``
+    (35%) by 1-3 directional lights and a dim environment (0-10% of one light's power), the rest
+    (25%) by both at comparable power. Then every scene's power is multiplied by an exposure scale
+    10^U(-d, d). The draws do not depend on the fractions, so two mixes differ only in which
+    scenes change mode.
 
     Returns:
         dirs: (B, K + max_lights, 3) unit directions toward the light (the environment grid, then
@@ -162,13 +172,13 @@ def random_lighting(gen: torch.Generator, b: int, env_grid: int, exposure_decade
 
     mode = rand_uniform(gen, b, 1, 1)
     env_total = env_power.sum(1, keepdim=True).mean(-1, keepdim=True).clamp_min(1e-12)  # (B, 1, 1)
-    env_only = mode < 0.4
-    lights_only = mode > 0.65
+    is_env_only = mode < env_only
+    is_lights_only = mode > 1 - lights_only
     # environment only: as drawn; lights only: a dim environment (0-10% of one light's power);
     # both: the environment rescaled to one light's power
     dim = rand_uniform(gen, b, 1, 1, hi=0.1) * 3.0 / env_total
-    env_weight = torch.where(env_only, torch.ones_like(dim), torch.where(lights_only, dim, 3.0 / env_total))
-    light_weight = (~env_only).float()
+    env_weight = torch.where(is_env_only, torch.ones_like(dim), torch.where(is_lights_only, dim, 3.0 / env_total))
+    light_weight = (~is_env_only).float()
     exposure = 10 ** rand_uniform(gen, b, 1, 1, lo=-exposure_decades, hi=exposure_decades)
     dirs = torch.cat([grid_dirs[None].expand(b, k, 3), light_dirs], 1)
     power = torch.cat([env_power * env_weight, light_power * light_weight], 1) * exposure
@@ -241,7 +251,8 @@ def render_scenes(gen: torch.Generator, b: int, input_views: int, target_samples
     dev = gen.device
     s = opts.scene_px
     mats = random_materials(gen, b, opts.scene_min_alpha)
-    dirs, power = random_lighting(gen, b, opts.scene_env_grid, opts.scene_exposure_decades)
+    dirs, power = random_lighting(gen, b, opts.scene_env_grid, opts.scene_exposure_decades,
+                                  env_only=opts.scene_env_only, lights_only=opts.scene_lights_only)
     blobs = random_blobs(gen, b, opts.scene_blob_balls)
     n_cams = torch.randint(opts.scene_views_min, opts.scene_views_max + 1, (b, 1), generator=gen, device=dev)
     cams = random_cameras(gen, b, opts.scene_views_max)

@@ -82,6 +82,28 @@ def test_materials_and_lights_are_physical_and_varied():
     assert total.max() / total.min() > 100  # exposures over decades
 
 
+def test_the_lighting_mix_sets_each_modes_share():
+    draw = lambda **mix: random_lighting(torch.Generator().manual_seed(1), 2000, 6, 0.0, **mix)[1]  # noqa: E731
+    directional = lambda p: p[:, -3:].sum((1, 2))  # noqa: E731
+    env = lambda p: p[:, :-3].sum((1, 2))  # noqa: E731
+    default = draw()
+    assert torch.equal(default, draw(env_only=0.4, lights_only=0.35))
+    assert abs(float((directional(default) == 0).float().mean()) - 0.4) < 0.03  # binomial sd 0.011
+    lights = draw(env_only=0.0, lights_only=1.0)
+    assert (directional(lights) > 0).all()
+    # the dim environment: at most 10% of one light's power (3 W/m^2 per channel before exposure)
+    assert (env(lights) <= 0.1 * 3.0 * 3 + 1e-4).all()
+    assert (directional(draw(env_only=1.0, lights_only=0.0)) == 0).all()
+    shifted = draw(env_only=0.3, lights_only=0.55)
+    assert abs(float((directional(shifted) == 0).float().mean()) - 0.3) < 0.03
+    assert abs(float((env(shifted) <= 0.9 + 1e-4).float().mean()) - 0.55) < 0.03
+
+
+def test_options_refuse_a_lighting_mix_above_one():
+    with pytest.raises(DamcapError, match="--scene-env-only 0.7 and --scene-lights-only 0.4 add up to more than 1"):
+        ProceduralOptions(scene_env_only=0.7, scene_lights_only=0.4).validate()
+
+
 def test_scenes_are_deterministic_and_consistent():
     a = render_scenes(torch.Generator().manual_seed(3), 3, 2, 200, SMALL)
     b = render_scenes(torch.Generator().manual_seed(3), 3, 2, 200, SMALL)

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The recipe of the shipped predictors (appearance/hyper/predictors/dam-predictor-v2, -v3, and the start of -v6): train on
+# The recipe of the shipped predictors (appearance/hyper/predictors/dam-predictor-v2, -v3, and the start of -v8): train on
 # random closed-form scenes rendered on the fly on the training device (a GPU where one is
 # present), for a wall-clock budget: 20 calibration steps measure the seconds per step, then the
 # run takes as many steps as fit the budget, writing snapshots at 1/4, 1/2 and 3/4 of it
@@ -14,10 +14,13 @@
 #          --pixels 4096 --scene-px 64 --scene-env-grid 8 --device cpu --init v3 --checkpoint-every 100 --learning-rate 1e-4
 #          --batch-size 8 --steps 400 --eval-every 50 --val-scenes 16 --readout-iterations 3
 #        (on a GPU: this script with --init v3 --readout-iterations 3 --learning-rate 1e-4)
-#      v6 (shipped, the default) = v4 + 800 steps (--init v4 --seed 1 -o v5.safetensors, 1684 s; not shipped; today
+#      v6 (retired; at commit 11dc441) = v4 + 800 steps (--init v4 --seed 1 -o v5.safetensors, 1684 s; not shipped; today
 #        git show db45094:appearance/hyper/predictors/dam-predictor-v4.safetensors > v4.safetensors, --init v4.safetensors)
 #        + 800 steps (--init v5.safetensors --seed 2 -o v6.safetensors, 1364 s), each v4's command with
 #        --steps 800 --eval-every 100 --snapshot-every 200 (v4 is at commit db45094; docs/learning-to-learn.md)
+#      v8 (shipped, the default) = v6 + 800 steps (--init v6 --seed 3 -o v7.safetensors, 1151 s; not shipped)
+#        + 800 steps (--init v7.safetensors --seed 4 -o v8.safetensors, 1126 s), each v6's command with
+#        --scene-lights-only 0.55 --scene-env-only 0.3 (more distant-light scenes; docs/learning-to-learn.md "### v8")
 # On a machine where damcap is not installed, put it on the module path first (a damcap/ folder
 # whose rooms link to the repository's; see docs/learning-to-learn.md) and run from outside the repository.
 #      several GPUs:  PYTHON="torchrun --nproc-per-node 4 -m" would need the module form below

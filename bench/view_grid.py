@@ -1,6 +1,7 @@
 """A picture of what DAMs do on a capture's novel views: one row per test view, the photo then each
 model's rendering, titled with its DSSIM (``appearance.evaluate.score_view``), all tone-mapped
-alike (divided by the photo's 99th percentile of covered radiance, gamma 2.2).
+alike (divided by the photo's 99th percentile of covered radiance, then
+``common.colour.preview_gamma``).
 
     .venv/bin/python -m bench.view_grid CAPTURE --model NAME=FILE.dam [--model ...] --rows 4 --out PNG
 
@@ -16,15 +17,6 @@ from pathlib import Path
 import numpy as np
 
 
-def tone_map(radiance_lin: np.ndarray, white: float) -> np.ndarray:
-    """(H, W, 3) linear radiance to display values in [0, 1]: divided by ``white``, clipped, gamma 2.2.
-
-    >>> tone_map(np.array([[[0.0, 0.25, 4.0]]]), 1.0).round(3).tolist()
-    [[[0.0, 0.533, 1.0]]]
-    """
-    return np.clip(radiance_lin / white, 0, 1) ** (1 / 2.2)
-
-
 def main(argv: list[str] | None = None) -> None:
     import matplotlib
 
@@ -37,6 +29,7 @@ def main(argv: list[str] | None = None) -> None:
     from damcap.appearance.views import load_views
     from damcap.common.atomic import atomic_path
     from damcap.common.capture_folder import read_capture
+    from damcap.common.colour import preview_gamma
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("capture", type=Path)
@@ -53,11 +46,11 @@ def main(argv: list[str] | None = None) -> None:
     for i, view in enumerate(rows):
         photo = view.data.radiance_lin
         white = float(np.percentile(photo[view.data.coverage > 0], 99))
-        ax[i, 0].imshow(tone_map(photo, white))
+        ax[i, 0].imshow(preview_gamma(photo / white))
         ax[i, 0].set_title(f"photo {view.name}", fontsize=9)
         for j, (name, model) in enumerate(models.items()):
             rendered = render_frame(model, view.data, view.centre_world)
-            ax[i, j + 1].imshow(tone_map(rendered, white))
+            ax[i, j + 1].imshow(preview_gamma(rendered / white))
             ax[i, j + 1].set_title(f"{name}: DSSIM {score_view(view, rendered):.3f}", fontsize=9)
     for a in ax.flat:
         a.axis("off")

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from damcap.common.errors import DamcapError
 from damcap.common.numerics import dot, safe_normalize
 from damcap.common.validate import check_ranges, in_range
 
@@ -56,8 +57,6 @@ class ProceduralOptions:
     both at comparable power"""
 
     def validate(self) -> None:
-        from damcap.common.errors import DamcapError
-
         check_ranges(self)
         if self.scene_views_min > self.scene_views_max:
             raise DamcapError(f"--scene-views-min {self.scene_views_min} is above --scene-views-max {self.scene_views_max}")

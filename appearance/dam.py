@@ -203,6 +203,34 @@ def dam_forward(weights_flat: torch.Tensor, inputs: torch.Tensor, arch: DamArchi
     return out[0] if single else out
 
 
+def rotated_world_weights(weights_flat: torch.Tensor, arch: DamArchitecture, rotation: torch.Tensor) -> torch.Tensor:
+    """The weights of the DAM that reads rotated world vectors: f'(V, N) = f(R V, R N).
+
+    Every input encoding is made of world vectors (V, N, R = reflect(V, N)), and reflection
+    commutes with rotation, so rotating the world multiplies each 3-vector block of the input by
+    R: only the first layer changes, each (unit, block) row w becoming w R. A predictor that works
+    in a frame of its own (``R`` taking world vectors into it) returns its DAM to the world this way.
+
+    Args:
+        weights_flat: (P,) or (B, P) flat weights.
+        arch: the architecture.
+        rotation: (3, 3) or (B, 3, 3) rotation matrix R.
+
+    Returns:
+        weights of the same shape (a new tensor, differentiable in both inputs).
+
+    >>> a = DamArchitecture(width=4, depth=1)
+    >>> w = torch.randn(a.num_weights)
+    >>> torch.equal(rotated_world_weights(w, a, torch.eye(3)), w)
+    True
+    """
+    n0 = arch.layer_weight_counts[0]  # first layer's matrix: consecutive triples are (unit, block) rows
+    first = weights_flat[..., :n0].reshape(*weights_flat.shape[:-1], n0 // 3, 3)
+    rot = rotation.to(weights_flat.dtype)
+    turned = (first @ rot).reshape(*weights_flat.shape[:-1], n0)
+    return torch.cat([turned, weights_flat[..., n0:]], -1)
+
+
 def init_weights(arch: DamArchitecture, generator: torch.Generator | None = None) -> torch.Tensor:
     """He-uniform initial flat weights (fan-in: the inputs a unit sees), (P,) float32; biases 0."""
     parts = []

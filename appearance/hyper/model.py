@@ -8,7 +8,9 @@ weight vector (so an untrained predictor already outputs a valid DAM: the mean a
 A predictor with ``input_views`` above 1 is a set encoder: it runs the convolutions on each of up
 to that many views and averages their features before the output layer, so the prediction does
 not depend on the views' order and works with any number of them (:func:`predictor_inputs`
-chooses views that spread the cameras).
+chooses views that spread the cameras). A predictor whose ``frame`` is 'light' (:mod:`.frame`)
+first turns the world so that its input's dominant light comes from +y, and turns the DAM it
+predicts back.
 
 Units: the RGB channels are the view's linear radiance divided by the *capture's* radiance
 scale (95th percentile of the train views' foreground, :func:`.fit.radiance_scale_of`, the same
@@ -33,7 +35,8 @@ from torch import nn
 from damcap.common.errors import DamcapError
 from damcap.common.validate import MAX_CHANNELS, MAX_CONV_LAYERS, MAX_IMAGE_SIDE, bounded_int, require_memory
 
-from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap, dam_forward, encode_inputs, init_weights
+from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap, dam_forward, encode_inputs, init_weights, rotated_world_weights
+from damcap.appearance.hyper.frame import FRAMES, Frame, light_frame, rotate_images
 from damcap.appearance.views import ViewData, radiance_scale_of
 from damcap.appearance.readout import solved_weights
 from damcap.appearance.pixels import FOREGROUND_COVERAGE, view_dir_world
@@ -55,6 +58,9 @@ class HyperArchitecture:
     input_views: int = 1
     """views it reads at once: each view's features are averaged before the output layer (a set
     encoder: the prediction does not depend on the order of the views); 1 = the paper's one view"""
+    frame: Frame = "world"
+    """coordinates the network reads and writes (:mod:`.frame`): 'world' (v1-v8), or 'light', the
+    world turned so that the input's dominant light comes from +y (the DAM is turned back)"""
 
     def __post_init__(self) -> None:
         # bounded before any layer is built from them (a predictor file's metadata, an option)
@@ -63,6 +69,8 @@ class HyperArchitecture:
             bounded_int(c, 1, MAX_CHANNELS, "predictor channels")
         bounded_int(self.input_size, 1, MAX_IMAGE_SIDE, "predictor --input-size")
         bounded_int(self.input_views, 1, 64, "predictor --input-views")
+        if self.frame not in FRAMES:
+            raise DamcapError(f"unknown predictor frame {self.frame!r}; use one of {', '.join(FRAMES)}")
         if not isinstance(self.dam, DamArchitecture):
             raise DamcapError(f"predictor dam must be a DamArchitecture, got {type(self.dam).__name__}")
         dims = (IN_CHANNELS,) + tuple(self.channels)
@@ -87,11 +95,13 @@ class HyperArchitecture:
         """
         d = dict(d)
         return HyperArchitecture(input_size=int(d["input_size"]), channels=tuple(int(c) for c in d["channels"]),
-                                 dam=DamArchitecture(**d["dam"]), input_views=int(d.get("input_views", 1)))
+                                 dam=DamArchitecture(**d["dam"]), input_views=int(d.get("input_views", 1)),
+                                 frame=d.get("frame", "world"))
 
 
 class HyperNet(nn.Module):
-    """Theta: (B, 9, S, S) predictor images, or (B, V, 9, S, S) sets of views -> (B, P) flat DAM weights."""
+    """Theta: (B, 9, S, S) predictor images, or (B, V, 9, S, S) sets of views -> (B, P) flat DAM
+    weights (world coordinates, whatever the architecture's ``frame``)."""
 
     def __init__(self, arch: HyperArchitecture, generator: torch.Generator | None = None) -> None:
         super().__init__()
@@ -115,11 +125,17 @@ class HyperNet(nn.Module):
         """
         if images.dim() == 4:
             images = images[:, None]
+        rotation = None
+        if self.arch.frame == "light":
+            with torch.no_grad():  # a change of coordinates, a constant of the step
+                rotation = light_frame(images, view_mask)
+            images = rotate_images(images, rotation)
         b, v = images.shape[:2]
         f = F.adaptive_avg_pool2d(self.features(images.flatten(0, 1)), 1).reshape(b, v, -1)
         w = torch.ones(b, v, 1, device=f.device, dtype=f.dtype) if view_mask is None else view_mask[..., None].to(f.dtype)
         f = (f * w).sum(1) / w.sum(1).clamp_min(1.0)
-        return self.base[None] + self.head(f)
+        weights = self.base[None] + self.head(f)
+        return weights if rotation is None else rotated_world_weights(weights, self.arch.dam, rotation)
 
 
 def crop_box(foreground: np.ndarray, margin: float = 0.05) -> tuple[int, int, int]:

@@ -22,7 +22,7 @@ import json
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -37,6 +37,7 @@ from damcap.common.errors import DamcapError
 from damcap.common.validate import COUNT, COUNT_OR_ZERO, MAX_BATCH_PIXELS, MAX_CHANNELS, MAX_IMAGE_SIDE, SEED, check_ranges, in_range
 
 from damcap.appearance.dam import DamArchitecture, Encoding
+from damcap.appearance.hyper.frame import Frame
 from damcap.common.fingerprint import FINGERPRINT_KEY, fingerprint
 from damcap.common.version import damcap_version
 
@@ -64,6 +65,9 @@ class HyperTrainOptions:
     """convolution channels (one stride-2 layer each)"""
     encoding: Encoding = "nr"
     """input encoding of the predicted DAM (32 x 4, no biases)"""
+    frame: Frame = "world"
+    """the predictor's coordinates (appearance/hyper/frame.py): 'world', or 'light' (the world
+    turned so that each input's dominant light comes from +y; the predicted DAM is turned back)"""
     augment: bool = True
     """exact augmentations: rotation about +y, mirror, tinted light"""
     max_captures: int = field(default=0, metadata=COUNT_OR_ZERO)
@@ -115,7 +119,8 @@ class HyperTrainOptions:
 
     @property
     def architecture(self) -> HyperArchitecture:
-        return HyperArchitecture(self.input_size, tuple(self.channels), DamArchitecture(encoding=self.encoding), self.input_views)
+        return HyperArchitecture(self.input_size, tuple(self.channels), DamArchitecture(encoding=self.encoding), self.input_views,
+                                 self.frame)
 
 
 @dataclass
@@ -414,14 +419,14 @@ def init_weights(choice: str, arch: HyperArchitecture) -> tuple[dict[str, torch.
 
     path = predictor_path(choice)
     net, meta = load_predictor(path)
-    if net.arch != arch:
+    if replace(net.arch, frame=arch.frame) != arch:  # the frame is no tensor's shape: a run may change it
         raise DamcapError(f"{path}: --init predictor has architecture {net.arch.to_json()}, but the options ask for {arch.to_json()}; "
                           f"give the same --input-size, --channels, --encoding and --input-views as it was trained with")
     training = meta.get("training") or {}
     prior = training.get("init") or {}
     steps = int((training.get("options") or {}).get("steps", 0)) + int(prior.get("steps", 0))
     seconds = float(training.get("seconds", 0.0)) + float(prior.get("seconds", 0.0))
-    record = {"file": path.name, "weights_sha256": weights_sha256(net), "steps": steps, "seconds": seconds}
+    record = {"file": path.name, "weights_sha256": weights_sha256(net), "steps": steps, "seconds": seconds, "frame": net.arch.frame}
     return {k: v.detach().clone() for k, v in net.state_dict().items()}, record
 
 

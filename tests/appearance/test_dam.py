@@ -122,3 +122,21 @@ def test_separable_needs_nr_and_an_even_width():
         _separable(encoding="vn")
     with pytest.raises(DamcapError, match="even width, got encoding 'nr', width 7"):
         _separable(width=7)
+
+
+@pytest.mark.parametrize("arch", [DamArchitecture(encoding="vn"), DamArchitecture(), DamArchitecture(encoding="vnr", bias=True),
+                                  DamArchitecture(width=8, separable=True)], ids=["vn", "nr", "vnr-bias", "separable"])
+def test_rotated_world_weights_read_the_rotated_world(arch):
+    """f'(V, N) = f(R V, R N) for every encoding, one DAM or a batch."""
+    from damcap.appearance.dam import rotated_world_weights, init_weights
+    from damcap.appearance.hyper.frame import rotation_to_up
+
+    g = torch.Generator().manual_seed(0)
+    w = torch.stack([init_weights(arch, g) for _ in range(2)])
+    rot = rotation_to_up(torch.tensor([[0.3, -0.5, 0.8], [-0.9, 0.1, 0.2]]))
+    v, n = safe_normalize(torch.randn(2, 64, 3, generator=g)), safe_normalize(torch.randn(2, 64, 3, generator=g))
+    turned = dam_forward(rotated_world_weights(w, arch, rot), encode_inputs(v, n, arch.encoding), arch)
+    direct = dam_forward(w, encode_inputs(v @ rot.transpose(1, 2), n @ rot.transpose(1, 2), arch.encoding), arch)
+    assert torch.allclose(turned, direct, rtol=1e-4, atol=1e-6)
+    one = rotated_world_weights(w[0], arch, rot[0])
+    assert torch.allclose(dam_forward(one, encode_inputs(v[0], n[0], arch.encoding), arch), direct[0], rtol=1e-4, atol=1e-6)

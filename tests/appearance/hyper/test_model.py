@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 
+import pytest
 import torch
 import torch.nn.functional as F
 
@@ -134,3 +135,29 @@ def test_predicted_loss_with_a_readout_solves_on_even_samples_and_scores_odd_one
     assert not torch.equal(solved[:, -96:], w[:, -96:]) and torch.equal(solved[:, :-96], w[:, :-96])
     loss.backward()
     assert torch.isfinite(w.grad).all() and w.grad[:, :-96].abs().sum() > 0  # the hidden layers learn through the solve
+
+
+def test_a_light_frame_network_predicts_in_its_frame_and_returns_world_weights(small_capture):
+    """frame 'light': the convolutions read the images turned into the light frame, and the DAM
+    comes back turned to the world (same parameters as a world-frame network)."""
+    from damcap.appearance.dam import rotated_world_weights
+    from damcap.appearance.hyper.frame import light_frame, rotate_images
+    from damcap.common.errors import DamcapError
+
+    world = HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), input_views=2), torch.Generator().manual_seed(0))
+    light = HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), input_views=2, frame="light"))
+    light.load_state_dict(world.state_dict())
+    img = predictor_image(_crop_of(small_capture), 32)[0]
+    images = torch.stack([img, predictor_image(_crop_of(small_capture), 32, rotation=rotation_y(1.0))[0]])[None]
+    r = light_frame(images)
+    assert not torch.allclose(r, torch.eye(3))
+    expect = rotated_world_weights(world(rotate_images(images, r)), light.arch.dam, r)
+    assert torch.allclose(light(images), expect, rtol=1e-5, atol=1e-6)
+    assert not torch.allclose(light(images), world(images), atol=1e-3)
+    # the frame is part of the file's architecture; files without it are world-frame predictors
+    assert HyperArchitecture.from_json(light.arch.to_json()) == light.arch
+    old = world.arch.to_json()
+    del old["frame"]
+    assert HyperArchitecture.from_json(old).frame == "world"
+    with pytest.raises(DamcapError, match="unknown predictor frame 'sky'"):
+        HyperArchitecture(frame="sky")

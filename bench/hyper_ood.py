@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import statistics
 import time
 from pathlib import Path
@@ -41,13 +42,14 @@ from bench.common import BENCH, CACHE, RESULTS, command_line, log, machine_info
 from damcap.appearance.evaluate import evaluate_split
 from damcap.appearance.fit import FitOptions, fit_dam, refine_dam
 from damcap.appearance.hyper.file import load_predictor
-from damcap.appearance.hyper.model import predict_dam, predictor_inputs
+from damcap.appearance.hyper.frame import brightness_gradient
+from damcap.appearance.hyper.model import input_images, predict_dam, predictor_inputs
 from damcap.appearance.hyper.predict import PredictOptions, refine_auto
 from damcap.appearance.readout import solve_output_layer
 from damcap.appearance.views import load_views, samples_of
 from damcap.common.capture_folder import read_capture
 from damcap.paper.tables import heldout_entries
-from damcap.synth.closed_form import ClosedFormOptions, make_closed_form_capture
+from damcap.synth.closed_form import ClosedFormOptions, directional_lighting, make_closed_form_capture
 
 CLOSED_FORM = [("sphere", "directional", 3), ("sphere", "env", 3), ("blob", "directional", 5), ("blob", "env", 5),
                ("blob", "directional", 11), ("sphere", "env", 12)]
@@ -112,9 +114,21 @@ def snapshot_readout_key(name: str, readout: tuple[list[int], list[int]]) -> str
     return readout_runs(name, readout[0][:1], readout[1][:1])[0][0] if readout[0] else None
 
 
+def light_frame_record(net: torch.nn.Module, crops: list[torch.Tensor], scale: float, light_world: torch.Tensor | None) -> dict:
+    """Where a light-frame predictor's frame puts the light (:mod:`damcap.appearance.hyper.frame`):
+    the unit brightness gradient of its input images, world space, and its angle in degrees to
+    the capture's one distant light when that is known (``light_world``, unit; else None)."""
+    images, _ = input_images(crops, net.arch.input_size, scale)
+    b = brightness_gradient(images[None])[0].double()
+    d = b / b.norm().clamp_min(1e-30)
+    angle = None if light_world is None else math.degrees(math.acos(float((d @ light_world.double()).clamp(-1, 1))))
+    return {"up_world": [float(x) for x in d], "angle_to_light_deg": angle}
+
+
 def bench_capture(kind: str, path: Path, nets: dict[str, torch.nn.Module], refine_steps: list[int], snapshots: dict,
                   fit: FitOptions = FitOptions(checkpoint_every=0), compare_lr: tuple[float, ...] = (), auto: bool = False,
-                  readout: tuple[list[int], list[int]] = ([], []), refine_from_readout: bool = False) -> dict:
+                  readout: tuple[list[int], list[int]] = ([], []), refine_from_readout: bool = False,
+                  light_world: torch.Tensor | None = None) -> dict:
     cap = read_capture(path)
     train, test = load_views(cap, "train"), load_views(cap, "test")
     samples = samples_of(train)
@@ -131,6 +145,8 @@ def bench_capture(kind: str, path: Path, nets: dict[str, torch.nn.Module], refin
             times.append(time.perf_counter() - t)
         models[name] = model
         rec["predict_ms"][name] = 1000 * statistics.median(times)
+        if name in nets and net.arch.frame == "light":
+            rec.setdefault("light_frame", {})[name] = light_frame_record(net, crops, scale, light_world)
         for key, k, n in readout_runs(name, *readout) if name in nets else []:
             solve_times = []
             for _ in range(5):
@@ -223,6 +239,17 @@ def write_markdown(res: dict, path: Path) -> None:
             return f" {statistics.mean(vals):.4f} | x{ratio:.2f} |"
         for name, step, total in sorted(points, key=lambda x: x[2]):
             lines.append(f"| {name} | {step} | {total} |" + cells(name) + (cells(solved_rows.get(name, "")) if solved_rows else ""))
+    frames = [(r, n, f) for r in res["per_capture"] for n, f in (r.get("light_frame") or {}).items()]
+    if frames:
+        lines += ["", "## Light frame", "", "Where each light-frame predictor's frame puts the light (its +y): the unit least-squares "
+                  "brightness gradient of its input views over their normals, world space, and on the closed-form captures under one "
+                  "distant light its angle to that light.", "",
+                  "| capture | predictors | light frame's +y, world | angle to the light, deg |", "|---|---|---|---:|"]
+        rows: dict[tuple, list[str]] = {}  # predictors reading the same views find the same frame: one row
+        for r, n, f in frames:
+            angle = "" if f["angle_to_light_deg"] is None else f"{f['angle_to_light_deg']:.1f}"
+            rows.setdefault((Path(r["capture"]).name, f"({', '.join(f'{x:.2f}' for x in f['up_world'])})", angle), []).append(n)
+        lines += [f"| {cap} | {', '.join(names)} | {up} | {angle} |" for (cap, up, angle), names in rows.items()]
     lines += ["", "## Per capture", "", "| kind | capture | " + " | ".join(cols) + " |", "|---|---|" + "---:|" * len(cols)]
     for r in res["per_capture"]:
         lines.append(f"| {r['kind']} | {Path(r['capture']).name} | " + " | ".join(f"{r['novel'][c]:.4f}" for c in cols) + " |")
@@ -282,7 +309,9 @@ def main(argv: list[str] | None = None) -> int:
     captures += [("real (cape)", p) for p in args.real if (p / "transforms.json").exists()]
     fit = FitOptions(checkpoint_every=0) if args.fit_steps is None else FitOptions(checkpoint_every=0, steps=args.fit_steps)
     readout = (args.readout, args.readout_samples)
-    per = [bench_capture(kind, path, nets, args.refine_steps, snaps, fit, tuple(args.compare_lr), args.auto, readout, args.refine_from_readout)
+    light = directional_lighting().dirs[0]  # the closed-form captures' one distant light (ClosedFormOptions' default)
+    per = [bench_capture(kind, path, nets, args.refine_steps, snaps, fit, tuple(args.compare_lr), args.auto, readout, args.refine_from_readout,
+                         light if kind.startswith("closed-form") and kind.endswith("distant light") else None)
            for kind, path in captures]
     res = {"command": command_line("hyper_ood", argv if argv is not None else __import__("sys").argv[1:]),
            "machine": machine_info(), "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The recipe of the shipped predictors (appearance/hyper/predictors/dam-predictor-v2, -v3, and the start of -v8): train on
+# The recipe of the shipped predictors (appearance/hyper/predictors/dam-predictor-v2, -v3, and the start of -v10): train on
 # random closed-form scenes rendered on the fly on the training device (a GPU where one is
 # present), for a wall-clock budget: 20 calibration steps measure the seconds per step, then the
 # run takes as many steps as fit the budget, writing snapshots at 1/4, 1/2 and 3/4 of it
@@ -18,9 +18,13 @@
 #        git show db45094:appearance/hyper/predictors/dam-predictor-v4.safetensors > v4.safetensors, --init v4.safetensors)
 #        + 800 steps (--init v5.safetensors --seed 2 -o v6.safetensors, 1364 s), each v4's command with
 #        --steps 800 --eval-every 100 --snapshot-every 200 (v4 is at commit db45094; docs/learning-to-learn.md)
-#      v8 (shipped, the default) = v6 + 800 steps (--init v6 --seed 3 -o v7.safetensors, 1151 s; not shipped)
+#      v8 (retired; at commit 2d3e413) = v6 + 800 steps (--init v6 --seed 3 -o v7.safetensors, 1151 s; not shipped)
 #        + 800 steps (--init v7.safetensors --seed 4 -o v8.safetensors, 1126 s), each v6's command with
 #        --scene-lights-only 0.55 --scene-env-only 0.3 (more distant-light scenes; docs/learning-to-learn.md "### v8")
+#      v10 (shipped, the default) = v8 + 3 x 800 steps in the light frame, each v8's command with --frame light
+#        --learning-rate 2e-4: --init v8 --seed 7 -o light1.safetensors (1296 s), --init light1.safetensors --seed 8
+#        -o light2.safetensors (1353 s), --init light2.safetensors --seed 9 --val-scenes 32 -o v10.safetensors (1617 s)
+#        (docs/learning-to-learn.md "### v10")
 # On a machine where damcap is not installed, put it on the module path first (a damcap/ folder
 # whose rooms link to the repository's; see docs/learning-to-learn.md) and run from outside the repository.
 #      several GPUs:  PYTHON="torchrun --nproc-per-node 4 -m" would need the module form below

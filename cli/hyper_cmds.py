@@ -101,8 +101,9 @@ def predict(
     output: Path = typer.Option(..., "-o", "--output", help="model file to write (.dam)"),
     view: Optional[str] = typer.Option(None, "--view", help="(first) input frame (a train-split file_path or its stem); default: the best "
                                        "covered lit one; a predictor reading several views adds the lit views that spread the cameras most"),
-    predictor: Optional[str] = typer.Option(None, "--predictor", help="predictor file, or a shipped one by name: v8 (the default: up to 4 views, random "
-                                            "closed-form scenes, trained through the readout solve), v3 (v8 before that training) or v1 "
+    predictor: Optional[str] = typer.Option(None, "--predictor", help="predictor file, or a shipped one by name: v10 (the default: up to 4 views, random "
+                                            "closed-form scenes, trained through the readout solve, in its light frame), v3 (v10 before "
+                                            "that training) or v1 "
                                             "(one view, trained on Mitsuba captures: the paper's); docs/learning-to-learn.md compares them"),
     device: str = typer.Option("cpu", help="cpu | cuda | auto"),
     *,

@@ -29,19 +29,19 @@ KIND = "dam-predictor"
 SHIPPED = {
     "v1": "dam-predictor-v1.safetensors",
     "v3": "dam-predictor-v3.safetensors",
-    "v8": "dam-predictor-v8.safetensors",
+    "v10": "dam-predictor-v10.safetensors",
 }
 """the trained predictors shipped in ``damcap.appearance.hyper/predictors/`` by name (each one's
 recipe: the .json beside it; docs/learning-to-learn.md compares them): v1 reads one view and was
 trained on 202 Mitsuba captures (the paper's method); v3 reads up to 4 views and was trained on
-random closed-form scenes rendered on a GPU (v2, 900 steps, trained 700 steps further); v8 is v3
+random closed-form scenes rendered on a GPU (v2, 900 steps, trained 700 steps further); v10 is v3
 trained further through predict's readout solve (``train-hyper --readout-iterations 3``, on the
-CPU: 400 steps to v4, 1600 to v6, then 1600 on a mix with more distant lights, ``--scene-lights-only
-0.55 --scene-env-only 0.3``), for use with that solve"""
-RETIRED = {"v2": "f25b5a5", "v4": "db45094", "v6": "11dc441"}
+CPU: 400 steps to v4, 1600 to v6, 1600 on a mix with more distant lights to v8, ``--scene-lights-only
+0.55 --scene-env-only 0.3``), then 2400 in its light frame (``--frame light``), for use with that solve"""
+RETIRED = {"v2": "f25b5a5", "v4": "db45094", "v6": "11dc441", "v8": "2d3e413"}
 """predictors shipped once and no longer, by name: the commit whose
-``appearance/hyper/predictors/`` still holds them (v2 became v3, v4 v6, v6 v8 by further training)"""
-DEFAULT_SHIPPED = "v8"
+``appearance/hyper/predictors/`` still holds them (v2 became v3, v4 v6, v6 v8, v8 v10 by further training)"""
+DEFAULT_SHIPPED = "v10"
 """the predictor ``damcap predict`` uses when none is named"""
 PAPER_SHIPPED = "v1"
 """the predictor the paper's reproductions use whatever the default (``damcap evaluate --table1 /
@@ -62,7 +62,7 @@ def shipped_predictor_path(name: str = DEFAULT_SHIPPED) -> Path:
 
 def predictor_path(choice: str | os.PathLike | None) -> Path:
     """The predictor a ``--predictor`` value names: None = the default shipped one, a shipped
-    name (``v1``, ``v3``, ``v8``), or a file path.
+    name (``v1``, ``v3``, ``v10``), or a file path.
 
     >>> predictor_path("v3").name, predictor_path("my.safetensors").name
     ('dam-predictor-v3.safetensors', 'my.safetensors')

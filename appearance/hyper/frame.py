@@ -26,7 +26,7 @@ from typing import Literal, get_args
 import torch
 
 Frame = Literal["world", "light"]
-"""'world': the predictor reads and writes world coordinates (v1-v8); 'light': its own frame"""
+"""'world': the predictor reads and writes world coordinates (v1-v8); 'light': its own frame (v10)"""
 FRAMES: tuple[str, ...] = get_args(Frame)
 
 #: a brightness gradient |b| below this (log1p units per unit of N) has no direction: the frame is the world

@@ -59,7 +59,7 @@ class HyperArchitecture:
     """views it reads at once: each view's features are averaged before the output layer (a set
     encoder: the prediction does not depend on the order of the views); 1 = the paper's one view"""
     frame: Frame = "world"
-    """coordinates the network reads and writes (:mod:`.frame`): 'world' (v1-v8), or 'light', the
+    """coordinates the network reads and writes (:mod:`.frame`): 'world' (v1-v8), or 'light' (v10), the
     world turned so that the input's dominant light comes from +y (the DAM is turned back)"""
 
     def __post_init__(self) -> None:
@@ -397,6 +397,17 @@ def predicted_loss(weights: torch.Tensor, view_dir_world: torch.Tensor, normal_w
     return (err * m).sum() / (3 * m.sum()).clamp_min(1.0)
 
 
+def input_images(crops: torch.Tensor | list[torch.Tensor], size: int, radiance_scale: float | None = None) -> tuple[torch.Tensor, float]:
+    """The set of :func:`predictor_image` s a predictor reads from one view's :func:`view_crop`
+    or several views': (V, 9, size, size) and the radiance scale they are in units of (the
+    capture's ``radiance_scale``; None = the first view's own)."""
+    crops = [crops] if isinstance(crops, torch.Tensor) else list(crops)
+    if not crops:
+        raise DamcapError("predict needs at least one input view")
+    first, scale = predictor_image(crops[0], size, radiance_scale=radiance_scale)
+    return torch.stack([first] + [predictor_image(c, size, radiance_scale=scale)[0] for c in crops[1:]]), scale
+
+
 @torch.no_grad()
 def predict_dam(net: HyperNet, crops: torch.Tensor | list[torch.Tensor], radiance_scale: float | None = None) -> DeepAppearanceMap:
     """Predict a DAM from one view's :func:`view_crop`, or from several views' (a set).
@@ -407,13 +418,9 @@ def predict_dam(net: HyperNet, crops: torch.Tensor | list[torch.Tensor], radianc
             views' foreground); None = the (first) input view's own.
     """
     net.eval()
-    crops = [crops] if isinstance(crops, torch.Tensor) else list(crops)
-    if not crops:
-        raise DamcapError("predict needs at least one input view")
-    first, scale = predictor_image(crops[0], net.arch.input_size, radiance_scale=radiance_scale)
-    images = [first] + [predictor_image(c, net.arch.input_size, radiance_scale=scale)[0] for c in crops[1:]]
+    images, scale = input_images(crops, net.arch.input_size, radiance_scale)
     device = next(net.parameters()).device
-    weights = net(torch.stack(images)[None].to(device))[0].float().cpu()
+    weights = net(images[None].to(device))[0].float().cpu()
     if not torch.isfinite(weights).all():
         raise DamcapError("the predictor produced non-finite weights for this view (is its radiance finite and positive?)")
     return DeepAppearanceMap(net.arch.dam, scale, weights)

@@ -96,8 +96,8 @@ class PredictOptions:
     DSSIM from 0.201 to 0.166 (x2.51 to x1.98 of the fit) with v1 and from 0.198 to 0.165 (x2.36
     to x2.05) with v3 (and to 0.146, x1.64, with v4, trained through the solve), prediction and
     solve together in 44-72 ms; 1 and 5 iterations helped less
-    (x2.05-x2.11, x2.00-x2.06). v6 reached 0.132 (x1.45; bench/hyper_ood_v5.md), v8, the default
-    since, 0.121 (x1.23; bench/hyper_ood_v9.md).
+    (x2.05-x2.11, x2.00-x2.06). v6 reached 0.132 (x1.45; bench/hyper_ood_v5.md), v8 0.121 (x1.23;
+    bench/hyper_ood_v9.md), v10, the default since, 0.103 (x0.91; bench/hyper_ood_v10.md).
     Refinement starts from the network's own output instead: on the same captures, 300 steps from
     the solved output layer ended worse with v1, v3 and v4 (x0.98 against x0.86, x0.98 against
     x0.89 in a side study; x0.86 against x0.80, bench/hyper_ood_v5.md) and no better with v6

@@ -260,7 +260,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--predictors", type=Path, nargs="+", required=True, help="predictor files; the last is the newest")
     ap.add_argument("--snapshots", type=Path, nargs="*", default=[], help="snapshots of the predictors' training runs (NAME.stepN.safetensors, "
-                    "counted after the steps of the predictor NAME started from)")
+                    "counted after the steps of the predictor their run started from: their own record of it, or else predictor NAME's)")
     ap.add_argument("--corpus", type=Path, default=CACHE / "synth_small", help="synth-set corpus whose held-out captures are used")
     ap.add_argument("--real", type=Path, nargs="*", default=[CACHE / "reconstruct" / "realworld" / "cape-8-256"])
     ap.add_argument("--refine-steps", type=int, nargs="+", default=[100, 300])
@@ -300,7 +300,8 @@ def main(argv: list[str] | None = None) -> int:
         snaps[p.stem] = net
         step = int(meta.get("training", {}).get("snapshot_step"))
         run = p.stem.rsplit(".step", 1)[0]  # NAME.stepN: the run of predictor NAME
-        snap_steps[p.stem] = {"step": step, "total": step + before.get(run, 0)}
+        own = meta.get("training", {}).get("init")  # snapshots since 2026-11-28 hold their run's --init record
+        snap_steps[p.stem] = {"step": step, "total": step + (int(own.get("steps", 0)) if isinstance(own, dict) else before.get(run, 0))}
     captures = closed_form_captures(args.cache, args.closed_form, args.res)
     if (args.corpus / "corpus.json").exists():
         captures += [("Mitsuba held-out", path) for path, e in heldout_entries([args.corpus]) if int(e.get("materials", 1)) == 1]

@@ -64,9 +64,9 @@ def train_hyper_cmd(
     kept = lambda: (f"the training state {state} is kept; rerun the same command to resume" if state.is_file()  # noqa: E731
                     else "no training state was written yet; nothing was kept")
     with on_interrupt(kept):
-        def snapshot(step: int, net) -> None:
+        def snapshot(step: int, net, init: dict | None) -> None:
             save_predictor(output.with_name(f"{output.stem}.step{step}{output.suffix}"), net,
-                           {"command": "damcap " + " ".join(shlex.quote(a) for a in sys.argv[1:]), "snapshot_step": step})
+                           {"command": "damcap " + " ".join(shlex.quote(a) for a in sys.argv[1:]), "snapshot_step": step, "init": init})
 
         result = train_hyper(paths, opts, checkpoint_path=state, scenes=partial(render_scenes, opts=scene), snapshot=snapshot,
                              progress=progress_bar(opts.steps, "train-hyper"), log=log)

@@ -483,7 +483,9 @@ def train_hyper(
         opts: options.
         scenes: the random closed-form scenes that ``opts.procedural`` of each batch is drawn from
             (and the validation scenes), rendered on the training device.
-        snapshot: rank 0 only: snapshot(step, net) every ``opts.snapshot_every`` steps.
+        snapshot: rank 0 only: snapshot(step, net, init) every ``opts.snapshot_every`` steps, with
+            ``init`` the record of the predictor the run started from (``--init``; None without), so
+            a snapshot can say how many steps of training it holds in all.
         checkpoint_path: checkpoint file; one with this run's :func:`hyper_fingerprint` (options,
             the captures' loaded content, damcap version) is resumed exactly; any other (other
             captures or content, options, version, or an old one without a fingerprint) is never
@@ -617,7 +619,7 @@ def train_hyper(
         if rank == 0 and progress:
             progress(done, opts.steps, stats)
         if rank == 0 and snapshot and opts.snapshot_every and done % opts.snapshot_every == 0:
-            snapshot(done, net)
+            snapshot(done, net, init_record)
         if rank == 0 and ckpt and opts.checkpoint_every and done % opts.checkpoint_every == 0 and done < opts.steps:
             save_checkpoint(ckpt, {FINGERPRINT_KEY: fp, "damcap_version": damcap_version(), "key": state_key, "step": done, "net": net.state_dict(), "optim": optim.state_dict(),
                                "best_val": best_val, "best_step": best_step, "best_net": best_state,

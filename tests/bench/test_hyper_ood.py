@@ -22,8 +22,11 @@ def test_ood_study_writes_every_method_per_kind(tmp_path, is_dssim):
         paths.append(p)
     snap = tmp_path / "set.step5.safetensors"
     save_predictor(snap, HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), input_views=2)), {"snapshot_step": 5})
+    other = tmp_path / "run2.step3.safetensors"  # a run named unlike any predictor: its own --init record counts
+    save_predictor(other, HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), input_views=2)),
+                   {"snapshot_step": 3, "init": {"file": "x.safetensors", "steps": 40}})
     out = tmp_path / "out"
-    argv = ["--predictors", *map(str, paths), "--snapshots", str(snap), "--corpus", str(tmp_path / "none"), "--real",
+    argv = ["--predictors", *map(str, paths), "--snapshots", str(snap), str(other), "--corpus", str(tmp_path / "none"), "--real",
             "--closed-form", "2", "--res", "24", "--fit-steps", "20", "--refine-steps", "5", "--cache", str(tmp_path / "cache"),
             "--out", str(out), "--readout", "3", "--refine-from-readout"]
     assert hyper_ood.main(argv) == 0
@@ -33,7 +36,7 @@ def test_ood_study_writes_every_method_per_kind(tmp_path, is_dssim):
         refined = {"one + 5", "one + 5 (lr 0.003)", "one + auto", "set + 5", "set + 5 (lr 0.003)", "set + auto",
                    "one readout + 5", "set readout + 5"}  # the last two refined from the solved output layer
         solved = {"one readout 3", "set readout 3"}
-        assert set(r["novel"]) == {"fit", "one", "set", "set.step5", "set.step5 readout 3", "RM++", "RM"} | refined | solved
+        assert set(r["novel"]) == {"fit", "one", "set", "set.step5", "set.step5 readout 3", "run2.step3", "run2.step3 readout 3", "RM++", "RM"} | refined | solved
         assert set(r["readout_ms"]) == solved and r["readout_ms"]["one readout 3"] > r["predict_ms"]["one"]
         assert all(is_dssim(v) for v in r["novel"].values())
         assert set(r["refine_seconds"]) == refined and r["predict_ms"]["set"] > 0
@@ -45,7 +48,7 @@ def test_ood_study_writes_every_method_per_kind(tmp_path, is_dssim):
     assert "one" not in doc["per_capture"][0]["light_frame"] and sky["angle_to_light_deg"] is None
     assert sun["angle_to_light_deg"] < 20, sun
     assert "## Light frame" in (out / "hyper_ood.md").read_text()
-    assert doc["snapshots"] == {"set.step5": {"step": 5, "total": 15}}  # counted after the 10 steps of the predictor it started from
+    assert doc["snapshots"] == {"set.step5": {"step": 5, "total": 15}, "run2.step3": {"step": 3, "total": 43}}  # counted after the 10 steps of the predictor it started from
     s = doc["summary"]["closed-form sphere, environment"]
     assert s["captures"] == 1 and s["novel"]["fit"] == doc["per_capture"][1]["novel"]["fit"]
     md = (out / "hyper_ood.md").read_text()

@@ -209,8 +209,11 @@ def test_init_starts_from_a_predictor_and_never_ends_worse(tmp_path):
     with pytest.raises(DamcapError, match=r"start\.safetensors: --init predictor has architecture"):
         train_hyper([], HyperTrainOptions(**{**base, "input_views": 2, "init": str(start)}), scenes=scenes)
     # the frame is not a shape: a world-frame predictor may start a light-frame run
-    turned = train_hyper([], HyperTrainOptions(**{**base, "steps": 2, "frame": "light", "init": str(start)}), scenes=scenes)
+    snaps = []
+    turned = train_hyper([], HyperTrainOptions(**{**base, "steps": 2, "frame": "light", "init": str(start), "snapshot_every": 1}),
+                         scenes=scenes, snapshot=lambda step, net, init: snaps.append((step, init)))
     assert turned.net.arch.frame == "light" and turned.init["frame"] == "world"
+    assert snaps == [(1, turned.init), (2, turned.init)]  # each snapshot knows the 10 steps it started from
 
 
 def test_training_through_the_readout_solve_lowers_its_own_validation_loss(tiny_corpus):

@@ -42,7 +42,7 @@ from bench.common import BENCH, CACHE, RESULTS, command_line, log, machine_info
 from damcap.appearance.evaluate import evaluate_split
 from damcap.appearance.fit import FitOptions, fit_dam, refine_dam
 from damcap.appearance.hyper.file import load_predictor
-from damcap.appearance.hyper.frame import brightness_gradient
+from damcap.appearance.hyper.frame import light_up_world
 from damcap.appearance.hyper.model import input_images, predict_dam, predictor_inputs
 from damcap.appearance.hyper.predict import PredictOptions, refine_auto
 from damcap.appearance.readout import solve_output_layer
@@ -116,12 +116,12 @@ def snapshot_readout_key(name: str, readout: tuple[list[int], list[int]]) -> str
 
 def light_frame_record(net: torch.nn.Module, crops: list[torch.Tensor], scale: float, light_world: torch.Tensor | None) -> dict:
     """Where a light-frame predictor's frame puts the light (:mod:`damcap.appearance.hyper.frame`):
-    the unit brightness gradient of its input images, world space, and its angle in degrees to
-    the capture's one distant light when that is known (``light_world``, unit; else None)."""
+    the unit brightness gradient of its input images, world space (0 when it has no direction),
+    and its angle in degrees to the capture's one distant light when both are known
+    (``light_world``, unit; else None)."""
     images, _ = input_images(crops, net.arch.input_size, scale)
-    b = brightness_gradient(images[None])[0].double()
-    d = b / b.norm().clamp_min(1e-30)
-    angle = None if light_world is None else math.degrees(math.acos(float((d @ light_world.double()).clamp(-1, 1))))
+    d = light_up_world(images[None])[0].double()
+    angle = None if light_world is None or not d.any() else math.degrees(math.acos(float((d @ light_world.double()).clamp(-1, 1))))
     return {"up_world": [float(x) for x in d], "angle_to_light_deg": angle}
 
 

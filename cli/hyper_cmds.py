@@ -115,7 +115,8 @@ def predict(
     from damcap.appearance.dam_file import save_dam
     from damcap.appearance.coverage import training_normal_histogram
     from damcap.appearance.fit import refine_dam
-    from damcap.appearance.hyper.model import predict_dam, predictor_inputs
+    from damcap.appearance.hyper.frame import light_up_world
+    from damcap.appearance.hyper.model import input_images, predict_dam, predictor_inputs
     from damcap.appearance.hyper.file import load_predictor, predictor_path
     from damcap.appearance.hyper.predict import AUTO, refine_auto, refinement_needed, resynthesis_error, resynthesis_line
     from damcap.appearance.readout import solve_output_layer
@@ -143,12 +144,17 @@ def predict(
     samples = samples_of(train_views)
     err = resynthesis_error(model, train_views, samples)
     typer.echo(resynthesis_line(err, opts.refine_threshold))
+    frame_record = {}
+    if net.arch.frame == "light":  # where the predictor's frame put the light: a diagnosis of a poor prediction
+        images, _ = input_images(crops, net.arch.input_size, capture_scale)
+        frame_record["light_frame_up_world"] = [float(x) for x in light_up_world(images[None])[0]]
     record = {"damcap_version": damcap_version(), "capture": str(capture.resolve()), "predictor": str(Path(pred_path).resolve()),
               "predictor_command": meta.get("training", {}).get("command"), "view": frame.file_path,
               "input_views": [f.file_path for f in frames],
               "predict_seconds": predict_s, "options": asdict(opts), "refine_steps": opts.refine_steps,
               "train_views": err.views, "train_dssim_predicted": err.dssim, "train_l1_predicted": err.l1,
-              "refine_threshold": opts.refine_threshold, "refinement_needed": refinement_needed(err.dssim, opts.refine_threshold)}
+              "refine_threshold": opts.refine_threshold, "refinement_needed": refinement_needed(err.dssim, opts.refine_threshold),
+              **frame_record}
     extra = ""
     if not opts.refine_steps and opts.readout_iterations:
         t1 = time.perf_counter()

@@ -110,6 +110,14 @@ def rotate_images(images: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
     return torch.cat([images[:, :, 0:3], normal, view], 2)
 
 
+def light_up_world(images: torch.Tensor, view_mask: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, 3) the light frame's +y in world coordinates: where each set's dominant light comes
+    from, as the frame sees it (the unit brightness gradient; 0 where it has no direction)."""
+    b = brightness_gradient(images, view_mask)
+    length = b.norm(dim=-1, keepdim=True)
+    return torch.where(length < MIN_GRADIENT, torch.zeros_like(b), b / length.clamp_min(1e-30))
+
+
 def light_frame(images: torch.Tensor, view_mask: torch.Tensor | None = None) -> torch.Tensor:
     """(B, 3, 3) R taking world vectors into each set's light frame (its brightness gradient to +y)."""
     return rotation_to_up(brightness_gradient(images, view_mask))

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from damcap.appearance.hyper.frame import brightness_gradient, light_frame, rotate_images, rotation_to_up
+from damcap.appearance.hyper.frame import brightness_gradient, light_frame, light_up_world, rotate_images, rotation_to_up
 
 
 def _sphere_images(brightness, side: int = 48, views: int = 1) -> torch.Tensor:
@@ -47,6 +47,9 @@ def test_one_distant_light_is_found_and_absent_views_do_not_count():
     only_first = brightness_gradient(both, torch.tensor([[True, False]]))[0]
     assert _angle_deg(only_first, light) < 1.0
     assert torch.equal(brightness_gradient(torch.zeros(2, 3, 9, 8, 8)), torch.zeros(2, 3))  # nothing covered: no direction
+    up = light_up_world(torch.cat([lit[:, :1], torch.zeros_like(lit[:, :1])]))
+    assert math.isclose(float(up[0].norm()), 1.0, rel_tol=1e-5) and _angle_deg(up[0], light) < 1.0
+    assert torch.equal(up[1], torch.zeros(3))  # no direction: no light named
 
 
 @pytest.mark.parametrize("direction", [[1.0, 0, 0], [0.0, 1, 0], [0.0, -1, 0], [1e-7, -1, 0], [-0.3, 0.2, -0.9], [0.0, -0.999, 0.045]])

@@ -161,3 +161,16 @@ def test_a_light_frame_network_predicts_in_its_frame_and_returns_world_weights(s
     assert HyperArchitecture.from_json(old).frame == "world"
     with pytest.raises(DamcapError, match="unknown predictor frame 'sky'"):
         HyperArchitecture(frame="sky")
+
+
+def test_predict_records_where_a_light_frame_predictor_put_the_light(tmp_path, small_capture):
+    for frame in ("world", "light"):
+        pred = tmp_path / f"{frame}.safetensors"
+        save_predictor(pred, HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), frame=frame)), {"command": "test"})
+        out = tmp_path / f"{frame}.dam"
+        assert main(["predict", str(small_capture), "-o", str(out), "--predictor", str(pred)]) == 0
+        prov = load_dam(out)[1]["provenance"]
+        if frame == "world":
+            assert "light_frame_up_world" not in prov
+        else:
+            assert math.isclose(math.hypot(*prov["light_frame_up_world"]), 1.0, rel_tol=1e-5)

@@ -129,11 +129,13 @@ def test_separable_needs_nr_and_an_even_width():
 def test_rotated_world_weights_read_the_rotated_world(arch):
     """f'(V, N) = f(R V, R N) for every encoding, one DAM or a batch."""
     from damcap.appearance.dam import rotated_world_weights, init_weights
-    from damcap.appearance.hyper.frame import rotation_to_up
 
     g = torch.Generator().manual_seed(0)
     w = torch.stack([init_weights(arch, g) for _ in range(2)])
-    rot = rotation_to_up(torch.tensor([[0.3, -0.5, 0.8], [-0.9, 0.1, 0.2]]))
+    axis_angle = torch.tensor([[0.3, -0.5, 0.8], [-0.9, 0.1, 2.2]])  # rotations exp([a]x)
+    skew = torch.zeros(2, 3, 3)
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -axis_angle[:, 2], axis_angle[:, 1], -axis_angle[:, 0]
+    rot = torch.linalg.matrix_exp(skew - skew.transpose(1, 2))
     v, n = safe_normalize(torch.randn(2, 64, 3, generator=g)), safe_normalize(torch.randn(2, 64, 3, generator=g))
     turned = dam_forward(rotated_world_weights(w, arch, rot), encode_inputs(v, n, arch.encoding), arch)
     direct = dam_forward(w, encode_inputs(v @ rot.transpose(1, 2), n @ rot.transpose(1, 2), arch.encoding), arch)

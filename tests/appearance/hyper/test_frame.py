@@ -28,7 +28,7 @@ def _sphere_images(brightness, side: int = 48, views: int = 1) -> torch.Tensor:
 
 
 def _angle_deg(a: torch.Tensor, b: torch.Tensor) -> float:
-    return math.degrees(math.acos(float((a / a.norm()) @ (b / b.norm())).__round__(12)))
+    return math.degrees(math.acos(max(-1.0, min(1.0, float((a / a.norm()) @ (b / b.norm()))))))
 
 
 def test_a_linear_brightness_is_recovered_exactly():

@@ -116,7 +116,7 @@ def predict(
     from damcap.appearance.coverage import training_normal_histogram
     from damcap.appearance.fit import refine_dam
     from damcap.appearance.hyper.frame import light_up_world
-    from damcap.appearance.hyper.model import input_images, predict_dam, predictor_inputs
+    from damcap.appearance.hyper.model import input_images, predict_from_images, predictor_inputs
     from damcap.appearance.hyper.file import load_predictor, predictor_path
     from damcap.appearance.hyper.predict import AUTO, refine_auto, refinement_needed, resynthesis_error, resynthesis_line
     from damcap.appearance.readout import solve_output_layer
@@ -139,14 +139,14 @@ def predict(
     frames = [cap.split("train")[k] for k in ks]
     frame = frames[0]
     t0 = time.perf_counter()
-    model = predict_dam(net, crops, capture_scale)
+    images, scale = input_images(crops, net.arch.input_size, capture_scale)
+    model = predict_from_images(net, images, scale)
     predict_s = time.perf_counter() - t0
     samples = samples_of(train_views)
     err = resynthesis_error(model, train_views, samples)
     typer.echo(resynthesis_line(err, opts.refine_threshold))
     frame_record = {}
     if net.arch.frame == "light":  # where the predictor's frame put the light: a diagnosis of a poor prediction
-        images, _ = input_images(crops, net.arch.input_size, capture_scale)
         frame_record["light_frame_up_world"] = [float(x) for x in light_up_world(images[None])[0]]
     record = {"damcap_version": damcap_version(), "capture": str(capture.resolve()), "predictor": str(Path(pred_path).resolve()),
               "predictor_command": meta.get("training", {}).get("command"), "view": frame.file_path,

@@ -23,7 +23,10 @@ from __future__ import annotations
 
 from typing import Literal, get_args
 
+import numpy as np
 import torch
+
+from damcap.common.cameras import rotation_between
 
 Frame = Literal["world", "light"]
 """'world': the predictor reads and writes world coordinates (v1-v8); 'light': its own frame (v10)"""
@@ -31,8 +34,6 @@ FRAMES: tuple[str, ...] = get_args(Frame)
 
 #: a brightness gradient |b| below this (log1p units per unit of N) has no direction: the frame is the world
 MIN_GRADIENT = 1e-4
-#: below this cosine between b and -y, the smallest rotation is ill-defined: a half turn about x instead
-ANTIPODAL_COS = -0.9999
 
 
 def brightness_gradient(images: torch.Tensor, view_mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -65,33 +66,22 @@ def brightness_gradient(images: torch.Tensor, view_mask: torch.Tensor | None = N
 
 
 def rotation_to_up(direction: torch.Tensor) -> torch.Tensor:
-    """The smallest rotation taking each direction to +y (Rodrigues; a half turn about x for -y).
+    """The smallest rotation taking each direction to +y (:func:`damcap.common.cameras.rotation_between`).
 
     Args:
         direction: (B, 3), any length; shorter than :data:`MIN_GRADIENT` gives the identity.
 
     Returns:
-        (B, 3, 3) rotations R with R d/|d| = +y.
+        (B, 3, 3) rotations R with R d/|d| = +y, on ``direction``'s device.
 
     >>> r = rotation_to_up(torch.tensor([[1.0, 0, 0]]))
     >>> torch.allclose(r[0] @ torch.tensor([1.0, 0, 0]), torch.tensor([0.0, 1, 0]))
     True
     """
-    d = direction.double()  # near -y, 1 + c is small: float32 would lose orthogonality
-    length = d.norm(dim=-1, keepdim=True)
-    d = d / length.clamp_min(1e-30)
-    up = torch.zeros_like(d)
-    up[:, 1] = 1.0
-    k = torch.linalg.cross(d, up)  # axis times sin
-    c = d[:, 1]
-    skew = torch.zeros(d.shape[0], 3, 3, dtype=d.dtype, device=d.device)
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    skew = skew - skew.transpose(1, 2)
-    eye = torch.eye(3, dtype=d.dtype, device=d.device).expand_as(skew)
-    rot = eye + skew + skew @ skew / (1 + c).clamp_min(1e-12)[:, None, None]
-    half_turn = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=d.dtype, device=d.device)).expand_as(skew)
-    rot = torch.where((c < ANTIPODAL_COS)[:, None, None], half_turn, rot)
-    return torch.where((length[:, 0] < MIN_GRADIENT)[:, None, None], eye, rot).to(torch.promote_types(direction.dtype, torch.float32))
+    up = np.array([0.0, 1.0, 0.0])
+    d = direction.detach().double().cpu().numpy()
+    rot = np.stack([rotation_between(x, up) if np.linalg.norm(x) >= MIN_GRADIENT else np.eye(3) for x in d]).reshape(-1, 3, 3)
+    return torch.from_numpy(rot).to(device=direction.device, dtype=torch.promote_types(direction.dtype, torch.float32))
 
 
 def rotate_images(images: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:

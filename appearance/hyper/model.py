@@ -417,8 +417,13 @@ def predict_dam(net: HyperNet, crops: torch.Tensor | list[torch.Tensor], radianc
         radiance_scale: the capture's radiance scale (:func:`.fit.radiance_scale_of` over the train
             views' foreground); None = the (first) input view's own.
     """
+    return predict_from_images(net, *input_images(crops, net.arch.input_size, radiance_scale))
+
+
+@torch.no_grad()
+def predict_from_images(net: HyperNet, images: torch.Tensor, scale: float) -> DeepAppearanceMap:
+    """:func:`predict_dam` from its :func:`input_images` (V, 9, S, S), whose RGB is in units of ``scale``."""
     net.eval()
-    images, scale = input_images(crops, net.arch.input_size, radiance_scale)
     device = next(net.parameters()).device
     weights = net(images[None].to(device))[0].float().cpu()
     if not torch.isfinite(weights).all():

@@ -5,9 +5,10 @@ saw: closed-form spheres and blobs (``damcap closed-form``) under a directional 
 the analytic sky, the held-out Mitsuba captures of a ``damcap synth-set`` corpus (shadows,
 interreflection, measured environment maps), and the real cape (the realworld bench's cached
 capture). Per capture: RM++, ``damcap fit`` (default options, timed), each predictor alone, with
-its output layer solved on the train pixels (timed, as ``damcap predict`` without refinement;
-``--readout`` iteration counts, ``--readout-samples``) and
-each refined 100 / 300 steps (timed, as ``damcap predict --refine-steps K``; also at the learning
+its output layer solved on the train pixels (timed; ``--readout`` iteration counts,
+``--readout-samples``), then its first and output layers solved together (timed; ``--joint``
+iteration counts, ``--joint-prior``; with predict's own counts, ``damcap predict`` without
+refinement) and each refined 100 / 300 steps (timed, as ``damcap predict --refine-steps K``; also at the learning
 rate that was the default before 2026-11-27, ``--compare-lr``) and with ``--refine-steps auto``. With
 ``--snapshots``: predict alone for each snapshot of the predictors' training runs (how
 out-of-distribution error falls with training compute, counted over warm starts), also with its output
@@ -45,7 +46,7 @@ from damcap.appearance.hyper.file import load_predictor
 from damcap.appearance.hyper.frame import light_up_world
 from damcap.appearance.hyper.model import input_images, predict_dam, predictor_inputs
 from damcap.appearance.hyper.predict import PredictOptions, refine_auto
-from damcap.appearance.readout import solve_output_layer
+from damcap.appearance.readout import solve_first_and_output_layers, solve_output_layer
 from damcap.appearance.views import load_views, samples_of
 from damcap.common.capture_folder import read_capture
 from damcap.paper.tables import heldout_entries
@@ -55,11 +56,16 @@ CLOSED_FORM = [("sphere", "directional", 3), ("sphere", "env", 3), ("blob", "dir
                ("blob", "directional", 11), ("sphere", "env", 12)]
 """(shape, light, seed) of the closed-form captures: 10 train / 22 test views at 128 px, the issue's setting"""
 
+CLOSED_FORM_CHECK = [("sphere", "directional", 4), ("sphere", "directional", 6), ("blob", "directional", 6),
+                     ("blob", "directional", 13), ("sphere", "env", 5), ("blob", "env", 7)]
+"""other seeds of the same kinds (``--closed-form-set check``): a second look at options chosen on the first set"""
 
-def closed_form_captures(cache: Path, count: int = len(CLOSED_FORM), resolution: int = 128) -> list[tuple[str, Path]]:
-    """(kind, folder) of the first ``count`` closed-form captures, rendered once into ``cache``."""
+
+def closed_form_captures(cache: Path, count: int = len(CLOSED_FORM), resolution: int = 128,
+                         which: list[tuple[str, str, int]] = CLOSED_FORM) -> list[tuple[str, Path]]:
+    """(kind, folder) of the first ``count`` closed-form captures of ``which``, rendered once into ``cache``."""
     out = []
-    for shape, light, seed in CLOSED_FORM[:count]:
+    for shape, light, seed in which[:count]:
         path = cache / f"{shape}-{light}-s{seed}" if resolution == 128 else cache / f"{shape}-{light}-s{seed}-{resolution}px"
         if not (path / "transforms.json").exists():
             make_closed_form_capture(path, ClosedFormOptions(shape=shape, light=light, views=32, train_views=10,
@@ -92,6 +98,21 @@ def readout_runs(name: str, iterations: list[int], samples: list[int]) -> list[t
     """
     return [(f"{name} readout {k}" + ("" if n == PredictOptions.readout_samples else f" ({n} px)"), k, n)
             for k in iterations for n in samples]
+
+
+def joint_runs(name: str, readout: tuple[list[int], list[int]], iterations: list[int], priors: list[float]) -> list[tuple[str, int, float]]:
+    """A predictor's rows with its first and output layers then solved together (``damcap predict``'s
+    default without refinement), each from its first ``--readout`` row: (row name, iterations,
+    prior). Rows at predict's own prior are named by the iterations alone; none without ``--readout``.
+
+    >>> [r[0] for r in joint_runs("v10", ([3], [4096]), [5], [PredictOptions.joint_prior, 0.0])]
+    ['v10 readout 3 + joint 5', 'v10 readout 3 + joint 5 (prior 0)']
+    """
+    if not readout[0]:
+        return []
+    base = readout_runs(name, readout[0][:1], readout[1][:1])[0][0]
+    return [(f"{base} + joint {j}" + ("" if p == PredictOptions.joint_prior else f" (prior {p:g})"), j, p)
+            for j in iterations for p in priors]
 
 
 def solved_refine_runs(name: str, refine_steps: list[int]) -> list[tuple[str, int]]:
@@ -128,7 +149,7 @@ def light_frame_record(net: torch.nn.Module, crops: list[torch.Tensor], scale: f
 def bench_capture(kind: str, path: Path, nets: dict[str, torch.nn.Module], refine_steps: list[int], snapshots: dict,
                   fit: FitOptions = FitOptions(checkpoint_every=0), compare_lr: tuple[float, ...] = (), auto: bool = False,
                   readout: tuple[list[int], list[int]] = ([], []), refine_from_readout: bool = False,
-                  light_world: torch.Tensor | None = None) -> dict:
+                  light_world: torch.Tensor | None = None, joint: tuple[list[int], list[float]] = ([], [])) -> dict:
     cap = read_capture(path)
     train, test = load_views(cap, "train"), load_views(cap, "test")
     samples = samples_of(train)
@@ -154,6 +175,14 @@ def bench_capture(kind: str, path: Path, nets: dict[str, torch.nn.Module], refin
                 models[key] = solve_output_layer(model, samples, k, n).model
                 solve_times.append(time.perf_counter() - t)
             rec.setdefault("readout_ms", {})[key] = rec["predict_ms"][name] + 1000 * statistics.median(solve_times)
+        for key, j, prior in joint_runs(name, readout, *joint) if name in nets else []:
+            base = readout_runs(name, readout[0][:1], readout[1][:1])[0][0]
+            solve_times = []
+            for _ in range(5):
+                t = time.perf_counter()
+                models[key] = solve_first_and_output_layers(models[base], samples, j, PredictOptions.joint_samples, prior).model
+                solve_times.append(time.perf_counter() - t)
+            rec["readout_ms"][key] = rec["readout_ms"][base] + 1000 * statistics.median(solve_times)
         snap_key = snapshot_readout_key(name, readout) if name in snapshots else None
         if snap_key:
             models[snap_key] = solve_output_layer(model, samples, readout[0][0], readout[1][0]).model
@@ -201,7 +230,10 @@ def write_markdown(res: dict, path: Path) -> None:
              f"`+ K` = the prediction refined K steps (`damcap predict --refine-steps K`) at predict's learning rate "
              f"({res['refine_learning_rate']:g}); `(lr X)` at learning rate X instead; `+ auto` = `--refine-steps auto` "
              "(the steps it chose are in the JSON); `readout K` = the prediction with its output layer solved on the train "
-             "pixels, K iterations (`damcap predict --readout-iterations K`, the default without refinement).", "",
+             "pixels, K iterations (`damcap predict --readout-iterations K --joint-iterations 0`); `+ joint J` = then its first "
+             "and output layers solved together, J iterations (`--joint-iterations J`; predict's default without refinement is "
+             f"readout {PredictOptions.readout_iterations} + joint {PredictOptions.joint_iterations}); `(prior P)` at "
+             "`--joint-prior P`.", "",
              "| kind | captures | " + " | ".join(cols) + " |", "|---|---:|" + "---:|" * len(cols)]
     for kind, s in res["summary"].items():
         fit = s["novel"]["fit"]
@@ -270,10 +302,17 @@ def main(argv: list[str] | None = None) -> int:
                     help="rows with the output layer solved, at these iteration counts (predict's own: PredictOptions.readout_iterations)")
     ap.add_argument("--readout-samples", type=int, nargs="+", default=[PredictOptions.readout_samples],
                     help="... on at most this many train pixels (predict's own: PredictOptions.readout_samples)")
+    ap.add_argument("--joint", type=int, nargs="*", default=[PredictOptions.joint_iterations],
+                    help="rows with the first and output layers then solved together, at these iteration counts, from the first "
+                         "--readout row (predict's own: PredictOptions.joint_iterations)")
+    ap.add_argument("--joint-prior", type=float, nargs="+", default=[PredictOptions.joint_prior],
+                    help="... at these priors (predict's own: PredictOptions.joint_prior)")
     ap.add_argument("--refine-from-readout", action="store_true",
                     help="rows refined from the solved output layer (predict's readout defaults) as well as from the network's own output")
     ap.add_argument("--auto", action=argparse.BooleanOptionalAction, default=True, help="rows refined with --refine-steps auto")
     ap.add_argument("--closed-form", type=int, default=len(CLOSED_FORM), help="how many of the closed-form captures (smoke runs: fewer)")
+    ap.add_argument("--closed-form-set", choices=["bench", "check"], default="bench",
+                    help="the closed-form captures: the bench's (CLOSED_FORM) or other seeds of the same kinds (CLOSED_FORM_CHECK)")
     ap.add_argument("--res", type=int, default=128, help="closed-form captures' resolution (smoke runs: smaller)")
     ap.add_argument("--fit-steps", type=int, default=None, help="fit steps (default: FitOptions' default)")
     ap.add_argument("--cache", type=Path, default=CACHE / "hyper_ood", help="where the closed-form captures are rendered once")
@@ -302,24 +341,27 @@ def main(argv: list[str] | None = None) -> int:
         run = p.stem.rsplit(".step", 1)[0]  # NAME.stepN: the run of predictor NAME
         own = meta.get("training", {}).get("init")  # snapshots since 2026-11-28 hold their run's --init record
         snap_steps[p.stem] = {"step": step, "total": step + (int(own.get("steps", 0)) if isinstance(own, dict) else before.get(run, 0))}
-    captures = closed_form_captures(args.cache, args.closed_form, args.res)
+    captures = closed_form_captures(args.cache, args.closed_form, args.res, CLOSED_FORM if args.closed_form_set == "bench" else CLOSED_FORM_CHECK)
     if (args.corpus / "corpus.json").exists():
         captures += [("Mitsuba held-out", path) for path, e in heldout_entries([args.corpus]) if int(e.get("materials", 1)) == 1]
     else:
         log(f"{args.corpus}: no corpus; the Mitsuba kind is left out")
-    captures += [("real (cape)", p) for p in args.real if (p / "transforms.json").exists()]
+    captures += [(f"real ({p.name.split('-')[0]})", p) for p in args.real if (p / "transforms.json").exists()]  # cape-8-256: real (cape)
     fit = FitOptions(checkpoint_every=0) if args.fit_steps is None else FitOptions(checkpoint_every=0, steps=args.fit_steps)
     readout = (args.readout, args.readout_samples)
     light = directional_lighting().dirs[0]  # the closed-form captures' one distant light (ClosedFormOptions' default)
+    joint = (args.joint, args.joint_prior)
     per = [bench_capture(kind, path, nets, args.refine_steps, snaps, fit, tuple(args.compare_lr), args.auto, readout, args.refine_from_readout,
-                         light if kind.startswith("closed-form") and kind.endswith("distant light") else None)
+                         light if kind.startswith("closed-form") and kind.endswith("distant light") else None, joint)
            for kind, path in captures]
     res = {"command": command_line("hyper_ood", argv if argv is not None else __import__("sys").argv[1:]),
            "machine": machine_info(), "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
            "predictors": list(nets), "predictor_info": info, "refine_steps": args.refine_steps,
            "refine_learning_rate": PredictOptions.refine_learning_rate,
-           "readout": [r[0] for n in nets for r in readout_runs(n, *readout)],
-           "readout_defaults": {"iterations": PredictOptions.readout_iterations, "samples": PredictOptions.readout_samples},
+           "readout": [r[0] for n in nets for r in readout_runs(n, *readout) + joint_runs(n, readout, *joint)],
+           "readout_defaults": {"iterations": PredictOptions.readout_iterations, "samples": PredictOptions.readout_samples,
+                                "joint_iterations": PredictOptions.joint_iterations, "joint_samples": PredictOptions.joint_samples,
+                                "joint_prior": PredictOptions.joint_prior},
            "refined": [r[0] for n in nets for r in refine_runs(n, args.refine_steps, tuple(args.compare_lr), args.auto)]
            + ([r[0] for n in nets for r in solved_refine_runs(n, args.refine_steps)] if args.refine_from_readout else []),
            "snapshots": snap_steps,

@@ -111,15 +111,15 @@ def predict(
 ) -> None:
     """Predict a deep appearance map from a set of up to 4 views (one view with predictor v1) in
     milliseconds, say how well it re-synthesises the train views (and whether to refine), then
-    either solve its output layer on the train pixels (default) or refine it."""
+    either solve its output layer, then its first and output layers together, on the train pixels
+    (default) or refine it."""
     from damcap.appearance.dam_file import save_dam
     from damcap.appearance.coverage import training_normal_histogram
     from damcap.appearance.fit import refine_dam
     from damcap.appearance.hyper.frame import light_up_world
     from damcap.appearance.hyper.model import input_images, predict_from_images, predictor_inputs
     from damcap.appearance.hyper.file import load_predictor, predictor_path
-    from damcap.appearance.hyper.predict import AUTO, refine_auto, refinement_needed, resynthesis_error, resynthesis_line
-    from damcap.appearance.readout import solve_output_layer
+    from damcap.appearance.hyper.predict import AUTO, refine_auto, refinement_needed, resynthesis_error, resynthesis_line, solve_prediction
     from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import read_capture
     from damcap.common.device import resolve_device
@@ -156,16 +156,22 @@ def predict(
               "refine_threshold": opts.refine_threshold, "refinement_needed": refinement_needed(err.dssim, opts.refine_threshold),
               **frame_record}
     extra = ""
-    if not opts.refine_steps and opts.readout_iterations:
-        t1 = time.perf_counter()
-        solved = solve_output_layer(model, samples, opts.readout_iterations, opts.readout_samples)
-        readout_s = time.perf_counter() - t1
-        model = solved.model
-        after = resynthesis_error(model, train_views, samples)
-        record.update(readout_seconds=readout_s, readout_iterations_used=solved.iterations,
-                      train_dssim_readout=after.dssim, train_l1_readout=after.l1)
-        extra = (f" + {1000 * readout_s:.0f} ms solving its output layer on {min(len(samples), opts.readout_samples)} train pixels "
-                 f"({solved.iterations} iterations): train DSSIM {err.dssim:.4f} -> {after.dssim:.4f}, L1 {err.l1:.4f} -> {after.l1:.4f}")
+    if not opts.refine_steps and (opts.readout_iterations or opts.joint_iterations):
+        solved = solve_prediction(model, samples, opts)
+        model, parts = solved.model, []
+        if solved.readout is not None:
+            after = resynthesis_error(solved.readout.model, train_views, samples)
+            record.update(readout_seconds=solved.readout_seconds, readout_iterations_used=solved.readout.iterations,
+                          train_dssim_readout=after.dssim, train_l1_readout=after.l1)
+            parts.append(f"{1000 * solved.readout_seconds:.0f} ms solving its output layer on {min(len(samples), opts.readout_samples)} "
+                         f"train pixels ({solved.readout.iterations} iterations)")
+        if solved.joint is not None:
+            after = resynthesis_error(model, train_views, samples)
+            record.update(joint_seconds=solved.joint_seconds, joint_iterations_used=solved.joint.iterations,
+                          train_dssim_joint=after.dssim, train_l1_joint=after.l1)
+            parts.append(f"{1000 * solved.joint_seconds:.0f} ms solving its first and output layers together on "
+                         f"{min(len(samples), opts.joint_samples)} ({solved.joint.iterations} iterations)")
+        extra = " + " + " + ".join(parts) + f": train DSSIM {err.dssim:.4f} -> {after.dssim:.4f}, L1 {err.l1:.4f} -> {after.l1:.4f}"
     if opts.refine_steps == AUTO:
         t1 = time.perf_counter()
         model, auto = refine_auto(model, samples, max_steps=opts.refine_max_steps, patience_steps=opts.refine_patience,

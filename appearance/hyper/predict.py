@@ -21,6 +21,7 @@ Pure: tensors and views in, a model out.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
@@ -35,6 +36,7 @@ from damcap.appearance.dam import DeepAppearanceMap, dam_forward, encode_inputs
 from damcap.appearance.evaluate import score_view
 from damcap.appearance.fit import FitOptions, holdout_frames, refine_dam, training_l1, weighted_quantile_cost
 from damcap.appearance.pixels import PixelSamples
+from damcap.appearance.readout import ReadoutResult, solve_first_and_output_layers, solve_output_layer
 from damcap.appearance.render import render_frame
 from damcap.appearance.views import ViewData
 
@@ -89,8 +91,8 @@ class PredictOptions:
     x0.87; docs/learning-to-learn.md)"""
     readout_iterations: int = field(default=3, metadata=COUNT_OR_ZERO)
     """without refinement (--refine-steps 0): solve the predicted DAM's output layer (its last 96
-    weights; the hidden layers stay as predicted) on the train views' pixels in closed form, at
-    most this many reweighted Gauss-Newton iterations of the fit's L1 cost (appearance/readout.py;
+    weights; the hidden layers stay as predicted, until --joint-iterations moves the first) on the
+    train views' pixels in closed form, at most this many reweighted Gauss-Newton iterations of the fit's L1 cost (appearance/readout.py;
     0 = the network's output as it is). On 11 captures unlike either shipped predictor's training
     set (bench/hyper_ood_readout.md, 2026-11-27), 3 iterations lowered predict's mean novel-view
     DSSIM from 0.201 to 0.166 (x2.51 to x1.98 of the fit) with v1 and from 0.198 to 0.165 (x2.36
@@ -106,6 +108,27 @@ class PredictOptions:
     """the output layer is solved on a seeded random subset of at most this many train pixels.
     16384 gave the same novel-view DSSIM within 0.0015 on average (bench/hyper_ood_readout.md) and
     took 22-55 ms more"""
+    joint_iterations: int = field(default=5, metadata=COUNT_OR_ZERO)
+    """without refinement, after the output layer's solve: solve the predicted DAM's first layer
+    (192 weights, where its kinks lie: a shadow terminator, a highlight's edge) and output layer
+    together on the train pixels, the middle layers (3072 weights) as predicted, at most this
+    many Levenberg-Marquardt iterations of the fit's L1 cost plus --joint-prior
+    (appearance/readout.py; 0 = the output layer's solve alone). On the 11 captures of
+    bench/hyper_ood_joint.md (2026-11-28), 5 iterations took v10's mean novel-view DSSIM from
+    x0.91 to x0.64 of the fit (the sphere under one distant light from x2.44 to x1.25, the blobs
+    under one from x1.18 to x0.43), prediction and both solves in 56-79 ms; 3 and 8 iterations
+    gave the same mean (x0.64), 3 less on the distant-light kinds (x1.32, x0.51), 8 no better
+    than 5 (docs/learning-to-learn.md, *The joint solve*)"""
+    joint_samples: int = field(default=2048, metadata=COUNT)
+    """the joint solve uses a seeded random subset of at most this many train pixels"""
+    joint_prior: float = field(default=1e-4, metadata=in_range(0, 1e3))
+    """the joint solve's pull toward the predicted weights: its cost is the L1 plus this times the
+    squared distance of the solved weights from them (L1 units per squared weight). On the
+    Mitsuba captures under a point light, which a DAM cannot explain (the light's fall-off, cast
+    shadows), 0 moved the kinks to fit the train views and did worse on novel ones than the
+    output layer's solve alone (spot x1.18 against x0.91); 1e-4 gave x1.04. 1e-3 did better
+    there (x0.74) but held back the terminators of the closed-form distant-light captures (the
+    sphere x1.36 against x1.25; bench/hyper_ood_joint.md)"""
     refine_threshold: float = field(default=0.10, metadata=in_range(0, 1))
     """the predicted DAM's mean DSSIM on the train views above which predict says refinement is
     needed (the capture lies outside what the predictor learned). Measured with the shipped
@@ -120,6 +143,38 @@ class PredictOptions:
             if isinstance(self.refine_steps, bool) or not isinstance(self.refine_steps, int):
                 raise DamcapError(f"--refine-steps must be an integer or 'auto', got {self.refine_steps!r}")
             parse_refine_steps(str(self.refine_steps))
+
+
+@dataclass(frozen=True)
+class SolvedPrediction:
+    """What :func:`solve_prediction` did."""
+
+    model: DeepAppearanceMap
+    """the DAM after both solves"""
+    readout: ReadoutResult | None
+    """the output layer's solve (None when --readout-iterations is 0)"""
+    readout_seconds: float
+    joint: ReadoutResult | None
+    """then the first and output layers' (None when --joint-iterations is 0)"""
+    joint_seconds: float
+
+
+def solve_prediction(model: DeepAppearanceMap, samples: PixelSamples, opts: PredictOptions) -> SolvedPrediction:
+    """``damcap predict`` without refinement, after the forward pass: the output layer solved on
+    the train pixels (:func:`.readout.solve_output_layer`, ``opts.readout_iterations`` and
+    ``readout_samples``), then the first and output layers together
+    (:func:`.readout.solve_first_and_output_layers`, ``opts.joint_iterations``, ``joint_samples``,
+    ``joint_prior``); either is skipped at 0 iterations. Each is timed."""
+    readout = joint = None
+    t = time.perf_counter()
+    if opts.readout_iterations:
+        readout = solve_output_layer(model, samples, opts.readout_iterations, opts.readout_samples)
+        model = readout.model
+    t1 = time.perf_counter()
+    if opts.joint_iterations:
+        joint = solve_first_and_output_layers(model, samples, opts.joint_iterations, opts.joint_samples, opts.joint_prior)
+        model = joint.model
+    return SolvedPrediction(model, readout, t1 - t, joint, time.perf_counter() - t1)
 
 
 @dataclass(frozen=True)

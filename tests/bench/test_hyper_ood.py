@@ -28,16 +28,19 @@ def test_ood_study_writes_every_method_per_kind(tmp_path, is_dssim):
     out = tmp_path / "out"
     argv = ["--predictors", *map(str, paths), "--snapshots", str(snap), str(other), "--corpus", str(tmp_path / "none"), "--real",
             "--closed-form", "2", "--res", "24", "--fit-steps", "20", "--refine-steps", "5", "--cache", str(tmp_path / "cache"),
-            "--out", str(out), "--readout", "3", "--refine-from-readout"]
+            "--out", str(out), "--readout", "3", "--refine-from-readout", "--joint", "2", "--joint-prior", "1e-4", "0"]
     assert hyper_ood.main(argv) == 0
     doc = json.loads((out / "hyper_ood.json").read_text())
     assert [r["kind"] for r in doc["per_capture"]] == ["closed-form sphere, distant light", "closed-form sphere, environment"]
     for r in doc["per_capture"]:
         refined = {"one + 5", "one + 5 (lr 0.003)", "one + auto", "set + 5", "set + 5 (lr 0.003)", "set + auto",
                    "one readout + 5", "set readout + 5"}  # the last two refined from the solved output layer
-        solved = {"one readout 3", "set readout 3"}
+        solved = {"one readout 3", "set readout 3", "one readout 3 + joint 2", "set readout 3 + joint 2",
+                  "one readout 3 + joint 2 (prior 0)", "set readout 3 + joint 2 (prior 0)"}  # predict's own prior unnamed
         assert set(r["novel"]) == {"fit", "one", "set", "set.step5", "set.step5 readout 3", "run2.step3", "run2.step3 readout 3", "RM++", "RM"} | refined | solved
         assert set(r["readout_ms"]) == solved and r["readout_ms"]["one readout 3"] > r["predict_ms"]["one"]
+        assert r["readout_ms"]["one readout 3 + joint 2"] > r["readout_ms"]["one readout 3"]  # timed from the forward pass on
+        assert r["novel"]["set readout 3 + joint 2"] != r["novel"]["set readout 3 + joint 2 (prior 0)"]
         assert all(is_dssim(v) for v in r["novel"].values())
         assert set(r["refine_seconds"]) == refined and r["predict_ms"]["set"] > 0
         assert set(r["auto_steps"]) == {"one", "set"} and all(k >= 0 for k in r["auto_steps"].values())
@@ -55,5 +58,13 @@ def test_ood_study_writes_every_method_per_kind(tmp_path, is_dssim):
     assert "| closed-form sphere, environment | 1 |" in md and "| set.step5 | 5 | 15 | " in md and "| set | 7 | 17 | " in md
     curve = md.split("against training compute")[1].split("## Per capture")[0]
     assert "solved: mean DSSIM" in curve and all(line.count("| x") == 2 for line in curve.splitlines() if line.startswith("| set"))
-    assert "| one readout 3 | " in md and "predict set readout 3 ms" in md
+    assert "| one readout 3 | " in md and "predict set readout 3 ms" in md and "| set readout 3 + joint 2 (prior 0) | " in md
+    assert doc["readout_defaults"]["joint_iterations"] >= 1
     assert "## All captures" in md and "| one | " not in curve and "| one readout + 5 | " in md
+
+
+def test_the_check_set_renders_other_seeds_of_the_same_kinds(tmp_path):
+    caps = hyper_ood.closed_form_captures(tmp_path, 1, 16, hyper_ood.CLOSED_FORM_CHECK)
+    assert caps == [("closed-form sphere, distant light", tmp_path / "sphere-directional-s4-16px")]
+    assert (caps[0][1] / "transforms.json").exists()
+    assert not set(hyper_ood.CLOSED_FORM_CHECK) & set(hyper_ood.CLOSED_FORM)

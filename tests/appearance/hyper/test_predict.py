@@ -202,6 +202,9 @@ def test_predict_threshold_and_integer_refinement(tmp_path, small_capture, tiny_
     (["--refine-patience", "0"], ["--refine-patience", "0"]),
     (["--readout-iterations", "-1"], ["--readout-iterations", "-1"]),
     (["--readout-samples", "0"], ["--readout-samples", "0"]),
+    (["--joint-iterations", "-1"], ["--joint-iterations", "-1"]),
+    (["--joint-samples", "0"], ["--joint-samples", "0"]),
+    (["--joint-prior", "-1"], ["--joint-prior", "-1"]),
 ])
 def test_predict_bad_refinement_options_are_one_line_errors(tmp_path, small_capture, tiny_predictor, capsys, args, needles):
     out = tmp_path / "x.dam"
@@ -220,8 +223,9 @@ def test_predict_auto_on_two_train_views_is_a_one_line_error(tmp_path, tiny_pred
     assert not out.exists()
 
 
-def test_predict_solves_the_output_layer_without_refinement_and_not_with_it(tmp_path, small_capture, tiny_predictor, capsys):
-    from damcap.appearance.readout import solve_output_layer
+def test_predict_solves_the_output_layer_then_the_first_and_output_layers_without_refinement_and_not_with_it(
+        tmp_path, small_capture, tiny_predictor, capsys):
+    from damcap.appearance.readout import solve_first_and_output_layers, solve_output_layer
 
     code, stdout, err = run(["predict", small_capture, "-o", tmp_path / "a.dam", "--predictor", tiny_predictor], capsys)
     assert code == 0, err
@@ -233,15 +237,47 @@ def test_predict_solves_the_output_layer_without_refinement_and_not_with_it(tmp_
     predicted, samples = predict_dam(net, crop, scale), samples_of(views)
     opts = PredictOptions()
     solved = solve_output_layer(predicted, samples, opts.readout_iterations, opts.readout_samples)
-    assert torch.equal(model.get_flat_weights(), solved.model.get_flat_weights())  # the library's solve, at the options' defaults
+    joint = solve_first_and_output_layers(solved.model, samples, opts.joint_iterations, opts.joint_samples, opts.joint_prior)
+    assert torch.equal(model.get_flat_weights(), joint.model.get_flat_weights())  # the library's solves, at the options' defaults
     assert prov["readout_iterations_used"] == solved.iterations >= 1
+    assert prov["joint_iterations_used"] == joint.iterations >= 1
     after = resynthesis_error(solved.model, views, samples)
     assert (prov["train_dssim_readout"], prov["train_l1_readout"]) == (after.dssim, after.l1)
     assert prov["train_l1_readout"] < prov["train_l1_predicted"]  # the hidden layers' features mixed to the capture's pixels
+    final = resynthesis_error(joint.model, views, samples)
+    assert (prov["train_dssim_joint"], prov["train_l1_joint"]) == (final.dssim, final.l1)
+    assert prov["train_l1_joint"] < prov["train_l1_readout"]  # the first layer moved too
     assert f"solving its output layer on {min(len(samples), opts.readout_samples)} train pixels ({solved.iterations} iterations)" in stdout
-    # refinement starts from the network's own output; --readout-iterations 0 keeps that output
-    for args, name in ((["--refine-steps", "5"], "b.dam"), (["--readout-iterations", "0"], "c.dam")):
+    assert f"solving its first and output layers together on {min(len(samples), opts.joint_samples)} ({joint.iterations} iterations)" in stdout
+    assert f"L1 {prov['train_l1_predicted']:.4f} -> {final.l1:.4f}" in stdout
+    # --joint-iterations 0: the output layer's solve alone
+    code, _, err = run(["predict", small_capture, "-o", tmp_path / "o.dam", "--predictor", tiny_predictor, "--joint-iterations", "0"], capsys)
+    assert code == 0, err
+    only, meta = load_dam(tmp_path / "o.dam")
+    assert torch.equal(only.get_flat_weights(), solved.model.get_flat_weights()) and "joint_iterations_used" not in meta["provenance"]
+    # refinement starts from the network's own output; both counts 0 keep that output
+    for args, name in ((["--refine-steps", "5"], "b.dam"), (["--readout-iterations", "0", "--joint-iterations", "0"], "c.dam")):
         code, _, err = run(["predict", small_capture, "-o", tmp_path / name, "--predictor", tiny_predictor, *args], capsys)
         assert code == 0, err
-        assert "readout_iterations_used" not in load_dam(tmp_path / name)[1]["provenance"]
+        prov = load_dam(tmp_path / name)[1]["provenance"]
+        assert "readout_iterations_used" not in prov and "joint_iterations_used" not in prov
     assert torch.equal(load_dam(tmp_path / "c.dam")[0].get_flat_weights(), predicted.get_flat_weights())
+
+
+def test_solve_prediction_runs_each_solve_at_its_own_count():
+    from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
+    from damcap.appearance.hyper.predict import solve_prediction
+    from damcap.appearance.pixels import PixelSamples
+
+    g = torch.Generator().manual_seed(4)
+    n = 500
+    v, nrm = (torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1) for _ in range(2))
+    samples = PixelSamples(v, nrm, torch.rand(n, 3, generator=g), torch.ones(n), torch.zeros(n, dtype=torch.int64))
+    model = DeepAppearanceMap(DamArchitecture(width=8, depth=2), 1.0, generator=g)
+    none = solve_prediction(model, samples, PredictOptions(readout_iterations=0, joint_iterations=0))
+    assert none.model is model and none.readout is None and none.joint is None
+    joint_only = solve_prediction(model, samples, PredictOptions(readout_iterations=0, joint_iterations=2))
+    assert joint_only.readout is None and joint_only.joint.iterations >= 1 and joint_only.joint.l1_after < joint_only.joint.l1_before
+    both = solve_prediction(model, samples, PredictOptions(readout_iterations=2, joint_iterations=2))
+    assert abs(both.joint.l1_before - both.readout.l1_after) < 1e-5 * both.readout.l1_after  # one after the other (all 500 samples in both)
+    assert both.readout_seconds > 0 and both.joint_seconds > 0

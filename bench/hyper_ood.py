@@ -100,6 +100,17 @@ def readout_runs(name: str, iterations: list[int], samples: list[int]) -> list[t
             for k in iterations for n in samples]
 
 
+def first_readout_key(name: str, readout: tuple[list[int], list[int]]) -> str | None:
+    """The row of a predictor or snapshot with its output layer solved at the first ``--readout``
+    count and sample size (a snapshot's one solved row; where the joint rows start), or None
+    without ``--readout``.
+
+    >>> first_readout_key("v5.step200", ([3, 5], [4096])), first_readout_key("v5.step200", ([], [4096]))
+    ('v5.step200 readout 3', None)
+    """
+    return readout_runs(name, readout[0][:1], readout[1][:1])[0][0] if readout[0] else None
+
+
 def joint_runs(name: str, readout: tuple[list[int], list[int]], iterations: list[int], priors: list[float]) -> list[tuple[str, int, float]]:
     """A predictor's rows with its first and output layers then solved together (``damcap predict``'s
     default without refinement), each from its first ``--readout`` row: (row name, iterations,
@@ -108,9 +119,9 @@ def joint_runs(name: str, readout: tuple[list[int], list[int]], iterations: list
     >>> [r[0] for r in joint_runs("v10", ([3], [4096]), [5], [PredictOptions.joint_prior, 0.0])]
     ['v10 readout 3 + joint 5', 'v10 readout 3 + joint 5 (prior 0)']
     """
-    if not readout[0]:
+    base = first_readout_key(name, readout)
+    if base is None:
         return []
-    base = readout_runs(name, readout[0][:1], readout[1][:1])[0][0]
     return [(f"{base} + joint {j}" + ("" if p == PredictOptions.joint_prior else f" (prior {p:g})"), j, p)
             for j in iterations for p in priors]
 
@@ -123,16 +134,6 @@ def solved_refine_runs(name: str, refine_steps: list[int]) -> list[tuple[str, in
     [('v4 readout + 100', 100), ('v4 readout + 300', 300)]
     """
     return [(f"{name} readout + {k}", k) for k in refine_steps]
-
-
-def snapshot_readout_key(name: str, readout: tuple[list[int], list[int]]) -> str | None:
-    """The row of a snapshot with its output layer solved (the first ``--readout`` count and
-    sample size), or None without ``--readout``.
-
-    >>> snapshot_readout_key("v5.step200", ([3, 5], [4096])), snapshot_readout_key("v5.step200", ([], [4096]))
-    ('v5.step200 readout 3', None)
-    """
-    return readout_runs(name, readout[0][:1], readout[1][:1])[0][0] if readout[0] else None
 
 
 def light_frame_record(net: torch.nn.Module, crops: list[torch.Tensor], scale: float, light_world: torch.Tensor | None) -> dict:
@@ -176,14 +177,14 @@ def bench_capture(kind: str, path: Path, nets: dict[str, torch.nn.Module], refin
                 solve_times.append(time.perf_counter() - t)
             rec.setdefault("readout_ms", {})[key] = rec["predict_ms"][name] + 1000 * statistics.median(solve_times)
         for key, j, prior in joint_runs(name, readout, *joint) if name in nets else []:
-            base = readout_runs(name, readout[0][:1], readout[1][:1])[0][0]
+            base = first_readout_key(name, readout)
             solve_times = []
             for _ in range(5):
                 t = time.perf_counter()
                 models[key] = solve_first_and_output_layers(models[base], samples, j, PredictOptions.joint_samples, prior).model
                 solve_times.append(time.perf_counter() - t)
             rec["readout_ms"][key] = rec["readout_ms"][base] + 1000 * statistics.median(solve_times)
-        snap_key = snapshot_readout_key(name, readout) if name in snapshots else None
+        snap_key = first_readout_key(name, readout) if name in snapshots else None
         if snap_key:
             models[snap_key] = solve_output_layer(model, samples, readout[0][0], readout[1][0]).model
         for key, k, lr in refine_runs(name, refine_steps, compare_lr, auto) if name in nets else []:
@@ -365,7 +366,7 @@ def main(argv: list[str] | None = None) -> int:
            "refined": [r[0] for n in nets for r in refine_runs(n, args.refine_steps, tuple(args.compare_lr), args.auto)]
            + ([r[0] for n in nets for r in solved_refine_runs(n, args.refine_steps)] if args.refine_from_readout else []),
            "snapshots": snap_steps,
-           "snapshot_readout": {n: snapshot_readout_key(n, readout) for n in [*snaps, *nets]} if args.readout and snaps else {},
+           "snapshot_readout": {n: first_readout_key(n, readout) for n in [*snaps, *nets]} if args.readout and snaps else {},
            "predictor_steps": pred_steps, "per_capture": per, "summary": summarise(per)}
     stem = f"hyper_ood_{args.tag}" if args.tag else "hyper_ood"
     out_json = (args.out or RESULTS) / f"{stem}.json"

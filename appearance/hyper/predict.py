@@ -126,7 +126,7 @@ class PredictOptions:
     squared distance of the solved weights from them (L1 units per squared weight). On the
     Mitsuba captures under a point light, which a DAM cannot explain (the light's fall-off, cast
     shadows), 0 moved the kinks to fit the train views and did worse on novel ones than the
-    output layer's solve alone (spot x1.18 against x0.91); 1e-4 gave x1.04. 1e-3 did better
+    output layer's solve alone (spot x1.16 against x0.91); 1e-4 gave x1.07. 1e-3 did better
     there (x0.74) but held back the terminators of the closed-form distant-light captures (the
     sphere x1.36 against x1.25; bench/hyper_ood_joint.md)"""
     refine_threshold: float = field(default=0.10, metadata=in_range(0, 1))

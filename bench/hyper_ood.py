@@ -138,7 +138,7 @@ def solved_refine_runs(name: str, refine_steps: list[int]) -> list[tuple[str, in
 
 def light_frame_record(net: torch.nn.Module, crops: list[torch.Tensor], scale: float, light_world: torch.Tensor | None) -> dict:
     """Where a light-frame predictor's frame puts the light (:mod:`damcap.appearance.hyper.frame`):
-    the unit brightness gradient of its input images, world space (0 when it has no direction),
+    ``frame.light_up_world`` of its input images, world space (0 when it has no direction),
     and its angle in degrees to the capture's one distant light when both are known
     (``light_world``, unit; else None)."""
     images, _ = input_images(crops, net.arch.input_size, scale)
@@ -274,9 +274,11 @@ def write_markdown(res: dict, path: Path) -> None:
             lines.append(f"| {name} | {step} | {total} |" + cells(name) + (cells(solved_rows.get(name, "")) if solved_rows else ""))
     frames = [(r, n, f) for r in res["per_capture"] for n, f in (r.get("light_frame") or {}).items()]
     if frames:
-        lines += ["", "## Light frame", "", "Where each light-frame predictor's frame puts the light (its +y): the unit least-squares "
-                  "brightness gradient of its input views over their normals, world space, and on the closed-form captures under one "
-                  "distant light its angle to that light.", "",
+        how = {"terminator_fit": "the unit least-absolute-deviations fit of its input views' radiance by c + max(0, b . N) "
+                                 "(`frame.terminator_fit`)"}.get(res.get("light_frame_fit", ""),
+                                                                   "the unit least-squares brightness gradient of its input views over their normals")
+        lines += ["", "## Light frame", "", f"Where each light-frame predictor's frame puts the light (its +y): {how}, world space, "
+                  "and on the closed-form captures under one distant light its angle to that light.", "",
                   "| capture | predictors | light frame's +y, world | angle to the light, deg |", "|---|---|---|---:|"]
         rows: dict[tuple, list[str]] = {}  # predictors reading the same views find the same frame: one row
         for r, n, f in frames:
@@ -367,7 +369,8 @@ def main(argv: list[str] | None = None) -> int:
            + ([r[0] for n in nets for r in solved_refine_runs(n, args.refine_steps)] if args.refine_from_readout else []),
            "snapshots": snap_steps,
            "snapshot_readout": {n: first_readout_key(n, readout) for n in [*snaps, *nets]} if args.readout and snaps else {},
-           "predictor_steps": pred_steps, "per_capture": per, "summary": summarise(per)}
+           "predictor_steps": pred_steps, "per_capture": per, "summary": summarise(per),
+           "light_frame_fit": "terminator_fit"}  # what frame.light_up_world fits (before 2026-11-28 05:00 UTC: brightness_gradient)
     stem = f"hyper_ood_{args.tag}" if args.tag else "hyper_ood"
     out_json = (args.out or RESULTS) / f"{stem}.json"
     out_md = (args.out or BENCH) / f"{stem}.md"

@@ -7,11 +7,15 @@ lit from every direction it learns a blur instead (``docs/learning-to-learn.md``
 In a frame where the light always comes from the same direction, the terminator is always the
 same circle, and the mean DAM and its corrections can hold it sharp.
 
-The frame is found in closed form from the predictor's input images: the least-squares fit of
-the (log-compressed) brightness of the covered pixels by ``c + b . N`` (the first-order spherical
-harmonic of the light, whose vector part points at the brightest directions of the environment:
-for one distant light over normals spread around it, exactly at the light), then the smallest
-rotation taking b to +y (the world's up, so a light from above leaves the world as it was).
+The frame is found from the predictor's input images by :func:`terminator_fit`: a
+least-absolute-deviations fit of the covered pixels' radiance by ``c + max(0, b . N)``, a
+Lambertian surface's clamped cosine, which puts b across the shadow's edge whatever part of the
+object the views saw. (The least-squares fit of the log-compressed brightness by ``c + b . N``,
+:func:`brightness_gradient`, the first-order spherical harmonic of the light, points at one
+distant light only for normals spread evenly around it; v10 was trained with it and predicts
+better with the terminator fit: docs/learning-to-learn.md, *The terminator fit*.) Under an
+environment b points at its brightest directions. Then the smallest rotation takes b to +y (the
+world's up, so a light from above leaves the world as it was).
 Rotating the whole world is an exact change of coordinates (object, cameras and lights turn
 together), so nothing is lost: the predictor reads the rotated normals and view directions,
 predicts a DAM in its frame, and :func:`.dam.rotated_world_weights` turns that DAM back.
@@ -21,6 +25,7 @@ Pure: tensors in, tensors out.
 
 from __future__ import annotations
 
+import math
 from typing import Literal, get_args
 
 import numpy as np
@@ -32,12 +37,15 @@ Frame = Literal["world", "light"]
 """'world': the predictor reads and writes world coordinates (v1-v8); 'light': its own frame (v10)"""
 FRAMES: tuple[str, ...] = get_args(Frame)
 
-#: a brightness gradient |b| below this (log1p units per unit of N) has no direction: the frame is the world
+#: a fitted |b| below this (:func:`terminator_fit`'s, radiance-scale units per unit of N) has no direction: the frame is the world
 MIN_GRADIENT = 1e-4
+#: Gauss-Newton iterations of :func:`terminator_fit`
+TERMINATOR_ITERATIONS = 10
 
 
-def brightness_gradient(images: torch.Tensor, view_mask: torch.Tensor | None = None) -> torch.Tensor:
-    """Least-squares b of ``brightness ~ c + b . N`` over every covered pixel of each set of views.
+def covered_brightness(images: torch.Tensor, view_mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every pixel of each set of views as (normal, brightness, counts), the brightness being the
+    mean of the log-compressed RGB.
 
     Args:
         images: (B, V, 9, S, S) predictor images (:func:`.model.predictor_image`: RGB as
@@ -45,7 +53,9 @@ def brightness_gradient(images: torch.Tensor, view_mask: torch.Tensor | None = N
         view_mask: (B, V) bool, the views present (default all).
 
     Returns:
-        (B, 3) b, in brightness units per unit of N (0 where a set has fewer than 4 covered pixels).
+        normals (B, M, 3), brightness (B, M) and weights (B, M): 1 on covered pixels of present
+        views, else 0 (M = V S S), float32. A single set (B = 1) keeps its covered pixels alone
+        (M = their count; the fits' sums are the same, and cheaper).
     """
     b, v = images.shape[:2]
     x = images.float()
@@ -54,15 +64,82 @@ def brightness_gradient(images: torch.Tensor, view_mask: torch.Tensor | None = N
     covered = n.norm(dim=-1) > 0.5
     if view_mask is not None:
         covered = covered & view_mask[:, :, None].expand(b, v, images.shape[-1] * images.shape[-2]).reshape(b, -1)
-    w = covered.to(x.dtype)
-    a = torch.cat([torch.ones_like(n[..., :1]), n], -1)  # (B, M, 4)
-    normal = torch.einsum("bm,bmi,bmj->bij", w, a, a)
-    rhs = torch.einsum("bm,bmi,bm->bi", w, a, y)
-    enough = w.sum(1) >= 4
-    normal = torch.where(enough[:, None, None], normal, torch.eye(4, dtype=x.dtype, device=x.device).expand(b, 4, 4))
-    ridge = 1e-6 * normal.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-12)  # normals all alike: still solvable
-    coef = torch.linalg.solve(normal + ridge[:, None, None] * torch.eye(4, dtype=x.dtype, device=x.device), rhs[..., None])[..., 0]
-    return torch.where(enough[:, None], coef[:, 1:], torch.zeros_like(coef[:, 1:]))
+    if b == 1:
+        n, y, covered = n[:, covered[0]], y[:, covered[0]], covered[:, covered[0]]
+    return n, y, covered.to(x.dtype)
+
+
+def _weighted_solve(a: torch.Tensor, y: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """(B, K) least squares of y ~ a theta with weights w: (B, M, K), (B, M), (B, M); a tiny
+    ridge keeps it solvable when the columns are alike or empty."""
+    aw = a * w[..., None]
+    normal = aw.transpose(1, 2) @ a
+    rhs = (aw.transpose(1, 2) @ y[..., None])[..., 0]
+    eye = torch.eye(a.shape[-1], dtype=a.dtype, device=a.device)
+    ridge = 1e-6 * normal.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-12)
+    return torch.linalg.solve(normal + ridge[:, None, None] * eye, rhs[..., None])[..., 0]
+
+
+def brightness_gradient(images: torch.Tensor, view_mask: torch.Tensor | None = None, linear: bool = False) -> torch.Tensor:
+    """Least-squares b of ``brightness ~ c + b . N`` over every covered pixel of each set of views
+    (:func:`covered_brightness`): the first-order spherical harmonic of the light (v10 was
+    trained with its direction as the frame's +y).
+
+    Args:
+        images: (B, V, 9, S, S) predictor images.
+        view_mask: (B, V) bool, the views present (default all).
+        linear: fit radiance / scale (expm1 of the images' RGB) instead of the log-compressed
+            brightness.
+
+    Returns:
+        (B, 3) b, in brightness (or radiance-scale) units per unit of N (0 where a set has fewer
+        than 4 covered pixels).
+    """
+    n, y, w = covered_brightness(images, view_mask)
+    coef = _weighted_solve(torch.cat([torch.ones_like(n[..., :1]), n], -1), torch.expm1(y) if linear else y, w)
+    return torch.where((w.sum(1) >= 4)[:, None], coef[:, 1:], torch.zeros_like(coef[:, 1:]))
+
+
+def terminator_fit(images: torch.Tensor, view_mask: torch.Tensor | None = None,
+                   iterations: int = TERMINATOR_ITERATIONS, floor: float = 1e-3) -> torch.Tensor:
+    """b of ``radiance ~ c + max(0, b . N)`` over every covered pixel of each set of views (the
+    mean of RGB, linear, in units of the capture's radiance scale), by least absolute
+    deviations: where the light's shadow edge (the terminator b . N = 0) lies.
+
+    The linear fit (:func:`brightness_gradient`) points at one distant light only when the
+    normals are spread evenly around it; the views of a capture see part of the object, and its
+    direction is then pulled toward the normals they saw (5-17 deg on the issue-28 captures).
+    This fit models a Lambertian surface's clamped cosine itself, so which normals were seen
+    does not bias it, and absolute deviations let a highlight's pixels count as outliers.
+    Gauss-Newton on the reweighted L1 (weights 1 / max(|residual|, ``floor``)), from c = the
+    least radiance and b = twice the linear fit's gradient of the linear radiance (exact for
+    normals spread evenly over the sphere: the linear fit of max(0, k N . L) is k L / 2).
+
+    Args:
+        images: (B, V, 9, S, S) predictor images; view_mask: (B, V) bool, the views present.
+        iterations: Gauss-Newton iterations.
+        floor: the reweighting's floor, in units of the radiance scale.
+
+    Returns:
+        (B, 3) b, in units of the radiance scale per unit of N; the start where the fit is not
+        finite, and 0 where a set has fewer than 4 covered pixels.
+    """
+    start = 2 * brightness_gradient(images, view_mask, linear=True)
+    n, y, w = covered_brightness(images, view_mask)
+    y = torch.expm1(y)  # radiance / scale: a Lambertian surface's is exactly c + max(0, b . N)
+    if y.shape[1] == 0:  # a single set with nothing covered
+        return start
+    c = torch.where(w > 0, y, torch.full_like(y, math.inf)).amin(1)
+    c = torch.where(torch.isfinite(c), c, torch.zeros_like(c))
+    b = start
+    for _ in range(iterations):
+        z = torch.einsum("bmi,bi->bm", n, b)
+        resid = y - c[:, None] - z.clamp_min(0)
+        jac = torch.cat([torch.ones_like(z)[..., None], (z > 0).to(n.dtype)[..., None] * n], -1)  # d(c + relu(b . N)) / d(c, b)
+        step = _weighted_solve(jac, resid, w / resid.abs().clamp_min(floor))
+        c, b = c + step[:, 0], b + step[:, 1:]
+    ok = torch.isfinite(b).all(-1, keepdim=True)
+    return torch.where(ok, b, start)
 
 
 def rotation_to_up(direction: torch.Tensor) -> torch.Tensor:
@@ -102,12 +179,12 @@ def rotate_images(images: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
 
 def light_up_world(images: torch.Tensor, view_mask: torch.Tensor | None = None) -> torch.Tensor:
     """(B, 3) the light frame's +y in world coordinates: where each set's dominant light comes
-    from, as the frame sees it (the unit brightness gradient; 0 where it has no direction)."""
-    b = brightness_gradient(images, view_mask)
+    from, as the frame sees it (the unit :func:`terminator_fit`; 0 where it has no direction)."""
+    b = terminator_fit(images, view_mask)
     length = b.norm(dim=-1, keepdim=True)
     return torch.where(length < MIN_GRADIENT, torch.zeros_like(b), b / length.clamp_min(1e-30))
 
 
 def light_frame(images: torch.Tensor, view_mask: torch.Tensor | None = None) -> torch.Tensor:
-    """(B, 3, 3) R taking world vectors into each set's light frame (its brightness gradient to +y)."""
-    return rotation_to_up(brightness_gradient(images, view_mask))
+    """(B, 3, 3) R taking world vectors into each set's light frame (its :func:`terminator_fit`'s b to +y)."""
+    return rotation_to_up(terminator_fit(images, view_mask))

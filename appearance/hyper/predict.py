@@ -118,7 +118,9 @@ class PredictOptions:
     x0.91 to x0.64 of the fit (the sphere under one distant light from x2.44 to x1.25, the blobs
     under one from x1.18 to x0.43), prediction and both solves in 56-79 ms; 3 and 8 iterations
     gave the same mean (x0.64), 3 less on the distant-light kinds (x1.32, x0.51), 8 no better
-    than 5 (docs/learning-to-learn.md, *The joint solve*)"""
+    than 5 (docs/learning-to-learn.md, *The joint solve*). With the light frame from
+    frame.terminator_fit since: x0.59, every kind within 1.15x of the fit, in 57-71 ms
+    (bench/hyper_ood_terminator.md)"""
     joint_samples: int = field(default=2048, metadata=COUNT)
     """the joint solve uses a seeded random subset of at most this many train pixels"""
     joint_prior: float = field(default=1e-4, metadata=in_range(0, 1e3))

@@ -50,7 +50,8 @@ def test_ood_study_writes_every_method_per_kind(tmp_path, is_dssim):
     sun, sky = (r["light_frame"]["set"] for r in doc["per_capture"])
     assert "one" not in doc["per_capture"][0]["light_frame"] and sky["angle_to_light_deg"] is None
     assert sun["angle_to_light_deg"] < 20, sun
-    assert "## Light frame" in (out / "hyper_ood.md").read_text()
+    assert "## Light frame" in (out / "hyper_ood.md").read_text() and "`frame.terminator_fit`" in (out / "hyper_ood.md").read_text()
+    assert doc["light_frame_fit"] == "terminator_fit"
     assert doc["snapshots"] == {"set.step5": {"step": 5, "total": 15}, "run2.step3": {"step": 3, "total": 43}}  # counted after the 10 steps of the predictor it started from
     s = doc["summary"]["closed-form sphere, environment"]
     assert s["captures"] == 1 and s["novel"]["fit"] == doc["per_capture"][1]["novel"]["fit"]

@@ -1,4 +1,5 @@
-"""The predictor's light frame: the brightness gradient, the rotation to +y, turned images."""
+"""The predictor's light frame: the brightness gradient, the terminator fit, the rotation to +y,
+turned images."""
 
 from __future__ import annotations
 
@@ -7,18 +8,23 @@ import math
 import pytest
 import torch
 
-from damcap.appearance.hyper.frame import brightness_gradient, light_frame, light_up_world, rotate_images, rotation_to_up
+from damcap.appearance.hyper.frame import (MIN_GRADIENT, brightness_gradient, light_frame, light_up_world, rotate_images, rotation_to_up,
+                                           terminator_fit)
 
 
-def _sphere_images(brightness, side: int = 48, views: int = 1) -> torch.Tensor:
+def _sphere_images(brightness, side: int = 48, views: int = 1, cap=None) -> torch.Tensor:
     """(1, V, 9, side, side) images whose covered pixels hold normals spread over the whole sphere
     (Fibonacci), RGB = brightness(normal) in each channel, view directions = the normals; the
-    last row of each view is uncovered (zeros)."""
+    last row of each view is uncovered (zeros). With ``cap`` = (axis, cos_max): the normals of the
+    spherical cap about the unit axis within that angle instead (the part of an object some views see)."""
     m = (side - 1) * side
     i = torch.arange(m, dtype=torch.float64) + 0.5
-    z = 1 - 2 * i / m
+    z = 1 - 2 * i / m if cap is None else 1 - (1 - cap[1]) * i / m
     phi = math.pi * (3 - math.sqrt(5)) * i
-    n = torch.stack([torch.sqrt(1 - z * z) * torch.cos(phi), torch.sqrt(1 - z * z) * torch.sin(phi), z], -1).float()
+    n = torch.stack([torch.sqrt(1 - z * z) * torch.cos(phi), torch.sqrt(1 - z * z) * torch.sin(phi), z], -1)
+    if cap is not None:  # the cap about +z turned onto the axis
+        n = n @ rotation_to_up(torch.tensor([[0.0, 0, 1]]))[0].double().T @ rotation_to_up(cap[0][None])[0].double()
+    n = n.float()
     y = brightness(n)
     img = torch.zeros(9, side * side)
     img[0:3, :m] = y[None]
@@ -35,6 +41,8 @@ def test_a_linear_brightness_is_recovered_exactly():
     b_true = torch.tensor([0.1, -0.2, 0.4])
     img = _sphere_images(lambda n: 0.3 + n @ b_true)
     assert torch.allclose(brightness_gradient(img)[0], b_true, atol=1e-4)
+    radiance = _sphere_images(lambda n: torch.log1p(0.8 + n @ b_true))  # the images hold log1p(radiance / scale)
+    assert torch.allclose(brightness_gradient(radiance, linear=True)[0], b_true, atol=1e-4)
 
 
 def test_one_distant_light_is_found_and_absent_views_do_not_count():
@@ -75,3 +83,34 @@ def test_in_its_light_frame_an_image_is_lit_from_up():
     assert torch.equal(turned[:, :, 0:3], img[:, :, 0:3])  # RGB as it was
     assert _angle_deg(brightness_gradient(turned)[0], torch.tensor([0.0, 1, 0])) < 1.0
     assert torch.allclose(turned[0, 0, 3:6].flatten(1).T, img[0, 0, 3:6].flatten(1).T @ r[0].T, atol=1e-6)
+
+
+def test_the_terminator_fit_finds_one_light_where_the_views_saw_part_of_the_object():
+    """Clamped-cosine brightness over a cap of normals 70 deg around an axis 60 deg from the light
+    (a capture's views see one side): the linear fit is pulled toward the seen normals, the
+    terminator fit is not; a highlight's few bright pixels do not move it."""
+    light = torch.nn.functional.normalize(torch.tensor([0.5, 0.7, 0.4]), dim=0)
+    axis = torch.nn.functional.normalize(torch.tensor([0.9, 0.1, -0.3]), dim=0)
+    assert 50 < _angle_deg(axis, light) < 70
+    cap = (axis, math.cos(math.radians(70)))
+    img = _sphere_images(lambda n: torch.log1p(0.05 + 2 * (n @ light).clamp_min(0)), cap=cap)
+    assert _angle_deg(brightness_gradient(img)[0], light) > 5  # the linear fit, biased (9.5 deg)
+    assert _angle_deg(terminator_fit(img)[0], light) < 0.5
+    spec = torch.nn.functional.normalize(axis + light, dim=0)
+    shiny = _sphere_images(lambda n: torch.log1p(0.05 + 2 * (n @ light).clamp_min(0) + 20 * (n @ spec).clamp_min(0) ** 200), cap=cap)
+    assert 0.001 < float((shiny[0, 0, 0] > img[0, 0, 0] + 0.1).float().mean()) < 0.1  # some pixels are highlight
+    assert _angle_deg(terminator_fit(shiny)[0], light) < 1.0
+    assert _angle_deg(light_up_world(shiny)[0], light) < 1.0 and _angle_deg(light_frame(shiny)[0] @ light, torch.tensor([0.0, 1, 0])) < 1.0
+
+
+def test_the_terminator_fit_without_light_or_pixels_names_no_direction():
+    flat = _sphere_images(lambda n: torch.full_like(n[:, 0], 0.3))
+    assert float(terminator_fit(flat)[0].norm()) < MIN_GRADIENT
+    assert torch.equal(light_frame(flat)[0], torch.eye(3))
+    assert torch.equal(terminator_fit(torch.zeros(1, 2, 9, 8, 8)), torch.zeros(1, 3))  # a single set, nothing covered
+    assert torch.equal(terminator_fit(torch.zeros(3, 2, 9, 8, 8)), torch.zeros(3, 3))
+    light = torch.tensor([0.0, 0.0, 1.0])
+    lit = _sphere_images(lambda n: torch.log1p((n @ light).clamp_min(0)), views=2)
+    # a batch: each set's own answer; the second set's only view is absent
+    both = terminator_fit(torch.cat([lit, lit]), torch.tensor([[True, True], [False, False]]))
+    assert _angle_deg(both[0], light) < 0.5 and torch.equal(both[1], torch.zeros(3))

@@ -44,7 +44,7 @@ TERMINATOR_ITERATIONS = 10
 
 
 def covered_brightness(images: torch.Tensor, view_mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Every pixel of each set of views as (normal, brightness, counts), the brightness being the
+    """Every pixel of each set of views as (normal, brightness, weight), the brightness being the
     mean of the log-compressed RGB.
 
     Args:

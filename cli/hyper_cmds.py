@@ -116,7 +116,7 @@ def predict(
     from damcap.appearance.dam_file import save_dam
     from damcap.appearance.coverage import training_normal_histogram
     from damcap.appearance.fit import refine_dam
-    from damcap.appearance.hyper.frame import light_up_world
+    from damcap.appearance.hyper.frame import rotation_to_up, terminator_fit, unit_direction
     from damcap.appearance.hyper.model import input_images, predict_from_images, predictor_inputs
     from damcap.appearance.hyper.file import load_predictor, predictor_path
     from damcap.appearance.hyper.predict import AUTO, refine_auto, refinement_needed, resynthesis_error, resynthesis_line, solve_prediction
@@ -140,14 +140,15 @@ def predict(
     frame = frames[0]
     t0 = time.perf_counter()
     images, scale = input_images(crops, net.arch.input_size, capture_scale)
-    model = predict_from_images(net, images, scale)
+    # a light-frame predictor: its frame (frame.light_frame) is fitted once, for the network and the record
+    light_fit = terminator_fit(images[None]) if net.arch.frame == "light" else None
+    model = predict_from_images(net, images, scale, None if light_fit is None else rotation_to_up(light_fit)[0])
     predict_s = time.perf_counter() - t0
     samples = samples_of(train_views)
     err = resynthesis_error(model, train_views, samples)
     typer.echo(resynthesis_line(err, opts.refine_threshold))
-    frame_record = {}
-    if net.arch.frame == "light":  # where the predictor's frame put the light: a diagnosis of a poor prediction
-        frame_record["light_frame_up_world"] = [float(x) for x in light_up_world(images[None])[0]]
+    # where the frame put the light: a diagnosis of a poor prediction (frame.light_up_world)
+    frame_record = {} if light_fit is None else {"light_frame_up_world": [float(x) for x in unit_direction(light_fit)[0]]}
     record = {"damcap_version": damcap_version(), "capture": str(capture.resolve()), "predictor": str(Path(pred_path).resolve()),
               "predictor_command": meta.get("training", {}).get("command"), "view": frame.file_path,
               "input_views": [f.file_path for f in frames],

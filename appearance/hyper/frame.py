@@ -96,7 +96,12 @@ def brightness_gradient(images: torch.Tensor, view_mask: torch.Tensor | None = N
         than 4 covered pixels).
     """
     n, y, w = covered_brightness(images, view_mask)
-    coef = _weighted_solve(torch.cat([torch.ones_like(n[..., :1]), n], -1), torch.expm1(y) if linear else y, w)
+    return _gradient(n, torch.expm1(y) if linear else y, w)
+
+
+def _gradient(n: torch.Tensor, y: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """(B, 3) b of the least-squares ``y ~ c + b . n`` (0 with fewer than 4 pixels of weight)."""
+    coef = _weighted_solve(torch.cat([torch.ones_like(n[..., :1]), n], -1), y, w)
     return torch.where((w.sum(1) >= 4)[:, None], coef[:, 1:], torch.zeros_like(coef[:, 1:]))
 
 
@@ -124,9 +129,9 @@ def terminator_fit(images: torch.Tensor, view_mask: torch.Tensor | None = None,
         (B, 3) b, in units of the radiance scale per unit of N; the start where the fit is not
         finite, and 0 where a set has fewer than 4 covered pixels.
     """
-    start = 2 * brightness_gradient(images, view_mask, linear=True)
     n, y, w = covered_brightness(images, view_mask)
     y = torch.expm1(y)  # radiance / scale: a Lambertian surface's is exactly c + max(0, b . N)
+    start = 2 * _gradient(n, y, w)  # brightness_gradient(images, view_mask, linear=True), doubled
     if y.shape[1] == 0:  # a single set with nothing covered
         return start
     c = torch.where(w > 0, y, torch.full_like(y, math.inf)).amin(1)
@@ -177,12 +182,17 @@ def rotate_images(images: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
     return torch.cat([images[:, :, 0:3], normal, view], 2)
 
 
+def unit_direction(b: torch.Tensor) -> torch.Tensor:
+    """(B, 3) b / |b| of fitted (B, 3) b, 0 where |b| is below :data:`MIN_GRADIENT` (no direction:
+    the frame :func:`rotation_to_up` gives there is the world)."""
+    length = b.norm(dim=-1, keepdim=True)
+    return torch.where(length < MIN_GRADIENT, torch.zeros_like(b), b / length.clamp_min(1e-30))
+
+
 def light_up_world(images: torch.Tensor, view_mask: torch.Tensor | None = None) -> torch.Tensor:
     """(B, 3) the light frame's +y in world coordinates: where each set's dominant light comes
     from, as the frame sees it (the unit :func:`terminator_fit`; 0 where it has no direction)."""
-    b = terminator_fit(images, view_mask)
-    length = b.norm(dim=-1, keepdim=True)
-    return torch.where(length < MIN_GRADIENT, torch.zeros_like(b), b / length.clamp_min(1e-30))
+    return unit_direction(terminator_fit(images, view_mask))
 
 
 def light_frame(images: torch.Tensor, view_mask: torch.Tensor | None = None) -> torch.Tensor:

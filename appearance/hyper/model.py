@@ -118,18 +118,23 @@ class HyperNet(nn.Module):
             self.head.weight.mul_(0.1)
             self.head.bias.zero_()
 
-    def forward(self, images: torch.Tensor, view_mask: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, images: torch.Tensor, view_mask: torch.Tensor | None = None, rotation: torch.Tensor | None = None) -> torch.Tensor:
         """Args:
             images: (B, 9, S, S), or (B, V, 9, S, S) with any V.
             view_mask: (B, V) bool, the views present (default all); each set needs one.
+            rotation: (B, 3, 3) a light-frame predictor's :func:`.frame.light_frame` of these
+                images when the caller has found it already (default: found here; ignored by a
+                world-frame predictor).
         """
         if images.dim() == 4:
             images = images[:, None]
-        rotation = None
-        if self.arch.frame == "light":
+        if self.arch.frame != "light":
+            rotation = None
+        elif rotation is None:
             with torch.no_grad():  # a change of coordinates, a constant of the step
                 rotation = light_frame(images, view_mask)
-            images = rotate_images(images, rotation)
+        if rotation is not None:
+            images = rotate_images(images, rotation.to(images.device))
         b, v = images.shape[:2]
         f = F.adaptive_avg_pool2d(self.features(images.flatten(0, 1)), 1).reshape(b, v, -1)
         w = torch.ones(b, v, 1, device=f.device, dtype=f.dtype) if view_mask is None else view_mask[..., None].to(f.dtype)
@@ -421,11 +426,12 @@ def predict_dam(net: HyperNet, crops: torch.Tensor | list[torch.Tensor], radianc
 
 
 @torch.no_grad()
-def predict_from_images(net: HyperNet, images: torch.Tensor, scale: float) -> DeepAppearanceMap:
-    """:func:`predict_dam` from its :func:`input_images` (V, 9, S, S), whose RGB is in units of ``scale``."""
+def predict_from_images(net: HyperNet, images: torch.Tensor, scale: float, rotation: torch.Tensor | None = None) -> DeepAppearanceMap:
+    """:func:`predict_dam` from its :func:`input_images` (V, 9, S, S), whose RGB is in units of
+    ``scale`` (``rotation``: (3, 3), their light frame when the caller has found it already)."""
     net.eval()
     device = next(net.parameters()).device
-    weights = net(images[None].to(device))[0].float().cpu()
+    weights = net(images[None].to(device), rotation=None if rotation is None else rotation[None])[0].float().cpu()
     if not torch.isfinite(weights).all():
         raise DamcapError("the predictor produced non-finite weights for this view (is its radiance finite and positive?)")
     return DeepAppearanceMap(net.arch.dam, scale, weights)

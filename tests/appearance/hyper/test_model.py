@@ -174,3 +174,18 @@ def test_predict_records_where_a_light_frame_predictor_put_the_light(tmp_path, s
             assert "light_frame_up_world" not in prov
         else:
             assert math.isclose(math.hypot(*prov["light_frame_up_world"]), 1.0, rel_tol=1e-5)
+
+
+def test_a_light_frame_found_by_the_caller_gives_the_same_weights(small_capture):
+    """HyperNet(images, rotation=light_frame(images)) is the plain call (damcap predict finds the
+    frame once for the network and its record); a world-frame network ignores a rotation."""
+    from damcap.appearance.hyper.frame import light_frame, light_up_world, rotation_to_up, terminator_fit, unit_direction
+
+    light = HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), input_views=2, frame="light"), torch.Generator().manual_seed(1))
+    world = HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), input_views=2), torch.Generator().manual_seed(1))
+    img = predictor_image(_crop_of(small_capture), 32)[0]
+    images = torch.stack([img, predictor_image(_crop_of(small_capture), 32, rotation=rotation_y(1.0))[0]])[None]
+    r = light_frame(images)
+    assert torch.equal(light(images, rotation=r), light(images))
+    assert torch.equal(rotation_to_up(terminator_fit(images)), r) and torch.equal(unit_direction(terminator_fit(images)), light_up_world(images))
+    assert torch.equal(world(images, rotation=r), world(images))

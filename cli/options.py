@@ -21,7 +21,10 @@ Per-field metadata (plain keys, so the library never imports ``cli``):
 - ``cli_exclude``: True for a field that is not a user option;
 - ``cli_parse``: ``str -> value`` for a value with its own syntax (raises DamcapError);
 - ``cli_what``: what a rejected choice is called (``"DAM input encoding"`` -> ``unknown DAM
-  input encoding 'polar'; ...``) where a library message already names it so.
+  input encoding 'polar'; ...``) where a library message already names it so;
+- on a nested options dataclass field, ``cli_prefix``: the flag prefix of its fields instead of
+  the field's name (``""``: ``ReconstructOptions.geometry.voxels`` is ``--voxels``; ``"dense"``:
+  ``--dense-...``), and ``cli_panel``: the help panel of its fields (``"Geometry"``).
 
 "Given by the user": a command that must know whether an option was typed (``fit
 --target-dssim`` chooses width and depth itself and refuses ``--width``) declares a keyword
@@ -55,6 +58,8 @@ CLI_FLAG = "cli_flag"
 CLI_EXCLUDE = "cli_exclude"
 CLI_PARSE = "cli_parse"
 CLI_WHAT = "cli_what"
+CLI_PREFIX = "cli_prefix"
+CLI_PANEL = "cli_panel"
 GIVEN = "given"
 """name of the keyword parameter that receives the fields given on the command line"""
 
@@ -196,9 +201,12 @@ class OptionSpec:
 
 
 def option_specs(cls: type, *, exclude: frozenset[str] = frozenset(), prefix: tuple[str, ...] = (),
-                 instance: Any = None, panel: str | None = None) -> list[OptionSpec]:
+                 instance: Any = None, panel: str | None = None, flag_prefix: tuple[str, ...] | None = None,
+                 hidden: bool = False) -> list[OptionSpec]:
     """One :class:`OptionSpec` per field of the options dataclass ``cls`` (nested dataclasses
-    flattened with their field name as prefix); ``exclude`` lists field names to leave out."""
+    flattened with their field name, or their ``cli_prefix``, as flag prefix); ``exclude`` lists
+    field names to leave out; ``hidden`` keeps every option out of ``--help`` (still parsed)."""
+    flag_prefix = prefix if flag_prefix is None else flag_prefix
     hints = typing.get_type_hints(cls)
     docs = field_docs(cls)
     specs: list[OptionSpec] = []
@@ -209,14 +217,17 @@ def option_specs(cls: type, *, exclude: frozenset[str] = frozenset(), prefix: tu
         default = _default_of(f, instance)
         tp, optional = _strip_optional(hints[f.name])
         if dataclasses.is_dataclass(tp):
-            specs += option_specs(tp, prefix=path, instance=default, panel=panel or f"{kebab(f.name)} options")
+            sub_prefix = f.metadata.get(CLI_PREFIX)
+            sub_flags = flag_prefix + ((f.name,) if sub_prefix is None else (sub_prefix,) if sub_prefix else ())
+            specs += option_specs(tp, prefix=path, instance=default, flag_prefix=sub_flags, hidden=hidden,
+                                  panel=f.metadata.get(CLI_PANEL) or panel or f"{kebab(f.name)} options")
             continue
-        flag = f.metadata.get(CLI_FLAG) or "--" + "-".join(kebab(p) for p in path)
+        flag = f.metadata.get(CLI_FLAG) or "--" + "-".join(kebab(p) for p in flag_prefix + (f.name,))
         first = flag.split(",")[0].split("/")[0]
         help_text = docs.get(f.name, "")
         if f.metadata.get(RANGE) is not None:
             help_text += f" (allowed: {f.metadata[RANGE].text()})"
-        kw: dict[str, Any] = {"help": help_text, "rich_help_panel": panel}
+        kw: dict[str, Any] = {"help": help_text, "rich_help_panel": panel, "hidden": hidden}
         parse = f.metadata.get(CLI_PARSE)
         origin = get_origin(tp)
         if parse is not None:
@@ -294,8 +305,10 @@ class DerivedCommand:
     own (positional paths, ``-o``). Calling it calls the function; ``__signature__`` is what
     typer sees (the command's own parameters, then one per field)."""
 
-    def __init__(self, fn: Callable[..., Any], name: str, sources: dict[str, str | type], exclude: dict[str, frozenset[str]]):
+    def __init__(self, fn: Callable[..., Any], name: str, sources: dict[str, str | type], exclude: dict[str, frozenset[str]],
+                 hidden: frozenset[str] = frozenset()):
         self.fn = fn
+        self.hidden = hidden
         self.name = name
         self.sources = sources
         self.exclude = exclude
@@ -311,7 +324,8 @@ class DerivedCommand:
 
     def specs(self) -> dict[str, list[OptionSpec]]:
         """Per dataclass parameter, its fields' options (imports the dataclasses)."""
-        return {p: option_specs(cls, exclude=self.exclude.get(p, frozenset())) for p, cls in self.classes().items()}
+        return {p: option_specs(cls, exclude=self.exclude.get(p, frozenset()), hidden=p in self.hidden)
+                for p, cls in self.classes().items()}
 
     def _own_parameters(self) -> tuple[list[inspect.Parameter], dict[str, Any]]:
         sig = inspect.signature(self.fn)
@@ -383,7 +397,7 @@ COMMANDS: list[DerivedCommand] = []
 """every ``damcap`` command, in the order ``damcap --help`` lists them"""
 
 
-def command(name: str | None = None, exclude: dict[str, tuple[str, ...]] | None = None,
+def command(name: str | None = None, exclude: dict[str, tuple[str, ...]] | None = None, hidden: tuple[str, ...] = (),
             **sources: str | type) -> Callable[[Callable[..., Any]], DerivedCommand]:
     """Register a ``damcap`` command.
 
@@ -391,13 +405,15 @@ def command(name: str | None = None, exclude: dict[str, tuple[str, ...]] | None 
         name: the command's name (default: the function's, dashes for underscores).
         exclude: per dataclass parameter, fields that the command replaces by options of its own
             (``segment``'s ``--materials`` takes 'auto' or a number).
+        hidden: dataclass parameters whose options are parsed but left out of ``--help`` (the
+            paper's table options that ``evaluate`` still accepts for old scripts).
         sources: keyword parameter -> ``"module:OptionsClass"`` (imported when the command is
             built: a class given as a string costs nothing until its command runs) or the class;
             the parameter receives the options dataclass built from the command line.
     """
     def register(fn: Callable[..., Any]) -> DerivedCommand:
         cmd = DerivedCommand(fn, name or fn.__name__.replace("_", "-"), dict(sources),
-                             {k: frozenset(v) for k, v in (exclude or {}).items()})
+                             {k: frozenset(v) for k, v in (exclude or {}).items()}, frozenset(hidden))
         COMMANDS.append(cmd)
         return cmd
     return register

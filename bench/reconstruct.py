@@ -392,6 +392,8 @@ def part_geometry(fresh: bool, cache: Path = CACHE, objects: tuple[str, ...] = (
     """Per object: each geometry mode with the true cameras (and ``auto`` from the photos alone);
     ``dense_knobs``: extra dense rows at these (``dense_size``, ``dense_planes``), the dense
     geometry's speed/accuracy knobs."""
+    from damcap.reconstruct.dense import DenseOptions
+    from damcap.reconstruct.geometry import GeometryOptions
     from damcap.reconstruct.pipeline import ReconstructOptions, reconstruct_capture
 
     import open3d as o3d
@@ -423,11 +425,12 @@ def part_geometry(fresh: bool, cache: Path = CACHE, objects: tuple[str, ...] = (
                                **chamfer(first, mesh, cams, index), **t.record()}
             log(f"  {obj}/auto: {res['auto']}")
         # every mode with the true cameras (geometry error alone; Poisson triangulates with them held fixed)
-        runs = [(mode.split(":")[0] + (f" (align {align})" if mode.startswith("mesh") else ""), replace(base, geometry=mode, mesh_align=align))
+        runs = [(mode.split(":")[0] + (f" (align {align})" if mode.startswith("mesh") else ""), replace(base, geometry=GeometryOptions(mode=mode, mesh_align=align)))
                 for mode, align in (("visual-hull", "auto"), ("poisson", "auto"), ("sphere", "auto"), ("dense", "auto"),
                                     (f"mesh:{gt_path}", "none"), (f"mesh:{gt_path}", "icp"))]
         runs = [(key, opts) for key, opts in runs if key in modes]
-        runs += [(f"dense ({size} px, {planes} planes)", replace(base, geometry="dense", dense_size=size, dense_planes=planes))
+        runs += [(f"dense ({size} px, {planes} planes)", replace(base, geometry=GeometryOptions(mode="dense"),
+                                                                                   dense=DenseOptions(image_size=size, depth_planes=planes)))
                  for size, planes in dense_knobs]
         for key, opts in runs:
             cap_dir = root / f"capture-{key.replace(' ', '_').replace('(', '').replace(')', '').replace(',', '')}"
@@ -589,6 +592,7 @@ def part_realworld(train_views: int, steps: int, fresh: bool, capture_size: int 
     from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import read_capture
     from damcap.common.exr import write_png
+    from damcap.reconstruct.geometry import GeometryOptions
     from damcap.reconstruct.pipeline import ReconstructOptions, reconstruct_capture
 
     torch.set_num_threads(2)
@@ -601,7 +605,7 @@ def part_realworld(train_views: int, steps: int, fresh: bool, capture_size: int 
     if fresh and cap_dir.exists():
         shutil.rmtree(cap_dir)
     poses = f"colmap:{model}" if model.is_dir() else None
-    opts = ReconstructOptions(capture_size=capture_size, train_views=train_views, split="spread", geometry=geometry)
+    opts = ReconstructOptions(capture_size=capture_size, train_views=train_views, split="spread", geometry=GeometryOptions(mode=geometry))
     with Timer() as t_rec:
         _, rep = reconstruct_capture(root / "images", cap_dir, opts, masks_dir=masks, poses=poses, log=log)
     cap = read_capture(cap_dir)

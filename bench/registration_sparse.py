@@ -89,13 +89,14 @@ def run_damcap(root: Path, names: list[str], retry: bool) -> dict:
 def run_reconstruct(root: Path) -> dict:
     from damcap.common.capture_folder import read_capture
     from damcap.common.errors import DamcapError
+    from damcap.reconstruct.geometry import GeometryOptions
     from damcap.reconstruct.pipeline import ReconstructOptions, reconstruct_capture
 
     out = root / "capture"
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
     try:
-        _, report = reconstruct_capture(root / "images", out, ReconstructOptions(capture_size=64, voxels=48, supersample=1,
+        _, report = reconstruct_capture(root / "images", out, ReconstructOptions(capture_size=64, geometry=GeometryOptions(voxels=48), supersample=1,
                                                                                   train_views=3, min_registered_fraction=0.1),
                                         masks_dir=root / "masks")
     except DamcapError as e:

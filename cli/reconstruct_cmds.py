@@ -39,7 +39,7 @@ def reconstruct(
     # checked against the output before reconstruct_capture prepares (clears) the output folder
     prefix = next((p for p in ("colmap:", "strecha:") if poses is not None and poses.startswith(p)), "")
     pose_input = None if poses is None else Path(poses[len(prefix):])
-    mesh_input = Path(opts.geometry[len("mesh:"):]) if opts.geometry.startswith("mesh:") and opts.geometry[len("mesh:"):] else None
+    mesh_input = Path(opts.geometry.mode[len("mesh:"):]) if opts.geometry.mode.startswith("mesh:") and opts.geometry.mode[len("mesh:"):] else None
     check_paths([photos, masks, pose_input, mesh_input, opts.response], [folder_out(output)])
 
     def kept() -> str:

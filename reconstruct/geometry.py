@@ -35,6 +35,7 @@ import numpy as np
 
 from damcap.common.capture_folder import Intrinsics
 from damcap.common.errors import DamcapError
+from damcap.common.validate import COUNT_OR_ZERO, FRACTION, in_range
 
 from damcap.reconstruct.normalize import transform_points
 from damcap.common.mesh import Mesh, load_mesh, signed_volume, vertex_normals_area_weighted
@@ -43,25 +44,27 @@ from damcap.common.shapes import sphere_mesh
 
 GeometryMode = Literal["auto", "visual-hull", "poisson", "sphere", "dense", "mesh"]
 MeshAlign = Literal["auto", "none", "icp"]
+#: largest visual-hull grid side, voxels
+MAX_VOXELS = 2048
 #: mask value above which a pixel is the object
 MASK_THRESHOLD = 0.5
 
 
 @dataclass(frozen=True)
 class GeometryOptions:
-    """How ``damcap reconstruct`` builds the geometry (``--geometry`` and friends)."""
+    """How ``damcap reconstruct`` builds the geometry (its "Geometry" options)."""
 
-    mode: str = "auto"
-    """'auto', 'visual-hull', 'poisson', 'sphere', 'dense' or 'mesh:FILE'"""
-    voxels: int = 160
+    mode: str = field(default="auto", metadata={"cli_flag": "--geometry"})
+    """'auto', 'visual-hull', 'poisson', 'sphere', 'dense' (multi-view stereo) or 'mesh:FILE'"""
+    voxels: int = field(default=160, metadata=in_range(16, MAX_VOXELS))
     """visual hull: voxels along the longest side of the object's box"""
-    hull_tolerance: int = 0
+    hull_tolerance: int = field(default=0, metadata=COUNT_OR_ZERO)
     """visual hull: views allowed to see background where the object is (forgives bad masks)"""
-    smooth_iterations: int = 10
+    smooth_iterations: int = field(default=10, metadata=in_range(0, 100000))
     """Taubin smoothing iterations of the visual hull / Poisson mesh (0 = none)"""
-    poisson_depth: int = 8
+    poisson_depth: int = field(default=8, metadata=in_range(1, 16))
     """Poisson octree depth (surface detail ~ object size / 2^depth)"""
-    sphere_max_rms: float = 0.01
+    sphere_max_rms: float = field(default=0.01, metadata=FRACTION)
     """auto: a sphere fits when its rms residual is below this fraction of its radius"""
     mesh_align: MeshAlign = "auto"
     """mesh:FILE: 'none' (the mesh is in the cameras' frame), 'icp' (always align to the

@@ -60,37 +60,18 @@ from damcap.reconstruct.undistort import pinhole_for, resample_to_pinhole
 SplitKind = Literal["consecutive", "spread"]
 ClippedPolicy = Literal["auto", "drop", "keep"]
 WORK_FOLDER = "reconstruction"
-#: largest visual-hull grid side, voxels
-MAX_VOXELS = 2048
 
 
 @dataclass(frozen=True)
 class ReconstructOptions:
-    """Every option of ``damcap reconstruct`` (the CLI mirrors them one to one)."""
+    """Every option of ``damcap reconstruct``. The registration, geometry, dense-stereo and
+    self-check options are those stages' own dataclasses, held here (their defaults are theirs;
+    their flags keep short names: ``--voxels``, ``--dense-size``, ``--max-image-size``)."""
 
-    geometry: str = "auto"
-    """'auto', 'visual-hull', 'poisson', 'sphere', 'dense' (multi-view stereo) or 'mesh:FILE'"""
-    mesh_align: Literal["auto", "none", "icp"] = "auto"
-    """mesh:FILE: 'none' (in the cameras' frame), 'icp' (align to silhouettes/points), 'auto'"""
-    voxels: int = field(default=160, metadata=in_range(16, MAX_VOXELS))
-    """visual hull: voxels along the object's longest side"""
-    hull_tolerance: int = field(default=0, metadata=COUNT_OR_ZERO)
-    """visual hull: views allowed to see background where the object is"""
-    poisson_depth: int = field(default=8, metadata=in_range(1, 16))
-    """Poisson octree depth"""
-    smooth_iterations: int = field(default=10, metadata=in_range(0, 100000))
-    """Taubin smoothing iterations of carved / Poisson meshes"""
-    sphere_max_rms: float = field(default=0.01, metadata=FRACTION)
-    """auto: picks the sphere when it fits within this fraction of its radius"""
-    dense_size: int = field(default=320, metadata=in_range(16, MAX_IMAGE_SIDE))
-    """dense: longest side of the images stereo matches, pixels (never above the photos' own). On
-    the rendered bunny (36 photos of 320 px, true cameras; bench/reconstruct.md) 160 px took 16 s
-    against 23 s, for a median normal error of 12.3 deg against 11.2 and Chamfer 1.72 % against 1.53"""
-    dense_planes: int = field(default=64, metadata=in_range(4, 1024))
-    """dense: depth hypotheses per view. On the rendered bunny 32 planes took 20 s (11.3 deg, Chamfer
-    1.61 %) and 128 took 34 s (11.5 deg, 1.53 %), against 64's 23 s (11.2 deg, 1.53 %)"""
-    dense_views: int = field(default=40, metadata=in_range(2, 100_000))
-    """dense: most views that get a depth map (spread over the cameras)"""
+    geometry: GeometryOptions = field(default_factory=GeometryOptions, metadata={"cli_prefix": "", "cli_panel": "Geometry"})
+    """how the geometry is built (``--geometry``, ``--voxels``, ...)"""
+    dense: DenseOptions = field(default_factory=DenseOptions, metadata={"cli_prefix": "", "cli_panel": "Dense stereo"})
+    """dense multi-view stereo (``--dense-size``, ``--dense-planes``, ``--dense-views``)"""
     auto_dense: bool = True
     """auto: also build the dense geometry when the object is not a sphere, and keep it when the
     photos agree better through it (reconstruct/photo_consistency.py); --no-auto-dense saves
@@ -100,29 +81,8 @@ class ReconstructOptions:
     photos warped through the surface, over the object's pixels) beats the other geometry's by at
     least this (cape: dense 0.81 vs visual hull 0.70, dense kept; rendered blob: 0.62 vs 0.73,
     hull kept; bench/reconstruct.md)"""
-    max_image_size: int = field(default=1024, metadata=in_range(1, MAX_IMAGE_SIDE))
-    """registration: longest image side for features, pixels"""
-    max_num_features: int = field(default=4096, metadata=COUNT)
-    """registration: SIFT features per photo"""
-    upsample_below: int = field(default=800, metadata=in_range(0, MAX_IMAGE_SIDE))
-    """registration: SIFT doubles images whose longer side (after max_image_size) is below this"""
-    retry_upsampled_below: float = field(default=0.95, metadata=in_range(0, 1))
-    """registration: when the doubling was skipped and fewer than this fraction of the photos
-    register, register again with it and keep the registration with more photos (0 = never;
-    see SfmOptions)"""
-    pairing: Literal["auto", "exhaustive", "sequential", "retrieval"] = "auto"
-    """registration: which photo pairs are matched"""
-    sequential_overlap: int = field(default=5, metadata=COUNT)
-    """registration: ring neighbours on each side (file order)"""
-    retrieval_neighbours: int = field(default=8, metadata=COUNT)
-    """registration: most similar photos matched per photo"""
-    camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "SIMPLE_RADIAL"
-    """registration: COLMAP camera model"""
-    principal_point: Literal["auto", "refine", "centre"] = "auto"
-    """registration: where the cameras' principal point is: 'auto' (off the centre where the
-    photos support it), 'refine' (always where the photos put it), 'centre' (see SfmOptions)"""
-    single_camera: bool = field(default=True, metadata={"cli_flag": "--single-camera/--camera-per-photo"})
-    """registration: photos of one size share one camera"""
+    sfm: SfmOptions = field(default_factory=SfmOptions, metadata={"cli_prefix": "", "cli_panel": "Registration"})
+    """camera registration (COLMAP; ``--max-image-size``, ``--pairing``, ``--threads``, ``--seed``, ...)"""
     mask_features: Literal["auto", "always", "never"] = "auto"
     """registration with --masks: 'never' matches features on the whole photo (the static
     background of a camera moved around a fixed object helps; a background that stands still in
@@ -134,12 +94,8 @@ class ReconstructOptions:
     """what the self-check of the cameras (reconstruct/selfcheck.py) does: 'drop' leaves out the
     photos it flags (named) and refuses a registration where more than half are flagged; 'warn'
     only reports; 'off' does not run it"""
-    min_silhouette_recall: float = field(default=0.95, metadata=FRACTION)
-    """self-check: a photo is flagged when fewer of its mask's pixels see the others' visual hull"""
-    min_silhouette_precision: float = field(default=0.5, metadata=FRACTION)
-    """self-check: a photo is flagged when less of the others' visual hull lands on its mask"""
-    max_reprojection_px: float = field(default=2.0, metadata=POSITIVE)
-    """self-check: a photo is flagged when its sparse points reproject worse (mean, photo pixels)"""
+    selfcheck: SelfCheckOptions = field(default_factory=SelfCheckOptions, metadata={"cli_prefix": "", "cli_panel": "Self-check"})
+    """the self-check's thresholds (``--min-silhouette-recall``, ``--min-silhouette-precision``, ``--max-reprojection-px``)"""
     capture_size: int = field(default=512, metadata=in_range(1, MAX_IMAGE_SIDE))
     """longest side of the capture's images, pixels (photos are undistorted and resized once)"""
     train_views: int = field(default=10, metadata=COUNT)
@@ -183,52 +139,27 @@ class ReconstructOptions:
     """sub-pixel grid per axis for coverage at silhouettes"""
     dtype: Literal["half", "float"] = "half"
     """radiance storage in images/*.exr"""
-    threads: int = field(default=-1, metadata=in_range(-1, 4096))
-    """CPU threads for COLMAP (-1 = all)"""
-    seed: int = field(default=0, metadata=SEED)
-    """seed of COLMAP's RANSAC and mapping"""
 
     def validate(self) -> None:
         """Raises DamcapError for out-of-range values (NaN, inf, counts beyond what a machine holds)."""
         check_ranges(self)
-        if self.threads == 0:
+        if self.sfm.num_threads == 0:
             raise DamcapError("--threads must be -1 (all) or an integer in [1, 4096], got 0")
         if self.clipped not in get_args(ClippedPolicy):
             raise DamcapError(f"--clipped must be one of {', '.join(get_args(ClippedPolicy))}, got {self.clipped!r}")
         # a voxel grid of voxels^3 (float32 and a label per voxel) and the capture's frame buffers
-        require_memory(float(self.voxels) ** 3 * 8, f"--voxels {self.voxels} (a {self.voxels}^3 grid)")
+        voxels = self.geometry.voxels
+        require_memory(float(voxels) ** 3 * 8, f"--voxels {voxels} (a {voxels}^3 grid)")
         require_resolution(self.capture_size, self.capture_size, FRAME_BYTES_PER_PIXEL * self.supersample ** 2,
                            f"--capture-size {self.capture_size} with --supersample {self.supersample}: a frame")
         if self.split not in ("consecutive", "spread"):
             raise DamcapError(f"--split must be consecutive or spread, got {self.split!r}")
         if self.dtype not in ("half", "float"):
             raise DamcapError(f"--dtype must be half or float, got {self.dtype!r}")
-        for name, allowed in (("mask_features", ("auto", "always", "never")), ("self_check", ("drop", "warn", "off")),
-                              ("principal_point", ("auto", "refine", "centre"))):
-            if getattr(self, name) not in allowed:
-                raise DamcapError(f"--{name.replace('_', '-')} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
-
-    def sfm(self) -> SfmOptions:
-        return SfmOptions(max_image_size=self.max_image_size, max_num_features=self.max_num_features,
-                          upsample_below=self.upsample_below, retry_upsampled_below=self.retry_upsampled_below,
-                          pairing=self.pairing,
-                          sequential_overlap=self.sequential_overlap, retrieval_neighbours=self.retrieval_neighbours,
-                          camera_model=self.camera_model, principal_point=self.principal_point,
-                          single_camera=self.single_camera, num_threads=self.threads,
-                          seed=self.seed)
-
-    def selfcheck(self) -> SelfCheckOptions:
-        return SelfCheckOptions(min_silhouette_recall=self.min_silhouette_recall,
-                                min_silhouette_precision=self.min_silhouette_precision,
-                                max_reprojection_px=self.max_reprojection_px)
-
-    def geometry_options(self) -> GeometryOptions:
-        return GeometryOptions(mode=self.geometry, voxels=self.voxels, hull_tolerance=self.hull_tolerance,
-                               smooth_iterations=self.smooth_iterations, poisson_depth=self.poisson_depth,
-                               sphere_max_rms=self.sphere_max_rms, mesh_align=self.mesh_align)
-
-    def dense_options(self) -> DenseOptions:
-        return DenseOptions(image_size=self.dense_size, depth_planes=self.dense_planes, max_views=self.dense_views)
+        for owner, name, allowed in ((self, "mask_features", ("auto", "always", "never")), (self, "self_check", ("drop", "warn", "off")),
+                                     (self.sfm, "principal_point", ("auto", "refine", "centre"))):
+            if getattr(owner, name) not in allowed:
+                raise DamcapError(f"--{name.replace('_', '-')} must be one of {', '.join(allowed)}, got {getattr(owner, name)!r}")
 
 
 @dataclass
@@ -387,23 +318,23 @@ def _registration(photos_dir: Path, names: list[str], work: Path, opts: Reconstr
         return known
     images = _registration_images(photos_dir, names, work, progress)
     if object_fraction is not None and masks:
-        sfm = masked_options(opts.sfm(), object_fraction)
+        sfm = masked_options(opts.sfm, object_fraction)
         reg, _ = register_photos(images.folder, images.names(names), work / "sfm-masked", sfm, images.masks(masks), progress,
                                  images.content)
     else:
-        reg, _ = register_photos(images.folder, images.names(names), work / "sfm", opts.sfm(), None, progress, images.content)
+        reg, _ = register_photos(images.folder, images.names(names), work / "sfm", opts.sfm, None, progress, images.content)
     return images.to_photos(reg)
 
 
 def _needs_points(opts: ReconstructOptions, has_masks: bool) -> bool:
     """Whether the geometry mode needs sparse points (Poisson; auto/sphere without masks;
     aligning a user mesh without masks; dense without masks: its depth range)."""
-    mode, _ = parse_mode(opts.geometry)
+    mode, _ = parse_mode(opts.geometry.mode)
     if mode == "poisson":
         return True
     if has_masks:
         return False
-    return mode in ("auto", "sphere", "dense") or (mode == "mesh" and opts.mesh_align == "icp")
+    return mode in ("auto", "sphere", "dense") or (mode == "mesh" and opts.geometry.mesh_align == "icp")
 
 
 class TooFewCameras(DamcapError):
@@ -449,7 +380,7 @@ def _check_inputs(photos_dir: Path, masks_dir: str | os.PathLike | None, poses: 
     masks = match_masks(names, masks_dir) if masks_dir is not None else None
     if poses and not poses.startswith(("colmap:", "strecha:")) and Path(poses).suffix.lower() not in (".json", ".npy"):
         raise DamcapError(f"--poses {poses!r}: use a transforms.json, a poses_bounds.npy, colmap:DIR or strecha:DIR")
-    _mode, mesh_path = parse_mode(opts.geometry)
+    _mode, mesh_path = parse_mode(opts.geometry.mode)
     if mesh_path is not None and not mesh_path.is_file():
         raise DamcapError(f"{mesh_path}: mesh file not found (--geometry mesh:FILE)")
     if mesh_path is not None:
@@ -538,7 +469,7 @@ def _cameras(photos_dir: Path, names: list[str], work: Path, opts: ReconstructOp
         t0 = time.perf_counter()
         log("known poses without sparse points: matching features and triangulating them with the poses held fixed")
         images = _registration_images(photos_dir, [p.name for p in reg.photos], work, progress)
-        reg = images.to_photos(triangulate_known(images.folder, images.to_images(reg), work / "sfm", opts.sfm(),
+        reg = images.to_photos(triangulate_known(images.folder, images.to_images(reg), work / "sfm", opts.sfm,
                                                  images.masks(masks) if opts.mask_features == "always" else None, progress,
                                                  images.content))
         seconds["triangulation"] = time.perf_counter() - t0
@@ -599,7 +530,7 @@ def _candidate(photos_dir: Path, names: list[str], work: Path, opts: Reconstruct
         # in the normalised frame (object radius ~1), as the geometry: the check does not depend on the scene's unit
         norm_from_world = normalization_transform(reg.world_from_cams, reg.points_world if len(reg.points_world) else None)
         check = self_check([p.name for p in reg.photos], transform_world_from_cam(norm_from_world, reg.world_from_cams), targets,
-                           mask_px, stats, opts.selfcheck(), seed=opts.seed, progress=progress)
+                           mask_px, stats, opts.selfcheck, seed=opts.sfm.seed, progress=progress)
         seconds["self_check"] = seconds.get("self_check", 0.0) + time.perf_counter() - t0
     features = "known poses" if known is not None else ("inside the masks" if masked and masks else "whole photos")
     return CheckedCameras(reg, targets, mask_px, check, features)
@@ -731,13 +662,13 @@ def _scene(reg: Registration, targets: list[Intrinsics], mask_px: list[np.ndarra
     t0 = time.perf_counter()
     progress("geometry", 0, 1)
     geo: GeometryResult  # its reason is in the report
-    mode = parse_mode(opts.geometry)[0]
+    mode = parse_mode(opts.geometry.mode)[0]
     if mode == "dense":
         inputs = GeometryInputs(cams, targets, mask_px, points, reg.points_seen_from,
                                 _stereo_photos(reg, targets, photos_dir, log_response, progress))
-        geo = dense_geometry(inputs, opts.dense_options(), progress)
+        geo = dense_geometry(inputs, opts.dense, progress)
     else:
-        geo = build_geometry(GeometryInputs(cams, targets, mask_px, points, reg.points_seen_from), opts.geometry_options(),
+        geo = build_geometry(GeometryInputs(cams, targets, mask_px, points, reg.points_seen_from), opts.geometry,
                              norm_from_world)
         if mode == "auto" and opts.auto_dense and geo.mode != "sphere":
             geo = _auto_dense(geo, GeometryInputs(cams, targets, mask_px, points, reg.points_seen_from,
@@ -762,7 +693,7 @@ def _auto_dense(base: GeometryResult, inputs: GeometryInputs, opts: ReconstructO
     A dense build that fails (too little texture) leaves the base geometry, with the reason."""
     t0 = time.perf_counter()
     try:
-        dense = dense_geometry(inputs, opts.dense_options(), progress)
+        dense = dense_geometry(inputs, opts.dense, progress)
     except DamcapError as e:
         log(f"geometry: kept the {base.mode}; the dense geometry could not be built ({e})")
         base.stats["auto_dense"] = {"built": False, "why": str(e)}

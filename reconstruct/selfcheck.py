@@ -38,7 +38,8 @@ Verdict = Literal["consistent", "photos flagged", "inconsistent", "not checked"]
 
 @dataclass(frozen=True)
 class SelfCheckOptions:
-    """Thresholds and resolution of the self-check (``damcap reconstruct`` mirrors them)."""
+    """Thresholds and resolution of the self-check (``damcap reconstruct``'s "Self-check" options;
+    the grid's fields are the library's and the bench's)."""
 
     min_silhouette_recall: float = field(default=0.95, metadata=FRACTION)
     """a photo is flagged when fewer of its mask's pixels see the others' visual hull (right
@@ -48,11 +49,11 @@ class SelfCheckOptions:
     photo alone carves the hull: >= 0.67 on every cape photo with right cameras)"""
     max_reprojection_px: float = field(default=2.0, metadata=POSITIVE)
     """a photo whose sparse points reproject worse than this (mean, photo pixels) is flagged"""
-    tolerance_fraction: float = field(default=0.1, metadata=in_range(0, 0.5))
+    tolerance_fraction: float = field(default=0.1, metadata=in_range(0, 0.5, cli_exclude=True))
     """the consensus hull keeps a voxel that up to this fraction of the other photos see as background"""
-    voxels: int = field(default=64, metadata=in_range(8, 512))
+    voxels: int = field(default=64, metadata=in_range(8, 512, cli_exclude=True))
     """consensus hull grid: voxels along the object's longest side"""
-    ray_samples: int = field(default=1500, metadata=in_range(10, 1_000_000))
+    ray_samples: int = field(default=1500, metadata=in_range(10, 1_000_000, cli_exclude=True))
     """mask pixels sampled per photo for the recall"""
 
 

@@ -32,7 +32,7 @@ import hashlib
 import json
 import shutil
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Literal
 
@@ -40,6 +40,7 @@ import numpy as np
 
 from damcap.common.atomic import write_json_atomic
 from damcap.common.errors import DamcapError
+from damcap.common.validate import COUNT, MAX_IMAGE_SIDE, SEED, in_range
 
 from damcap.reconstruct.poses import Registration
 from damcap.reconstruct.colmap.model import image_observations, registration_of_reconstruction
@@ -69,17 +70,18 @@ MATCH_CHUNK = 150
 
 @dataclass(frozen=True)
 class SfmOptions:
-    """Options of camera registration (``damcap reconstruct`` mirrors them)."""
+    """Options of camera registration (``damcap reconstruct``'s "Registration" options; the
+    fields marked ``cli_exclude`` are the library's and the bench's)."""
 
-    max_image_size: int = 1024
+    max_image_size: int = field(default=1024, metadata=in_range(1, MAX_IMAGE_SIDE))
     """longest image side for feature extraction, pixels (photos are not modified; keypoints are
     rescaled to the photos' resolution)"""
-    max_num_features: int = 4096
+    max_num_features: int = field(default=4096, metadata=COUNT)
     """SIFT feature budget per photo (before masking)"""
-    upsample_below: int = 800
+    upsample_below: int = field(default=800, metadata=in_range(0, MAX_IMAGE_SIDE))
     """SIFT starts one octave up (doubles the image) only when the longer side, after
     ``max_image_size``, is below this; large photos skip that costly octave"""
-    retry_upsampled_below: float = 0.95
+    retry_upsampled_below: float = field(default=0.95, metadata=in_range(0, 1))
     """when the octave was skipped and fewer than this fraction of the photos register, features
     are extracted again with it and the registration with more photos is kept (0 = never). The
     octave costs 2.7x the time on the 119 cape photos (296 s against 111 s, all registered either
@@ -89,19 +91,19 @@ class SfmOptions:
     """'exhaustive' (all pairs), 'sequential' (file order as a ring), 'retrieval' (ring + most
     similar photos by a vocabulary learned from the set), 'auto' (exhaustive up to
     ``exhaustive_max_images`` photos, else retrieval)"""
-    exhaustive_max_images: int = 40
+    exhaustive_max_images: int = field(default=40, metadata={"cli_exclude": True})
     """'auto' matches all pairs up to this many photos"""
-    sequential_overlap: int = 5
+    sequential_overlap: int = field(default=5, metadata=COUNT)
     """ring pairing: neighbours on each side in file-name order"""
-    loop_closure: bool = True
+    loop_closure: bool = field(default=True, metadata={"cli_exclude": True})
     """ring pairing wraps around (the last photos of an orbit meet the first ones)"""
-    retrieval_neighbours: int = 8
+    retrieval_neighbours: int = field(default=8, metadata=COUNT)
     """retrieval pairing: most similar photos matched per photo, besides the ring"""
-    transitive_neighbours: int = 5
+    transitive_neighbours: int = field(default=5, metadata={"cli_exclude": True})
     """after the first matching round, each photo is also matched with this many of its
     neighbours' neighbours (strongest two-hop links in the verified match graph; 0 = off;
     not used with exhaustive pairing)"""
-    vocabulary_words: int = 64
+    vocabulary_words: int = field(default=64, metadata={"cli_exclude": True})
     """retrieval pairing: VLAD vocabulary size, learned from the set's own descriptors"""
     camera_model: CameraModelName = "SIMPLE_RADIAL"
     """COLMAP camera model fitted to the photos"""
@@ -112,24 +114,24 @@ class SfmOptions:
     (:func:`~damcap.reconstruct.colmap.principal_point.photos_support_offset`). It turns every
     camera by about atan(offset / focal): Strecha's ground truth sits (-7.4, -8.35) px off
     (0.46 deg); see docs/registration.md"""
-    single_camera: bool = True
+    single_camera: bool = field(default=True, metadata={"cli_flag": "--single-camera/--camera-per-photo"})
     """photos of the same size share one camera (one lens, one zoom); False = one per photo"""
-    min_num_inliers: int = 15
+    min_num_inliers: int = field(default=15, metadata={"cli_exclude": True})
     """verified matches a pair needs to count"""
-    filter_stationary_matches: bool = True
+    filter_stationary_matches: bool = field(default=True, metadata={"cli_exclude": True})
     """drop matches that do not move between two photos (a static background on a turntable)"""
-    sift_peak_threshold: float = 0.02 / 3
+    sift_peak_threshold: float = field(default=0.02 / 3, metadata={"cli_exclude": True})
     """SIFT's contrast threshold on the difference of Gaussians (COLMAP's default 0.02 / 3)"""
-    low_contrast_peak_threshold: float | None = None
+    low_contrast_peak_threshold: float | None = field(default=None, metadata={"cli_exclude": True})
     """when set, a few photos are probed first (:func:`peak_threshold_for`): where the subject
     offers few features, the set is extracted at this lower threshold instead (features inside
     masks: :data:`MASKED_PEAK_THRESHOLD`)"""
-    mask_erode: float = 0.01
+    mask_erode: float = field(default=0.01, metadata={"cli_exclude": True})
     """masks are eroded by this fraction of the longer image side before they restrict features
     (descriptors at the silhouette see the background)"""
-    num_threads: int = -1
+    num_threads: int = field(default=-1, metadata={"cli_flag": "--threads", **in_range(-1, 4096)})
     """CPU threads for COLMAP (-1 = all)"""
-    seed: int = 0
+    seed: int = field(default=0, metadata=SEED)
     """COLMAP's random seed (RANSAC, mapping): same seed, same result"""
 
 

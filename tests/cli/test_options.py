@@ -158,6 +158,8 @@ def _fields(cls, prefix=""):
         if f.metadata.get("cli_exclude"):
             continue
         default = f.default if f.default is not dataclasses.MISSING else None
+        if f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]  (ReconstructOptions.geometry)
+            default = f.default_factory()  # type: ignore[misc]
         if dataclasses.is_dataclass(default):
             out += _fields(type(default), f"{prefix}{f.name}.")
         else:

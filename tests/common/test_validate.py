@@ -191,12 +191,19 @@ COUNT_CASES = [
     (HyperTrainOptions, "steps"), (HyperTrainOptions, "batch_size"), (HyperTrainOptions, "input_size"),
     (SegmentOptions, "materials"), (SegmentOptions, "steps"), (SegmentOptions, "batch_pixels"),
     (SegmentOptions, "psi_resolution"), (SegmentOptions, "psi_channels"), (SegmentOptions, "width"),
-    (ReconstructOptions, "voxels"), (ReconstructOptions, "capture_size"), (ReconstructOptions, "supersample"),
-    (ReconstructOptions, "train_views"), (ReconstructOptions, "poisson_depth"),
+    (ReconstructOptions, "geometry.voxels"), (ReconstructOptions, "capture_size"), (ReconstructOptions, "supersample"),
+    (ReconstructOptions, "train_views"), (ReconstructOptions, "geometry.poisson_depth"), (ReconstructOptions, "sfm.max_num_features"),
+    (ReconstructOptions, "dense.max_views"),
     (OrbitOptions, "views"), (OrbitOptions, "resolution"), (OrbitOptions, "supersample"), (ExportOptions, "fps"),
     (SynthOptions, "views"), (SynthOptions, "spp"), (PhotoSetOptions, "views"), (PhotoSetOptions, "size"),
     (HdrOptions, "response_samples"),
 ]
+
+
+def _replaced(options, name: str, value):
+    """``options`` with the field ``name`` (``"geometry.voxels"``: a nested options dataclass's) set to ``value``."""
+    head, _, rest = name.partition(".")
+    return dataclasses.replace(options, **{head: _replaced(getattr(options, head), rest, value) if rest else value})
 
 
 class TestOptionsCounts:
@@ -204,13 +211,13 @@ class TestOptionsCounts:
     @pytest.mark.parametrize("bad", [0, -1])
     def test_zero_and_negative_counts_are_refused(self, cls, name, bad):
         with pytest.raises(DamcapError):
-            dataclasses.replace(cls(), **{name: bad}).validate()
+            _replaced(cls(), name, bad).validate()
 
     @pytest.mark.parametrize("cls, name", COUNT_CASES, ids=lambda v: getattr(v, "__name__", v))
     def test_huge_counts_are_refused_quickly_naming_a_bound(self, cls, name):
         t0 = time.perf_counter()
         with pytest.raises(DamcapError, match=r"<= \d+|\[\-?\d+, \d+\]|between|GiB|must lie in") as e:
-            dataclasses.replace(cls(), **{name: 10 ** 12}).validate()
+            _replaced(cls(), name, 10 ** 12).validate()
         assert time.perf_counter() - t0 < 2.0
         assert "\n" not in str(e.value)
 

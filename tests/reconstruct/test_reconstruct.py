@@ -17,6 +17,8 @@ from damcap.cli.main import main
 from damcap.common.capture_folder import inspect_capture, read_capture, read_frame
 from damcap.common.errors import DamcapError
 from damcap.reconstruct.normalize import rotation_agreement_deg, similarity_scale, transform_world_from_cam, umeyama_similarity
+from damcap.reconstruct.dense import DenseOptions
+from damcap.reconstruct.geometry import GeometryOptions
 from damcap.reconstruct.pipeline import ReconstructOptions, reconstruct_capture, split_indices
 from damcap.common.raycast import MeshRaycaster
 from damcap.common.shapes import bumpy_blob
@@ -32,7 +34,8 @@ N_PHOTOS = 20
 PHOTO_SIZE = 256
 SEED = 0
 LIGHT = np.array([0.4, 0.8, 0.45]) / np.linalg.norm([0.4, 0.8, 0.45])
-FAST = dict(capture_size=96, voxels=64, train_views=5, supersample=2)
+FAST = dict(capture_size=96, geometry=GeometryOptions(voxels=64), train_views=5, supersample=2)
+FAST_EXCEPT_GEOMETRY = {k: v for k, v in FAST.items() if k != "geometry"}
 
 
 @pytest.fixture(scope="module")
@@ -195,7 +198,7 @@ def test_known_poses_and_user_mesh_give_exact_normals(scene, tmp_path):
                                   o3d.utility.Vector3iVector(scene["mesh"].triangles))
     o3d.io.write_triangle_mesh(str(mesh_path), m)
     out = tmp_path / "capture"
-    opts = ReconstructOptions(geometry=f"mesh:{mesh_path}", mesh_align="none", split="spread", **FAST)  # type: ignore[arg-type]
+    opts = ReconstructOptions(geometry=GeometryOptions(mode=f"mesh:{mesh_path}", mesh_align="none", voxels=64), split="spread", **FAST_EXCEPT_GEOMETRY)  # type: ignore[arg-type]
     cap, report = reconstruct_capture(scene["root"] / "images", out, opts, masks_dir=scene["root"] / "masks",
                                       poses=str(scene["root"] / "transforms.json"))
     assert inspect_capture(out).problems == [] and report.geometry_mode == "mesh" and "as given" in report.geometry_reason
@@ -230,7 +233,7 @@ def _normal_errors_deg(cap, scene) -> np.ndarray:
 
 def test_known_poses_poisson_triangulates_with_the_poses_fixed(scene, tmp_path):
     out = tmp_path / "capture"
-    opts = ReconstructOptions(geometry="poisson", poisson_depth=6, **FAST)  # type: ignore[arg-type]
+    opts = ReconstructOptions(geometry=GeometryOptions(mode="poisson", poisson_depth=6, voxels=64), **FAST_EXCEPT_GEOMETRY)  # type: ignore[arg-type]
     cap, report = reconstruct_capture(scene["root"] / "images", out, opts, poses=str(scene["root"] / "transforms.json"))
     assert report.registration["triangulated_points"] > 200 and report.geometry_mode == "poisson"
     assert inspect_capture(out).problems == []
@@ -241,7 +244,7 @@ def test_known_poses_dense_geometry_against_the_true_surface(scene, tmp_path):
     """``--geometry dense``: multi-view stereo of the photos (known cameras, masks) gives frames
     whose normals follow the true surface."""
     out = tmp_path / "capture"
-    opts = ReconstructOptions(geometry="dense", dense_size=96, **FAST)  # type: ignore[arg-type]
+    opts = ReconstructOptions(geometry=GeometryOptions(mode="dense", voxels=64), dense=DenseOptions(image_size=96), **FAST_EXCEPT_GEOMETRY)  # type: ignore[arg-type]
     cap, report = reconstruct_capture(scene["root"] / "images", out, opts, masks_dir=scene["root"] / "masks",
                                       poses=str(scene["root"] / "transforms.json"))
     assert report.geometry_mode == "dense" and "multi-view stereo of" in report.geometry_reason
@@ -280,7 +283,7 @@ def test_a_mesh_the_cameras_do_not_see(scene, tmp_path):
     far = o3d.geometry.TriangleMesh.create_sphere(radius=0.5)
     far.translate([0.0, 50.0, 0.0])  # far above: the cameras look down at the object
     o3d.io.write_triangle_mesh(str(tmp_path / "far.ply"), far)
-    opts = ReconstructOptions(geometry=f"mesh:{tmp_path / 'far.ply'}", mesh_align="none", **FAST)  # type: ignore[arg-type]
+    opts = ReconstructOptions(geometry=GeometryOptions(mode=f"mesh:{tmp_path / 'far.ply'}", mesh_align="none", voxels=64), **FAST_EXCEPT_GEOMETRY)  # type: ignore[arg-type]
     with pytest.raises(DamcapError, match="no camera sees this mesh"):
         reconstruct_capture(scene["root"] / "images", tmp_path / "out", opts, poses=str(scene["root"] / "transforms.json"))
 
@@ -306,16 +309,53 @@ def test_bad_option_values_exit_2(scene, tmp_path):
 
 
 def test_cli_mirrors_the_options_one_to_one():
-    import dataclasses
+    """One option per field, nested ones (registration, geometry, dense stereo, self-check: those
+    stages' own dataclasses) included, each with the dataclass's own default."""
     import inspect
 
+    from damcap.cli.options import option_specs
     from damcap.cli.reconstruct_cmds import reconstruct
+    from damcap.reconstruct.colmap.register import SfmOptions
+    from damcap.reconstruct.selfcheck import SelfCheckOptions
 
-    fields = {f.name: f.default for f in dataclasses.fields(ReconstructOptions)}
+    opts = ReconstructOptions()
+    assert (opts.sfm, opts.geometry, opts.dense, opts.selfcheck) == (SfmOptions(), GeometryOptions(), DenseOptions(), SelfCheckOptions())
+    specs = option_specs(ReconstructOptions)
     params = inspect.signature(reconstruct).parameters
-    assert set(params) - set(fields) == {"photos", "output", "masks", "poses"}
-    for name, default in fields.items():
-        assert params[name].default.default == default, name  # typer.Option(default, ...)
+    assert set(params) - {s.param for s in specs} == {"photos", "output", "masks", "poses"}
+    for s in specs:
+        value = opts
+        for name in s.path:
+            value = getattr(value, name)
+        assert params[s.param].default.default == value, s.path  # typer.Option(default, ...)
+    flags = {s.path: s.flags[0] for s in specs}
+    assert flags[("geometry", "mode")] == "--geometry" and flags[("geometry", "voxels")] == "--voxels"
+    assert flags[("dense", "image_size")] == "--dense-size" and flags[("sfm", "num_threads")] == "--threads"
+    assert flags[("sfm", "single_camera")] == "--single-camera/--camera-per-photo"
+
+
+def test_old_flags_fill_the_nested_options(monkeypatch, tmp_path):
+    """``--voxels``, ``--dense-size``, ``--max-image-size``, ``--camera-per-photo``,
+    ``--min-silhouette-recall`` and ``--threads`` land in the nested dataclasses."""
+    import damcap.reconstruct.pipeline as pipeline
+
+    seen = {}
+
+    def fake(photos, out, opts, **kw):
+        seen["opts"], seen["explicit"] = opts, kw["explicit"]
+        raise DamcapError("stop here")
+
+    monkeypatch.setattr(pipeline, "reconstruct_capture", fake)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    (photos / "a.jpg").write_bytes(b"")  # a folder of photos (never read: reconstruct_capture is replaced)
+    assert main(["reconstruct", str(photos), "-o", str(tmp_path / "o"), "--voxels", "96", "--dense-size", "200",
+                 "--max-image-size", "640", "--camera-per-photo", "--min-silhouette-recall", "0.9", "--threads", "2",
+                 "--geometry", "poisson", "--train-views", "4"]) == 2
+    o = seen["opts"]
+    assert (o.geometry.voxels, o.geometry.mode, o.dense.image_size, o.sfm.max_image_size, o.sfm.single_camera) == (96, "poisson", 200, 640, False)
+    assert (o.selfcheck.min_silhouette_recall, o.sfm.num_threads, o.train_views) == (0.9, 2, 4)
+    assert o.dense.depth_planes == DenseOptions().depth_planes and "train_views" in seen["explicit"]
 
 
 def test_auto_builds_the_dense_surface_too_and_keeps_the_one_the_photos_agree_with(scene, tmp_path):
@@ -326,7 +366,7 @@ def test_auto_builds_the_dense_surface_too_and_keeps_the_one_the_photos_agree_wi
 
     common = dict(masks_dir=scene["root"] / "masks", poses=str(scene["root"] / "transforms.json"))
     cap, report = reconstruct_capture(scene["root"] / "images", tmp_path / "auto",
-                                      ReconstructOptions(dense_size=96, **FAST), **common)  # type: ignore[arg-type]
+                                      ReconstructOptions(dense=DenseOptions(image_size=96), **FAST), **common)  # type: ignore[arg-type]
     check = report.geometry_check
     assert check is not None and check["built"] and set(check["photo_consistency"]) == {"visual-hull", "dense"}
     scores = {k: Consistency(**v) for k, v in check["photo_consistency"].items()}

@@ -33,6 +33,7 @@ import pytest
 from damcap.common.capture_folder import read_capture, read_frame
 from damcap.common.errors import DamcapError
 from damcap.reconstruct.normalize import normalization_transform, similarity_scale, transform_points
+from damcap.reconstruct.geometry import GeometryOptions
 from damcap.reconstruct.pipeline import ReconstructOptions, reconstruct_capture
 from damcap.reconstruct.poses import llff_of_world_from_cam
 from damcap.common.mesh import vertex_normals_area_weighted
@@ -44,7 +45,7 @@ from tests.conftest import assert_one_line_error, run_cli
 N_PHOTOS = 8
 PHOTO_SIZE = 96
 SCALES = (1e-20, 1e-12, 1e-8, 1e-4, 1e4, 1e8, 1e12, 1e20)
-FAST = dict(capture_size=48, voxels=48, train_views=4, supersample=2, dtype="float")
+FAST = dict(capture_size=48, train_views=4, supersample=2, dtype="float")
 #: Tolerances in the normalised frame (object radius 1). The only scale-dependent rounding left is
 #: float32: the user mesh is stored as float32 in the input's units and again after each similarity
 #: (3 roundings of 6e-8 relative), and Open3D intersects rays in float32, ill-conditioned near
@@ -99,7 +100,7 @@ def _run(photo_set: dict, mode: str, k: float) -> tuple[Path, object]:
             geometry = f"mesh:{_write_mesh(mesh.vertices.astype(np.float64) * k, mesh.triangles, root / tag / 'blob.ply')}"
         out = root / f"capture_{tag}"
         # mesh_align auto: with masks it judges the mesh against a visual hull (silhouette IoU)
-        _, report = reconstruct_capture(root / "images", out, ReconstructOptions(geometry=geometry, **FAST),  # type: ignore[arg-type]
+        _, report = reconstruct_capture(root / "images", out, ReconstructOptions(geometry=GeometryOptions(mode=geometry, voxels=48), **FAST),  # type: ignore[arg-type]
                                         masks_dir=root / "masks", poses=str(poses))
         photo_set["runs"][key] = (out, report)
     return photo_set["runs"][key]

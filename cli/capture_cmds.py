@@ -25,7 +25,10 @@ def hdr(
     *,
     opts: HdrOptions,
 ) -> None:
-    """Merge one exposure bracket into one linear radiance map (EXR: R, G, B, clipped)."""
+    """Merge one exposure bracket into one linear radiance map.
+
+    The EXR holds R, G, B and the clipped mask.
+    """
     from damcap.capture.hdr import merge_bracket_files, write_hdr
 
     opts.validate()
@@ -47,7 +50,10 @@ def linearize(
     *,
     opts: LinearizeOptions,
 ) -> None:
-    """Undo each photo's tone curve and divide out its exposure (EXIF), so radiance compares across photos."""
+    """Undo each photo's tone curve and divide out its exposure.
+
+    The exposure comes from EXIF, so radiance compares across photos.
+    """
     from damcap.capture.linearize import linearize_files, list_photos
     from damcap.cli.app import stage_progress
     from damcap.common.atomic import write_json_atomic
@@ -72,8 +78,11 @@ def frames(
     *,
     opts: VideoFrameOptions,
 ) -> None:
-    """Video -> photos: the sharpest frame of each of --count equal stretches of the video (JPEG),
-    and frames.json recording which frame each photo is."""
+    """Video -> photos: the sharpest frame of each stretch.
+
+    Video -> photos: the sharpest frame of each of --count equal stretches of the video (JPEG), and
+    frames.json recording which frame each photo is.
+    """
     from damcap.capture.video import extract_frames
     from damcap.cli.app import stage_progress
 

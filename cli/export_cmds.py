@@ -43,7 +43,13 @@ def export(
     opts: ExportOptions,
     orbit: OrbitOptions,
 ) -> None:
-    """Render appearance on a new shape along an orbit (EXR + PNG + MP4), or write ONNX / GLSL."""
+    """Render a DAM on a new shape, or write it for other tools.
+
+    --format frames: an orbit of linear EXR + sRGB PNG frames (and an MP4 with --video); glb: the
+    mesh with the radiance of one view baked per vertex; threejs: a three.js ShaderMaterial that
+    evaluates the DAM; matcap: the DAM on a sphere for matcap shaders; onnx / glsl: the DAM as an
+    ONNX model or a fragment-shader function.
+    """
     from damcap.appearance.dam_file import load_dam
 
     opts.validate()
@@ -365,7 +371,10 @@ def view(
     *,
     cam: ViewerCamera,
 ) -> None:
-    """Write a self-contained HTML page that shows the DAM on a mesh in real time (WebGL 2)."""
+    """Write an HTML page that shows the DAM on a mesh in real time.
+
+    Self-contained, WebGL 2.
+    """
     from damcap.appearance.dam_file import load_dam
     from damcap.common.atomic import write_text_atomic
     from damcap.export.turntable import OrbitOptions
@@ -406,9 +415,12 @@ def export_capture_cmd(
     *,
     opts: CaptureExportOptions,
 ) -> None:
-    """The capture for other tools: a nerfstudio dataset (PNG frames, masks, transforms.json with
+    """The capture for other tools: nerfstudio or COLMAP.
+
+    The capture for other tools: a nerfstudio dataset (PNG frames, masks, transforms.json with
     train/val/test lists, the surface as points.ply) or a COLMAP text model of the undistorted
-    capture (sparse/0 + images/, what 3D Gaussian splatting tools start from)."""
+    capture (sparse/0 + images/, what 3D Gaussian splatting tools start from).
+    """
     from damcap.common.capture_folder import read_capture
     from damcap.export.capture_export import export_capture
 

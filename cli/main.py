@@ -8,6 +8,7 @@ Every user mistake ends in one line on stderr and a non-zero exit, never a trace
   rerun resumes).
 
 Python and NumPy warnings are printed as one line each, ``warning: ...``, on stderr.
+``damcap CMD --help-all`` prints the command's help with its advanced options (exit 0).
 Commands live in one module per stage; importing a module registers its commands.
 """
 
@@ -33,6 +34,10 @@ from damcap.cli import segment_cmds  # noqa: F401  (registers segment)
 from damcap.cli import hyper_cmds  # noqa: F401  (registers train-hyper, predict)
 from damcap.cli.app import build_app
 from damcap.cli.paths import Interrupted, Terminated, os_error_line
+
+
+HELP_ALL = "--help-all"
+"""``damcap CMD --help-all``: the command's help with its advanced options too"""
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
@@ -62,9 +67,12 @@ def main(argv: list[str] | None = None) -> int:
     """Console-script entry point: runs a command, turning user mistakes into one-line errors."""
     args = sys.argv[1:] if argv is None else [str(a) for a in argv]
     selected = next((a for a in args if not a.startswith("-")), None)  # the top level takes only --help, --version
+    show_all = HELP_ALL in args  # the help with every panel, the advanced options included
+    if show_all:
+        args = ["--help" if a == HELP_ALL else a for a in args]
     try:
         with _signals_and_warnings():
-            rv = build_app(selected)(args=args, prog_name="damcap", standalone_mode=False)
+            rv = build_app(selected, show_all=show_all)(args=args, prog_name="damcap", standalone_mode=False)
         if isinstance(rv, int) and not isinstance(rv, bool) and rv != 0:  # typer returns 130 for a bare Ctrl-C
             if rv == 130:
                 typer.echo("interrupted", err=True)

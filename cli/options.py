@@ -5,8 +5,10 @@ CLI is derived from it". Each field of the dataclass becomes one typer option:
 
 - the flag is ``--kebab-name`` (``batch_size`` -> ``--batch-size``); a nested options dataclass
   (``TableOptions.fit``) contributes its fields as ``--fit-steps``, ...;
-- the help is the field's attribute docstring (the string literal under it, read from the class
-  source with :mod:`ast`; cached), the default is the dataclass's own (never restated here);
+- the help is the first sentence of the field's attribute docstring (the string literal under
+  it, read from the class source with :mod:`ast`; cached), in plain text (Sphinx roles and
+  double backticks removed): what the option does; the rest of the docstring (why, evidence)
+  stays in the source. The default is the dataclass's own (never restated here);
 - ``Literal[...]`` -> those choices; any other value ends in one line,
   ``--init-colour must be one of pixel, darkest-view, got 'brightest'`` (exit 2);
 - ``bool`` -> ``--x/--no-x``; ``X | None`` -> optional, default None;
@@ -24,7 +26,13 @@ Per-field metadata (plain keys, so the library never imports ``cli``):
   input encoding 'polar'; ...``) where a library message already names it so;
 - on a nested options dataclass field, ``cli_prefix``: the flag prefix of its fields instead of
   the field's name (``""``: ``ReconstructOptions.geometry.voxels`` is ``--voxels``; ``"dense"``:
-  ``--dense-...``), and ``cli_panel``: the help panel of its fields (``"Geometry"``).
+  ``--dense-...``), and ``cli_panel``: the help panel of its fields (``"Geometry"``);
+- ``cli_panel`` on any other field: its help panel, which wins over its group's. Fields without
+  one sit in their group's panel, or in "Quality and speed"; ``"advanced"`` puts a rarely
+  needed research knob in the "Advanced" panel, which ``--help`` leaves out (the option still
+  parses) and ``damcap CMD --help-all`` shows.
+
+A command's own parameters (positional paths, ``-o``, ``--model``) sit in "Inputs and outputs".
 
 "Given by the user": a command that must know whether an option was typed (``fit
 --target-dssim`` chooses width and depth itself and refuses ``--width``) declares a keyword
@@ -38,10 +46,12 @@ when that command runs or shows its help (``damcap --help`` and ``damcap --versi
 from __future__ import annotations
 
 import ast
+import copy
 import dataclasses
 import functools
 import importlib
 import inspect
+import re
 import textwrap
 import types
 import typing
@@ -60,6 +70,13 @@ CLI_PARSE = "cli_parse"
 CLI_WHAT = "cli_what"
 CLI_PREFIX = "cli_prefix"
 CLI_PANEL = "cli_panel"
+ADVANCED = "advanced"
+"""the ``cli_panel`` of a rarely needed option: hidden from ``--help``, shown by ``--help-all``"""
+ADVANCED_PANEL = "Advanced"
+DEFAULT_PANEL = "Quality and speed"
+"""the panel of a derived option whose field and group name none"""
+OWN_PANEL = "Inputs and outputs"
+"""the panel of a command's own parameters"""
 GIVEN = "given"
 """name of the keyword parameter that receives the fields given on the command line"""
 
@@ -89,6 +106,65 @@ def field_docs(cls: type) -> dict[str, str]:
                     and isinstance(b.value, ast.Constant) and isinstance(b.value.value, str)):
                 docs[a.target.id] = " ".join(inspect.cleandoc(b.value.value).split())
     return docs
+
+
+_ABBREVIATIONS = ("e.g.", "i.e.", "vs.", "etc.", "cf.", "approx.", "resp.", "Eq.", "Eqs.", "Fig.", "al.", "no.", "Sec.")
+_OPENING, _CLOSING = "([{", ")]}"
+
+
+def first_sentence(text: str) -> str:
+    """The first sentence of ``text``: up to the first ``.``, ``!`` or ``?`` that is followed by
+    a space (or ends the text) outside parentheses, brackets and quotes, and that does not end an
+    abbreviation (``e.g.``, ``vs.``); decimals (``0.5``) never end a sentence.
+
+    >>> first_sentence("Steps of Adam (e.g. 2000. More is slower). Figures follow.")
+    'Steps of Adam (e.g. 2000. More is slower).'
+    >>> first_sentence("Weight 0.5 vs. 1.0 of ``a. b``; kept")
+    'Weight 0.5 vs. 1.0 of ``a. b``; kept'
+    """
+    depth, quote, i = 0, None, 0
+    while i < len(text):
+        c = text[i]
+        if quote:
+            if text.startswith(quote, i):
+                i += len(quote) - 1
+                quote = None
+        elif text.startswith("``", i):
+            quote = "``"
+            i += 1
+        elif c in '"`':
+            quote = c
+        elif c in _OPENING:
+            depth += 1
+        elif c in _CLOSING:
+            depth = max(0, depth - 1)
+        elif c in ".!?" and depth == 0 and (i + 1 == len(text) or text[i + 1].isspace()):
+            word = text[:i + 1].split()[-1] if text[:i + 1].split() else ""
+            if not any(word.endswith(a) and (len(word) == len(a) or not word[-len(a) - 1].isalnum())
+                       for a in _ABBREVIATIONS):
+                return text[:i + 1]
+        i += 1
+    return text
+
+
+_ROLE = re.compile(r":(?:[a-z]+:)?[a-z]+:`~?([^`<]*?)(?:\s*<[^>]*>)?`")
+
+
+def plain(text: str) -> str:
+    """Sphinx markup as plain text: ``:func:`~a.b.f``` -> ``f``, double backticks dropped.
+
+    >>> plain(":attr:`~damcap.x.FitOptions.steps` of ``up`` and `a`")
+    'steps of up and a'
+    """
+    text = _ROLE.sub(lambda m: m.group(1).rsplit(".", 1)[-1], text)
+    return text.replace("``", "").replace("`", "")
+
+
+def help_line(doc: str) -> str:
+    """A field's help line: its docstring's first sentence in plain text, without its full stop
+    (help lines are phrases: ``optimiser steps (Adam) (>= 1)``)."""
+    line = plain(first_sentence(doc)).strip()
+    return line[:-1] if line.endswith(".") and not line.endswith("..") else line
 
 
 def kebab(name: str) -> str:
@@ -202,10 +278,11 @@ class OptionSpec:
 
 def option_specs(cls: type, *, exclude: frozenset[str] = frozenset(), prefix: tuple[str, ...] = (),
                  instance: Any = None, panel: str | None = None, flag_prefix: tuple[str, ...] | None = None,
-                 hidden: bool = False) -> list[OptionSpec]:
+                 hidden: bool = False, show_all: bool = False) -> list[OptionSpec]:
     """One :class:`OptionSpec` per field of the options dataclass ``cls`` (nested dataclasses
     flattened with their field name, or their ``cli_prefix``, as flag prefix); ``exclude`` lists
-    field names to leave out; ``hidden`` keeps every option out of ``--help`` (still parsed)."""
+    field names to leave out; ``hidden`` keeps every option out of ``--help`` (still parsed);
+    ``show_all`` shows the advanced ones (``--help-all``), which are otherwise hidden."""
     flag_prefix = prefix if flag_prefix is None else flag_prefix
     hints = typing.get_type_hints(cls)
     docs = field_docs(cls)
@@ -220,14 +297,17 @@ def option_specs(cls: type, *, exclude: frozenset[str] = frozenset(), prefix: tu
             sub_prefix = f.metadata.get(CLI_PREFIX)
             sub_flags = flag_prefix + ((f.name,) if sub_prefix is None else (sub_prefix,) if sub_prefix else ())
             specs += option_specs(tp, prefix=path, instance=default, flag_prefix=sub_flags, hidden=hidden,
-                                  panel=f.metadata.get(CLI_PANEL) or panel or f"{kebab(f.name)} options")
+                                  show_all=show_all, panel=f.metadata.get(CLI_PANEL) or panel or f"{kebab(f.name)} options")
             continue
         flag = f.metadata.get(CLI_FLAG) or "--" + "-".join(kebab(p) for p in flag_prefix + (f.name,))
         first = flag.split(",")[0].split("/")[0]
-        help_text = docs.get(f.name, "")
+        help_text = help_line(docs.get(f.name, ""))
         if f.metadata.get(RANGE) is not None:
-            help_text += f" (allowed: {f.metadata[RANGE].text()})"
-        kw: dict[str, Any] = {"help": help_text, "rich_help_panel": panel, "hidden": hidden}
+            help_text += _range_note(f.metadata[RANGE])
+        field_panel = f.metadata.get(CLI_PANEL) or panel or DEFAULT_PANEL
+        advanced = field_panel.lower() == ADVANCED
+        kw: dict[str, Any] = {"help": help_text, "rich_help_panel": ADVANCED_PANEL if advanced else field_panel,
+                              "hidden": hidden or (advanced and not show_all)}
         parse = f.metadata.get(CLI_PARSE)
         origin = get_origin(tp)
         if parse is not None:
@@ -236,7 +316,11 @@ def option_specs(cls: type, *, exclude: frozenset[str] = frozenset(), prefix: tu
         elif origin is Literal:
             choices = get_args(tp)
             annotation = str
-            kw.update(parser=parse_choice(first, choices, f.metadata.get(CLI_WHAT)), metavar="[" + "|".join(map(str, choices)) + "]")
+            metavar = "[" + "|".join(map(str, choices)) + "]"
+            if len(metavar) > MAX_CHOICE_METAVAR:  # a long list goes into the help, the flag column stays narrow
+                metavar = "CHOICE"
+                kw["help"] += f" (one of: {', '.join(map(str, choices))})"
+            kw.update(parser=parse_choice(first, choices, f.metadata.get(CLI_WHAT)), metavar=metavar)
         elif tp is bool:
             annotation = bool
             if "/" not in flag and not f.metadata.get(CLI_FLAG):
@@ -255,6 +339,7 @@ def option_specs(cls: type, *, exclude: frozenset[str] = frozenset(), prefix: tu
                 kw["show_default"] = ",".join(map(str, default))
         elif tp is str or tp is Path:
             annotation = tp
+            kw["metavar"] = "PATH" if tp is Path else "TEXT"
         else:
             raise TypeError(f"{cls.__name__}.{f.name}: no command-line form for {tp!r}; "
                             f"give it metadata {{{CLI_PARSE!r}: ...}} or {{{CLI_EXCLUDE!r}: True}}")
@@ -264,6 +349,20 @@ def option_specs(cls: type, *, exclude: frozenset[str] = frozenset(), prefix: tu
         info = typer.Option(default, *flags, **kw)
         specs.append(OptionSpec("__".join(path), path, flags, default, annotation, info))
     return specs
+
+
+MAX_CHOICE_METAVAR = 18
+"""longest ``[a|b|c]`` shown beside a flag; longer choice lists are listed in the help text"""
+
+
+def _range_note(rng: Range) -> str:
+    """`` (>= 1)``, `` (in [1, 64])``: a range for the help line. An upper bound of a million
+    or more is a limit of what a machine can hold (:data:`~damcap.common.validate.MAX_COUNT`), not
+    a choice, and is left out (the parser still names it)."""
+    if rng.hi is not None and rng.hi >= 1e6:
+        rng = dataclasses.replace(rng, hi=None, hi_open=False)
+    phrase = rng.phrase().strip()
+    return f" ({phrase})" if phrase else ""
 
 
 def _passthrough(parse: Callable[[str], Any]) -> Callable[[Any], Any]:
@@ -322,9 +421,10 @@ class DerivedCommand:
     def classes(self) -> dict[str, type]:
         return {p: import_object(path) for p, path in self.sources.items()}
 
-    def specs(self) -> dict[str, list[OptionSpec]]:
-        """Per dataclass parameter, its fields' options (imports the dataclasses)."""
-        return {p: option_specs(cls, exclude=self.exclude.get(p, frozenset()), hidden=p in self.hidden)
+    def specs(self, show_all: bool = False) -> dict[str, list[OptionSpec]]:
+        """Per dataclass parameter, its fields' options (imports the dataclasses); ``show_all``:
+        the advanced ones shown in the help too (``--help-all``)."""
+        return {p: option_specs(cls, exclude=self.exclude.get(p, frozenset()), hidden=p in self.hidden, show_all=show_all)
                 for p, cls in self.classes().items()}
 
     def _own_parameters(self) -> tuple[list[inspect.Parameter], dict[str, Any]]:
@@ -335,7 +435,11 @@ class DerivedCommand:
             if p.name in self.sources or p.name == GIVEN:
                 continue
             a = eval(p.annotation, glob) if isinstance(p.annotation, str) else p.annotation  # noqa: S307 (our own source)
-            params.append(p.replace(annotation=a, kind=inspect.Parameter.KEYWORD_ONLY))
+            default = p.default
+            if isinstance(default, typer.models.ParameterInfo) and default.rich_help_panel is None:
+                default = copy.copy(default)
+                default.rich_help_panel = OWN_PANEL
+            params.append(p.replace(annotation=a, default=default, kind=inspect.Parameter.KEYWORD_ONLY))
             ann[p.name] = a
         return params, ann
 
@@ -345,11 +449,12 @@ class DerivedCommand:
         sig = inspect.signature(self.typer_function(full=True))
         return sig.replace(parameters=[p for p in sig.parameters.values() if p.name != "_ctx"])
 
-    def typer_function(self, full: bool) -> Callable[..., Any]:
+    def typer_function(self, full: bool, show_all: bool = False) -> Callable[..., Any]:
         """The function typer registers: with every derived option (``full``), or, for a command
-        that is not run this time, only its own parameters (nothing imported)."""
+        that is not run this time, only its own parameters (nothing imported); ``show_all``: the
+        advanced options shown in its help (``--help-all``)."""
         params, ann = self._own_parameters()
-        specs = self.specs() if full else {}
+        specs = self.specs(show_all) if full else {}
         classes = self.classes() if full else {}
         names = {p.name for p in params}
         for pname, group in specs.items():

@@ -28,7 +28,10 @@ def segment(
     opts: SegmentOptions,
     choice: ChooseOptions,
 ) -> None:
-    """Find n materials (n DAMs) and per-pixel soft weights jointly, unsupervised."""
+    """Find the materials of a capture, unsupervised.
+
+    n materials (n DAMs) and per-pixel soft weights, found jointly.
+    """
     from damcap.appearance.segment.choose import choose_materials
     from damcap.appearance.segment.score import novel_view_dssim
     from damcap.appearance.segment.train import segment_materials
@@ -81,7 +84,10 @@ def segment_labels(
     align: str = typer.Option("sphere", parser=parse_choice("--align", ("sphere", "none")), metavar="[sphere|none]", help="sphere: map the mesh's bounding sphere onto the captured object's (a new shape) | none: the mesh is in the capture's world frame"),
     weights: Optional[Path] = typer.Option(None, "--weights", help="also write the soft (V, n) weights (.npy)"),
 ) -> None:
-    """Carry a segmentation onto a mesh: each vertex gets the material of the nearest captured surface."""
+    """Carry a segmentation onto a mesh, one material per vertex.
+
+    Each vertex gets the material of the nearest captured surface.
+    """
     import numpy as np
 
     from damcap.appearance.segment.model import mesh_material_weights

@@ -30,7 +30,10 @@ def closed_form(
     *,
     opts: ClosedFormOptions,
 ) -> None:
-    """Write a capture whose appearance is known in closed form (Lambert + GGX, distant light)."""
+    """Write a capture whose appearance is known in closed form.
+
+    Lambert + GGX, distant light.
+    """
     from damcap.synth.closed_form import make_closed_form_capture
 
     check_paths([], [folder_out(out, replaces=never)])
@@ -44,7 +47,10 @@ def synth(
     *,
     opts: SynthOptions,
 ) -> None:
-    """Render one synthetic capture with Mitsuba 3 (the paper's data set), validated."""
+    """Render one synthetic capture with Mitsuba 3, validated.
+
+    The paper's data set.
+    """
     from damcap.synth.mitsuba_capture import make_synthetic_capture
 
     mesh = Path(opts.object) if Path(opts.object).suffix.lower() in (".obj", ".ply") else None  # a mesh file, or a named shape
@@ -65,9 +71,12 @@ def synth_set(
     *,
     opts: CorpusOptions,
 ) -> None:
-    """Render the synthetic corpus: resumable, parallel, with a held-out part listed in corpus.json.
-    With --shard I/N, only shard I of N (for N processes or a job array sharing OUT); corpus.json
-    is then written by one final run without --shard after every shard has finished."""
+    """Render the synthetic corpus: resumable and parallel.
+
+    Render the synthetic corpus: resumable, parallel, with a held-out part listed in corpus.json.
+    With --shard I/N, only shard I of N (for N processes or a job array sharing OUT); corpus.json is
+    then written by one final run without --shard after every shard has finished.
+    """
     from damcap.cli.app import make_bar
 
     from damcap.synth.corpus import make_corpus
@@ -111,9 +120,12 @@ def synth_photos(
     *,
     opts: PhotoSetOptions,
 ) -> None:
-    """Photograph a textured synthetic object (an orbit or a turntable, on black or in a textured
+    """Photograph a textured synthetic object for reconstruct.
+
+    Photograph a textured synthetic object (an orbit or a turntable, on black or in a textured
     room): JPEGs with EXIF exposure, masks, ground-truth cameras (the input of damcap reconstruct;
-    samples/photos_blob)."""
+    samples/photos_blob).
+    """
     from damcap.synth.photos import make_photo_set
 
     check_paths([], [folder_out(out)])
@@ -131,9 +143,12 @@ def synth_studio(
     *,
     opts: StudioOptions,
 ) -> None:
-    """Photograph a multi-material object on a textured board under an environment map, path traced
-    by Mitsuba 3: JPEGs with EXIF exposure, masks, ground-truth cameras and the scene's materials
-    (the input of damcap reconstruct; samples/photos_studio, make demo)."""
+    """Photograph a multi-material object in a path-traced studio.
+
+    Photograph a multi-material object on a textured board under an environment map, path traced by
+    Mitsuba 3: JPEGs with EXIF exposure, masks, ground-truth cameras and the scene's materials (the
+    input of damcap reconstruct; samples/photos_studio, make demo).
+    """
     from damcap.synth.studio import make_studio_photos
 
     check_paths([Path(opts.object), Path(opts.env)] if opts.object and opts.env else [], [folder_out(out)])
@@ -151,7 +166,10 @@ def shape(
                                help="the procedural shape"),
     output: Path = typer.Argument(..., help=".obj or .ply file to write"),
 ) -> None:
-    """Write a procedural shape as an OBJ/PLY mesh (for damcap export --mesh)."""
+    """Write a procedural shape as an OBJ/PLY mesh.
+
+    For damcap export --mesh.
+    """
     from damcap.common.shapes import write_shape
 
     check_paths([], [file_out(output)])

@@ -69,14 +69,14 @@ class FitOptions:
     """DAM hidden units per layer"""
     depth: int = field(default=4, metadata=in_range(1, MAX_DAM_DEPTH))
     """DAM hidden layers"""
-    activation: Activation = "shifted_softplus"
+    activation: Activation = field(default="shifted_softplus", metadata={"cli_panel": "advanced"})
     """DAM hidden non-linearity. 'shifted_softplus' (softplus - ln 2) extrapolates to novel views
     more smoothly than 'leaky_relu': on seven training-part Mitsuba captures, novel-view
     DSSIM / RM++ 0.47 vs 0.57, better on each (bench/synth.md); plain 'softplus' collapses
     to black on point-light captures"""
     encoding: Encoding = field(default="nr", metadata={"cli_what": "DAM input encoding"})
     """DAM input: 'vn' (paper), 'nr' (normal + mirrored view), 'vnr'"""
-    separable: bool = False
+    separable: bool = field(default=False, metadata={"cli_panel": "advanced"})
     """DAM = softplus(f(N) + g(R)), two half-width branches (``DamArchitecture.separable``; an
     even width, e.g. 44: 3168 weights). A novel view pairs normals and mirror directions that
     the training views saw only apart, and the sum extrapolates to such pairs: novel-view
@@ -87,28 +87,28 @@ class FitOptions:
     measured with the joint network"""
     adversarial: bool = False
     """add the paper's adversarial cost (patch discriminator)"""
-    adversarial_alpha: float = field(default=0.001, metadata=in_range(0, 1e6))
+    adversarial_alpha: float = field(default=0.001, metadata=in_range(0, 1e6, cli_panel="advanced"))
     """weight of the adversarial cost (the paper: 0.001)"""
     holdout_views: int = field(default=2, metadata=COUNT_OR_ZERO)
     """training views held out for the stopping rule (0 = none, keep the last weights)"""
-    eval_every: int = field(default=100, metadata=COUNT)
+    eval_every: int = field(default=100, metadata={**COUNT, "cli_panel": "advanced"})
     """steps between held-out evaluations"""
     seed: int = field(default=0, metadata=SEED)
     """seeds initialisation and pixel sampling: same seed, same model"""
     device: str = "cpu"
     """'cpu', 'cuda' or 'auto'"""
-    checkpoint_every: int = field(default=250, metadata=COUNT_OR_ZERO)
+    checkpoint_every: int = field(default=250, metadata={**COUNT_OR_ZERO, "cli_panel": "advanced"})
     """steps between checkpoints (0 = never)"""
     precision: Precision = "float32"
     """compute dtype of the training step's DAM forward pass and data cost: 'float32' or
     'bfloat16' (autocast; weights, optimiser, evaluation and the saved model stay float32)"""
-    weight_decay: float = field(default=0.0, metadata=in_range(0, 1e6))
+    weight_decay: float = field(default=0.0, metadata=in_range(0, 1e6, cli_panel="advanced"))
     """decoupled weight decay (AdamW; each step multiplies the weights by 1 - lr x weight_decay).
     It trades fit for smoothness: 0.1 lowered the mean novel-view DSSIM / RM++ over seven
     path-traced training-part captures (shadows, interreflection) from 0.47 to 0.43 (0.39 with
     8000 steps) but raised it on the closed-form ones (bench/synth.md, bench/dam_core.md), so the
     default is none"""
-    quantile: float = field(default=0.5, metadata=in_range(0, 1, lo_open=True, hi_open=True))
+    quantile: float = field(default=0.5, metadata=in_range(0, 1, lo_open=True, hi_open=True, cli_panel="advanced"))
     """quantile q of the data cost (:func:`weighted_quantile_cost`): 0.5 is the paper's L1. Cast
     shadows and occlusion only darken a pixel, so at each (view, normal) an upper quantile is
     nearer the unshadowed appearance that a DAM can represent (see bench/synth.md, stage
@@ -121,16 +121,16 @@ class FitOptions:
     tarnish, fine relief) or 'auto' (the albedo only when it lowers the DSSIM of the held-out
     training views by at least ``spatial_min_gain``). On the real cape (8 train views, 256 px,
     dense geometry) the albedo lowered novel-view DSSIM from 0.411 to 0.266 (bench/reconstruct.md)"""
-    spatial_voxel_px: float = field(default=0.75, metadata=in_range(0.05, 64))
+    spatial_voxel_px: float = field(default=0.75, metadata=in_range(0.05, 64, cli_panel="advanced"))
     """spatial factor: voxel edge of the albedo texture, in pixels' footprints on the surface
     (smaller: sharper texture, fewer training pixels per voxel)"""
-    spatial_prior: float = field(default=0.05, metadata=in_range(0, 1e6))
+    spatial_prior: float = field(default=0.05, metadata=in_range(0, 1e6, cli_panel="advanced"))
     """spatial factor: ridge strength pulling sparsely seen voxels toward albedo 1, in units of
     one training pixel's weight"""
-    spatial_min_gain: float = field(default=0.02, metadata=in_range(0, 1, hi_open=True))
+    spatial_min_gain: float = field(default=0.02, metadata=in_range(0, 1, hi_open=True, cli_panel="advanced"))
     """--spatial auto keeps the albedo only when it lowers the held-out views' DSSIM by at least
     this fraction"""
-    spatial_min_gain_abs: float = field(default=0.005, metadata=in_range(0, 1, hi_open=True))
+    spatial_min_gain_abs: float = field(default=0.005, metadata=in_range(0, 1, hi_open=True, cli_panel="advanced"))
     """--spatial auto keeps the albedo only when it lowers the held-out views' DSSIM by at least
     this absolute amount (on a uniform closed-form torus it lowered 0.00085 to 0.00071, 17%, and
     changed nothing on the novel views)"""
@@ -143,17 +143,17 @@ class FitOptions:
     the real cape (8 train views, 256 px, dense geometry) it lowered novel-view DSSIM from 0.411
     to 0.272, 0.244 with the albedo (bench/normal_refine.md). Its cost is steps x pixels per
     step, whatever the capture's size ('auto' refines twice)"""
-    normal_refine_voxel_px: float = field(default=_REFINE["voxel_px"].default, metadata=_REFINE["voxel_px"].metadata)
+    normal_refine_voxel_px: float = field(default=_REFINE["voxel_px"].default, metadata={**_REFINE["voxel_px"].metadata, "cli_panel": "advanced"})
     """normal refinement: voxel edge of the offset field, in pixels' footprints on the surface
     (finer resolves finer relief; 1, 2, 4 px measured in bench/normal_refine.md)"""
-    normal_refine_steps: int = field(default=_REFINE["steps"].default, metadata=_REFINE["steps"].metadata)
+    normal_refine_steps: int = field(default=_REFINE["steps"].default, metadata={**_REFINE["steps"].metadata, "cli_panel": "advanced"})
     """normal refinement: Adam steps, each on 16,384 pixels (NormalRefineOptions.batch)"""
-    normal_refine_prior: float = field(default=_REFINE["prior"].default, metadata=_REFINE["prior"].metadata)
+    normal_refine_prior: float = field(default=_REFINE["prior"].default, metadata={**_REFINE["prior"].metadata, "cli_panel": "advanced"})
     """normal refinement: weight of the L2 prior on the offsets"""
-    normal_refine_min_gain: float = field(default=0.02, metadata=in_range(0, 1, hi_open=True))
+    normal_refine_min_gain: float = field(default=0.02, metadata=in_range(0, 1, hi_open=True, cli_panel="advanced"))
     """--normal-refine auto keeps the field only when it lowers the held-out views' DSSIM by at
     least this fraction"""
-    normal_refine_min_gain_abs: float = field(default=0.005, metadata=in_range(0, 1, hi_open=True))
+    normal_refine_min_gain_abs: float = field(default=0.005, metadata=in_range(0, 1, hi_open=True, cli_panel="advanced"))
     """--normal-refine auto keeps the field only when it lowers the held-out views' DSSIM by at
     least this absolute amount"""
 

@@ -62,18 +62,18 @@ class HdrOptions:
     """LDR only: recover the camera response (Debevec & Malik 1997) or assume the sRGB curve."""
     reference_exposure: float | None = field(default=None, metadata=POSITIVE)
     """Exposure factor H (s at ISO 100, f/1; or seconds with ``exposures_s``) the output is relative to; None: the bracket's median."""
-    saturation_fraction: float = field(default=SATURATION_FRACTION, metadata=FRACTION)
+    saturation_fraction: float = field(default=SATURATION_FRACTION, metadata={**FRACTION, "cli_panel": "advanced"})
     """RAW only: fraction of the black-to-white range above which a raw value counts as clipped, in (0, 1]."""
-    response_samples: int = field(default=2000, metadata=in_range(16, MAX_RESPONSE_SAMPLES))
+    response_samples: int = field(default=2000, metadata=in_range(16, MAX_RESPONSE_SAMPLES, cli_panel="advanced"))
     """LDR only: sample pixels for the response recovery."""
-    smoothness: float = field(default=12.0, metadata=in_range(0, 1e6))
+    smoothness: float = field(default=12.0, metadata=in_range(0, 1e6, cli_panel="advanced"))
     """LDR only: Debevec smoothness weight (scaled by sqrt(observations / levels))."""
-    flat_fraction: float = field(default=0.1, metadata=FRACTION)
+    flat_fraction: float = field(default=0.1, metadata={**FRACTION, "cli_panel": "advanced"})
     """LDR only: sample pixels are taken among this fraction of flattest pixels, in (0, 1]."""
-    sample_phase: float = field(default=0.0, metadata=in_range(0, 1, hi_open=True))
+    sample_phase: float = field(default=0.0, metadata=in_range(0, 1, hi_open=True, cli_panel="advanced"))
     """LDR only: shift of the sample pixels' brightness ranks, a fraction of their spacing in [0, 1);
     another phase is another equally valid sample (to see how much a result depends on it)."""
-    iterations: int = field(default=2, metadata=in_range(0, MAX_ITERATIONS))
+    iterations: int = field(default=2, metadata=in_range(0, MAX_ITERATIONS, cli_panel="advanced"))
     """LDR only: reweighting rounds of the response and code reliabilities."""
     dtype: Literal["float", "half"] = "float"
     """EXR storage: float (32-bit) or half (16-bit, values up to 65504)."""

@@ -130,7 +130,7 @@ class LinearizeOptions:
     """Only undo the tone curve (for photos without exposure metadata taken at one fixed exposure)."""
     dtype: Literal["float", "half"] = "half"
     """EXR storage of the outputs."""
-    clip_level: float = field(default=CLIP_LEVEL, metadata=FRACTION)
+    clip_level: float = field(default=CLIP_LEVEL, metadata={**FRACTION, "cli_panel": "advanced"})
     """Encoded value at or above which a pixel is flagged clipped, in (0, 1]."""
 
     def validate(self) -> None:

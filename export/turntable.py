@@ -34,7 +34,7 @@ class OrbitOptions:
     """camera distance from the origin (the mesh fits in the unit sphere)"""
     fov_deg: float = field(default=45.0, metadata={**FOV_DEG, "cli_flag": "--fov"})
     """full field of view, degrees"""
-    supersample: int = field(default=1, metadata=in_range(1, 16))
+    supersample: int = field(default=1, metadata=in_range(1, 16, cli_panel="advanced"))
     """sub-pixel grid per axis for silhouette coverage (1 = pixel-centre rays only)"""
     up: str = "model"
     """the axis the orbit turns about: 'model' (the up direction the first model's capture
@@ -61,7 +61,7 @@ class ExportOptions:
     """frames: also write an MP4 turntable"""
     fps: int = field(default=24, metadata=in_range(1, 1000))
     """frames: video frame rate"""
-    glb_min_triangles: int = field(default=40_000, metadata=in_range(0, 10_000_000))
+    glb_min_triangles: int = field(default=40_000, metadata=in_range(0, 10_000_000, cli_panel="advanced"))
     """glb: the mesh is subdivided (each triangle into four at its edges' midpoints) until it has at
     least this many triangles, so that the colours baked per vertex follow the DAM across each
     triangle (0 = as given)"""

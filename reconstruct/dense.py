@@ -98,7 +98,7 @@ class DenseOptions:
     ceil(log2(voxels)))"""
     fusion: FusionKind = field(default="poisson", metadata={"cli_exclude": True})
     """'poisson' (screened Poisson of the fused oriented points) or 'tsdf' (Open3D VoxelBlockGrid)"""
-    max_views: int = field(default=40, metadata=in_range(2, 100_000, cli_flag="--dense-views"))
+    max_views: int = field(default=40, metadata=in_range(2, 100_000, cli_flag="--dense-views", cli_panel="advanced"))
     """most reference views (chosen spread over the cameras' directions)"""
     trim_tolerance: float = field(default=0.1, metadata=in_range(0, 1, cli_exclude=True))
     """masks: the fused mesh keeps a triangle where at most this fraction of the views see

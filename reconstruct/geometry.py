@@ -58,13 +58,13 @@ class GeometryOptions:
     """'auto', 'visual-hull', 'poisson', 'sphere', 'dense' (multi-view stereo) or 'mesh:FILE'"""
     voxels: int = field(default=160, metadata=in_range(16, MAX_VOXELS))
     """visual hull: voxels along the longest side of the object's box"""
-    hull_tolerance: int = field(default=0, metadata=COUNT_OR_ZERO)
+    hull_tolerance: int = field(default=0, metadata={**COUNT_OR_ZERO, "cli_panel": "advanced"})
     """visual hull: views allowed to see background where the object is (forgives bad masks)"""
-    smooth_iterations: int = field(default=10, metadata=in_range(0, 100000))
+    smooth_iterations: int = field(default=10, metadata=in_range(0, 100000, cli_panel="advanced"))
     """Taubin smoothing iterations of the visual hull / Poisson mesh (0 = none)"""
-    poisson_depth: int = field(default=8, metadata=in_range(1, 16))
+    poisson_depth: int = field(default=8, metadata=in_range(1, 16, cli_panel="advanced"))
     """Poisson octree depth (surface detail ~ object size / 2^depth)"""
-    sphere_max_rms: float = field(default=0.01, metadata=FRACTION)
+    sphere_max_rms: float = field(default=0.01, metadata={**FRACTION, "cli_panel": "advanced"})
     """auto: a sphere fits when its rms residual is below this fraction of its radius"""
     mesh_align: MeshAlign = "auto"
     """mesh:FILE: 'none' (the mesh is in the cameras' frame), 'icp' (always align to the

@@ -76,7 +76,7 @@ class ReconstructOptions:
     """auto: also build the dense geometry when the object is not a sphere, and keep it when the
     photos agree better through it (reconstruct/photo_consistency.py); --no-auto-dense saves
     its time (about 70 s on the 119-photo cape at 256 px)"""
-    auto_dense_margin: float = field(default=0.02, metadata=in_range(0, 2))
+    auto_dense_margin: float = field(default=0.02, metadata=in_range(0, 2, cli_panel="advanced"))
     """auto: the dense geometry is kept when its photo consistency (mean NCC of neighbouring
     photos warped through the surface, over the object's pixels) beats the other geometry's by at
     least this (cape: dense 0.81 vs visual hull 0.70, dense kept; rendered blob: 0.62 vs 0.73,
@@ -104,9 +104,9 @@ class ReconstructOptions:
     """'consecutive' (in file order from ``split_start``, as the paper) or 'spread' (evenly spaced)"""
     split_start: int = field(default=0, metadata=COUNT_OR_ZERO)
     """first train frame of a consecutive split"""
-    min_registered: int = field(default=3, metadata=COUNT)
+    min_registered: int = field(default=3, metadata={**COUNT, "cli_panel": "advanced"})
     """fewest registered photos that make a capture"""
-    min_registered_fraction: float = field(default=0.5, metadata=FRACTION)
+    min_registered_fraction: float = field(default=0.5, metadata={**FRACTION, "cli_panel": "advanced"})
     """fewest registered photos, as a fraction of the photos"""
     ignore_exposure: bool = False
     """only linearise; do not divide by the EXIF exposure (photos at one fixed exposure) nor rescale
@@ -133,9 +133,9 @@ class ReconstructOptions:
     kept: the DAM overshot the highlight (error the largest of the three in all 8 rows, up to
     2.92 of the clip level against keep's 0.37), novel-view DSSIM the largest in 7 of 8, and the
     bundled photos' aluminium export went from x0.57 to x0.61"""
-    mask_coverage: bool = True
+    mask_coverage: bool = field(default=True, metadata={"cli_panel": "advanced"})
     """with masks: coverage A is also limited to the mask (keeps background out of silhouettes)"""
-    supersample: int = field(default=3, metadata=in_range(1, 16))
+    supersample: int = field(default=3, metadata=in_range(1, 16, cli_panel="advanced"))
     """sub-pixel grid per axis for coverage at silhouettes"""
     dtype: Literal["half", "float"] = "half"
     """radiance storage in images/*.exr"""

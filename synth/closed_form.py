@@ -411,9 +411,9 @@ class ClosedFormOptions:
     """consecutive views (random start) in the train split; the rest are test"""
     seed: int = field(default=0, metadata=SEED)
     """chooses the train start, the camera start azimuth and the material colours"""
-    env_grid: int = field(default=24, metadata=in_range(2, 4096))
+    env_grid: int = field(default=24, metadata=in_range(2, 4096, cli_panel="advanced"))
     """rows of the equirectangular grid that integrates the environment (columns = 2x)"""
-    supersample: int = field(default=3, metadata=in_range(1, 64))
+    supersample: int = field(default=3, metadata=in_range(1, 64, cli_panel="advanced"))
     """sub-pixel grid (per axis) that measures coverage A at silhouettes"""
     dtype: Literal["half", "float"] = "half"
     """radiance storage in images/"""

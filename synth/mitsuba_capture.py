@@ -112,11 +112,11 @@ class SynthOptions:
     """consecutive views (random start) in the train split; the rest are test"""
     elevation_deg: float | None = field(default=None, metadata=in_range(-80, 80, cli_flag="--elevation"))
     """camera elevation above the xz-plane, degrees; None draws it from the seed in [5, 45]"""
-    max_depth: int = field(default=6, metadata=in_range(2, 1024))
+    max_depth: int = field(default=6, metadata=in_range(2, 1024, cli_panel="advanced"))
     """path tracer's longest path (2 = direct light only; 6 = up to 4 indirect bounces)"""
-    supersample: int = field(default=4, metadata=in_range(1, 16))
+    supersample: int = field(default=4, metadata=in_range(1, 16, cli_panel="advanced"))
     """k: coverage A and weights use a k x k grid of sub-pixel rays"""
-    variant: Variant = "auto"
+    variant: Variant = field(default="auto", metadata={"cli_panel": "advanced"})
     """Mitsuba variant: 'auto' (cuda_ad_rgb on a CUDA GPU, else llvm_ad_rgb, else scalar_rgb with a
     warning), 'cuda_ad_rgb', 'llvm_ad_rgb', 'scalar_rgb'"""
     dtype: Literal["half", "float"] = "half"

@@ -404,9 +404,9 @@ class PhotoSetOptions:
     room: bool = False
     """put the object in a static textured room (walls, floor and ceiling of a cube about two
     camera distances away) instead of a black background; masks stay the object's"""
-    principal_dx_px: float = field(default=0.0, metadata=in_range(-(MAX_IMAGE_SIDE // 4), MAX_IMAGE_SIDE // 4, cli_flag="--principal-dx"))
+    principal_dx_px: float = field(default=0.0, metadata=in_range(-(MAX_IMAGE_SIDE // 4), MAX_IMAGE_SIDE // 4, cli_flag="--principal-dx", cli_panel="advanced"))
     """principal point offset from the photo's centre, pixels to the right (at most --size / 4)"""
-    principal_dy_px: float = field(default=0.0, metadata=in_range(-(MAX_IMAGE_SIDE // 4), MAX_IMAGE_SIDE // 4, cli_flag="--principal-dy"))
+    principal_dy_px: float = field(default=0.0, metadata=in_range(-(MAX_IMAGE_SIDE // 4), MAX_IMAGE_SIDE // 4, cli_flag="--principal-dy", cli_panel="advanced"))
     """principal point offset from the photo's centre, pixels down (at most --size / 4)"""
 
     def validate(self) -> None:

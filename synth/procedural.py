@@ -36,23 +36,23 @@ from damcap.synth.closed_form import rand_uniform, brdf_lambert_ggx_t, equirect_
 class ProceduralOptions:
     """The distribution of random closed-form scenes (each option one knob of the recipe)."""
 
-    scene_px: int = field(default=128, metadata=in_range(8, 1024))
+    scene_px: int = field(default=128, metadata=in_range(8, 1024, cli_panel="advanced"))
     """side of each rendered input view, pixels"""
-    scene_views_min: int = field(default=5, metadata=in_range(1, 1000))
+    scene_views_min: int = field(default=5, metadata=in_range(1, 1000, cli_panel="advanced"))
     """fewest cameras of a scene"""
-    scene_views_max: int = field(default=30, metadata=in_range(1, 1000))
+    scene_views_max: int = field(default=30, metadata=in_range(1, 1000, cli_panel="advanced"))
     """most cameras of a scene"""
-    scene_env_grid: int = field(default=8, metadata=in_range(2, 64))
+    scene_env_grid: int = field(default=8, metadata=in_range(2, 64, cli_panel="advanced"))
     """rows of the equirectangular grid that integrates an environment (columns = 2x)"""
-    scene_exposure_decades: float = field(default=2.0, metadata=in_range(0, 6))
+    scene_exposure_decades: float = field(default=2.0, metadata=in_range(0, 6, cli_panel="advanced"))
     """exposure scale drawn log-uniformly in 10^[-d, d]"""
-    scene_blob_balls: int = field(default=4, metadata=in_range(1, 16))
+    scene_blob_balls: int = field(default=4, metadata=in_range(1, 16, cli_panel="advanced"))
     """most spheres in a blob (one = a sphere)"""
-    scene_min_alpha: float = field(default=0.03, metadata=in_range(1e-3, 1))
+    scene_min_alpha: float = field(default=0.03, metadata=in_range(1e-3, 1, cli_panel="advanced"))
     """smallest GGX alpha drawn (log-uniform up to 1): how mirror-like a material may be"""
-    scene_env_only: float = field(default=0.4, metadata=in_range(0, 1))
+    scene_env_only: float = field(default=0.4, metadata=in_range(0, 1, cli_panel="advanced"))
     """fraction of scenes lit by an environment alone (:func:`random_lighting`)"""
-    scene_lights_only: float = field(default=0.35, metadata=in_range(0, 1))
+    scene_lights_only: float = field(default=0.35, metadata=in_range(0, 1, cli_panel="advanced"))
     """fraction lit by 1 to 3 directional lights and a dim environment; the rest of the scenes have
     both at comparable power"""
 

@@ -89,13 +89,13 @@ class StudioOptions:
     """random azimuth and elevation jitter of each camera, degrees"""
     distance: float = field(default=3.4, metadata=CAMERA_DISTANCE)
     """camera distance from the object's centre (object radius 1)"""
-    board_size: float = field(default=2.4, metadata=in_range(1.01, 100))
+    board_size: float = field(default=2.4, metadata=in_range(1.01, 100, cli_panel="advanced"))
     """half the board's edge, in object radii"""
-    board_saturation: float = field(default=0.35, metadata=in_range(0, 1))
+    board_saturation: float = field(default=0.35, metadata=in_range(0, 1, cli_panel="advanced"))
     """colourfulness of the board's printed pattern (0: grey; 1: the full colours)"""
     spp: int = field(default=128, metadata=in_range(1, 1 << 16))
     """path-tracing samples per pixel"""
-    max_depth: int = field(default=6, metadata=in_range(2, 64))
+    max_depth: int = field(default=6, metadata=in_range(2, 64, cli_panel="advanced"))
     """the path tracer's longest path"""
     seed: int = field(default=0, metadata=SEED)
     """seeds the material regions, the board's pattern, the cameras' jitter, the exposures and the path tracer"""

@@ -75,10 +75,10 @@ class PredictOptions:
     or 'auto' = choose K as the step where the views the fit's stopping rule holds out stop
     improving (refining on the other train views, at most --refine-max-steps), then take K steps
     on all train views"""
-    refine_max_steps: int = field(default=1000, metadata=COUNT)
+    refine_max_steps: int = field(default=1000, metadata={**COUNT, "cli_panel": "advanced"})
     """--refine-steps auto: most steps it may choose (it runs at most twice this many: choosing, then
     refining)"""
-    refine_patience: int = field(default=100, metadata=COUNT)
+    refine_patience: int = field(default=100, metadata={**COUNT, "cli_panel": "advanced"})
     """--refine-steps auto: stop after this many steps without a lower held-out L1 (evaluated every
     25 steps)"""
     refine_learning_rate: float = field(default=1e-2, metadata=in_range(0, 10, lo_open=True))
@@ -89,7 +89,7 @@ class PredictOptions:
     (x0.86 of the fit) at 1e-2 against 0.110 (x0.93) at 3e-3, the rate before 2026-11-27: better
     on 7 captures, worse on 3 (by 0.001 to 0.012). More, smaller steps did no better (900 steps of 1024 pixels, 3.4 s:
     x0.87; docs/learning-to-learn.md)"""
-    readout_iterations: int = field(default=3, metadata=COUNT_OR_ZERO)
+    readout_iterations: int = field(default=3, metadata={**COUNT_OR_ZERO, "cli_panel": "advanced"})
     """without refinement (--refine-steps 0): solve the predicted DAM's output layer (its last 96
     weights; the hidden layers stay as predicted, until --joint-iterations moves the first) on the
     train views' pixels in closed form, at most this many reweighted Gauss-Newton iterations of the fit's L1 cost (appearance/readout.py;
@@ -104,11 +104,11 @@ class PredictOptions:
     the solved output layer ended worse with v1, v3 and v4 (x0.98 against x0.86, x0.98 against
     x0.89 in a side study; x0.86 against x0.80, bench/hyper_ood_v5.md) and no better with v6
     (mean DSSIM 0.0976 against 0.0967)"""
-    readout_samples: int = field(default=4096, metadata=COUNT)
+    readout_samples: int = field(default=4096, metadata={**COUNT, "cli_panel": "advanced"})
     """the output layer is solved on a seeded random subset of at most this many train pixels.
     16384 gave the same novel-view DSSIM within 0.0015 on average (bench/hyper_ood_readout.md) and
     took 22-55 ms more"""
-    joint_iterations: int = field(default=5, metadata=COUNT_OR_ZERO)
+    joint_iterations: int = field(default=5, metadata={**COUNT_OR_ZERO, "cli_panel": "advanced"})
     """without refinement, after the output layer's solve: solve the predicted DAM's first layer
     (192 weights, where its kinks lie: a shadow terminator, a highlight's edge) and output layer
     together on the train pixels, the middle layers (3072 weights) as predicted, at most this
@@ -121,9 +121,9 @@ class PredictOptions:
     than 5 (docs/learning-to-learn.md, *The joint solve*). With the light frame from
     frame.terminator_fit since: x0.59, every kind within 1.15x of the fit, in 57-71 ms
     (bench/hyper_ood_terminator.md)"""
-    joint_samples: int = field(default=2048, metadata=COUNT)
+    joint_samples: int = field(default=2048, metadata={**COUNT, "cli_panel": "advanced"})
     """the joint solve uses a seeded random subset of at most this many train pixels"""
-    joint_prior: float = field(default=1e-4, metadata=in_range(0, 1e3))
+    joint_prior: float = field(default=1e-4, metadata=in_range(0, 1e3, cli_panel="advanced"))
     """the joint solve's pull toward the predicted weights: its cost is the L1 plus this times the
     squared distance of the solved weights from them (L1 units per squared weight). On the
     Mitsuba captures under a point light, which a DAM cannot explain (the light's fall-off, cast

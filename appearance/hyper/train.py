@@ -55,34 +55,34 @@ class HyperTrainOptions:
     """optimiser steps (Adam)"""
     batch_size: int = field(default=8, metadata=in_range(1, 65536))
     """training examples per step, over all ranks together (a multiple of the number of processes)"""
-    pixels: int = field(default=4096, metadata=in_range(1, MAX_BATCH_PIXELS))
+    pixels: int = field(default=4096, metadata=in_range(1, MAX_BATCH_PIXELS, cli_panel="advanced"))
     """pixels per capture and step scored by the L1 cost"""
     learning_rate: float = field(default=5e-4, metadata=in_range(0, 10, lo_open=True))
     """initial Adam learning rate; cosine-decayed to 5% of it"""
-    input_size: int = field(default=256, metadata=in_range(1, MAX_IMAGE_SIDE))
+    input_size: int = field(default=256, metadata=in_range(1, MAX_IMAGE_SIDE, cli_panel="advanced"))
     """side of the predictor's input image, pixels"""
-    channels: tuple[int, ...] = field(default=(16, 32, 64, 64, 128, 128, 256, 256), metadata=in_range(1, MAX_CHANNELS))
+    channels: tuple[int, ...] = field(default=(16, 32, 64, 64, 128, 128, 256, 256), metadata=in_range(1, MAX_CHANNELS, cli_panel="advanced"))
     """convolution channels (one stride-2 layer each)"""
-    encoding: Encoding = "nr"
+    encoding: Encoding = field(default="nr", metadata={"cli_panel": "advanced"})
     """input encoding of the predicted DAM (32 x 4, no biases)"""
     frame: Frame = "world"
     """the predictor's coordinates (appearance/hyper/frame.py): 'world', or 'light' (the world
     turned so that each input's dominant light comes from +y; the predicted DAM is turned back)"""
-    augment: bool = True
+    augment: bool = field(default=True, metadata={"cli_panel": "advanced"})
     """exact augmentations: rotation about +y, mirror, tinted light"""
-    max_captures: int = field(default=0, metadata=COUNT_OR_ZERO)
+    max_captures: int = field(default=0, metadata={**COUNT_OR_ZERO, "cli_panel": "advanced"})
     """use at most this many training captures (0 = all): the training-set-size knob"""
-    val_fraction: float = field(default=0.1, metadata=in_range(0, 1, hi_open=True))
+    val_fraction: float = field(default=0.1, metadata=in_range(0, 1, hi_open=True, cli_panel="advanced"))
     """training captures kept out for the validation curve and the stopping rule"""
     eval_every: int = field(default=100, metadata=COUNT)
     """steps between validations"""
-    pixels_per_capture: int = field(default=32768, metadata=in_range(1, MAX_BATCH_PIXELS))
+    pixels_per_capture: int = field(default=32768, metadata=in_range(1, MAX_BATCH_PIXELS, cli_panel="advanced"))
     """covered pixels kept in memory per capture (spread over all its views)"""
     seed: int = field(default=0, metadata=SEED)
     """seeds initialisation and every random draw"""
     device: str = "cpu"
     """'cpu', 'cuda' or 'auto' (under torchrun each rank uses its LOCAL_RANK GPU)"""
-    snapshot_every: int = field(default=0, metadata=COUNT_OR_ZERO)
+    snapshot_every: int = field(default=0, metadata={**COUNT_OR_ZERO, "cli_panel": "advanced"})
     """also write the predictor as it stands every this many steps (OUTPUT.stepN.safetensors; 0 =
     never): how error falls with training compute, measured afterwards on any captures"""
     checkpoint_every: int = field(default=100, metadata=COUNT_OR_ZERO)
@@ -93,22 +93,22 @@ class HyperTrainOptions:
     procedural: float = field(default=0.0, metadata=in_range(0, 1))
     """share of each batch drawn from random closed-form scenes rendered on the training device
     (``--procedural 1`` needs no corpus); the rest comes from the corpus's captures"""
-    loader_workers: int = field(default=0, metadata=in_range(0, 256))
+    loader_workers: int = field(default=0, metadata=in_range(0, 256, cli_panel="advanced"))
     """DataLoader worker processes that draw and augment the corpus's examples ahead of the
     training step (0 = on the main thread)"""
-    val_scenes: int = field(default=64, metadata=in_range(0, 100_000))
+    val_scenes: int = field(default=64, metadata=in_range(0, 100_000, cli_panel="advanced"))
     """random closed-form scenes (fixed, never trained on) scored by the validation curve when
     ``--procedural`` is above 0"""
     init: str = ""
     """predictor file, or a shipped one by name (v1, v3, v10), whose weights start the run instead of a
     random initialisation: trains a predictor further (the architecture options must match it;
     the learning-rate schedule starts afresh). '' = random initialisation"""
-    readout_iterations: int = field(default=0, metadata=in_range(0, 20))
+    readout_iterations: int = field(default=0, metadata=in_range(0, 20, cli_panel="advanced"))
     """train (and validate) through ``damcap predict``'s readout solve: each predicted DAM's
     output layer is solved on half of its samples (this many unrolled reweighted Gauss-Newton
     steps, appearance/readout.py) and scored on the other half, so the hidden layers learn a basis
     the capture's own pixels can mix (0 = the paper's cost on the network's own output)"""
-    grad_clip: float = field(default=1.0, metadata=in_range(0, 1e6))
+    grad_clip: float = field(default=1.0, metadata=in_range(0, 1e6, cli_panel="advanced"))
     """largest gradient norm of a step (0 = no clipping): a hypernetwork's output weights
     multiply through the DAM's layers, so one bad batch can otherwise throw it far off"""
 

@@ -24,13 +24,13 @@ class ChooseOptions:
     """number of materials n, or 'auto' (the smallest n whose held-out error stops improving)"""
     max_materials: int = field(default=4, metadata=in_range(1, MAX_SEGMENT_MATERIALS))
     """largest n tried by --materials auto"""
-    margin: float = field(default=0.1, metadata=in_range(0, 1))
+    margin: float = field(default=0.1, metadata=in_range(0, 1, cli_panel="advanced"))
     """--materials auto keeps n when n + 1 improves held-out DSSIM by less than this fraction"""
-    min_gain: float = field(default=0.01, metadata=in_range(0, 1))
+    min_gain: float = field(default=0.01, metadata=in_range(0, 1, cli_panel="advanced"))
     """--materials auto keeps n also when n + 1 improves held-out DSSIM by less than this absolute amount"""
-    restarts: int = field(default=2, metadata=in_range(1, 100))
+    restarts: int = field(default=2, metadata=in_range(1, 100, cli_panel="advanced"))
     """--materials auto: runs (seeds) per n, the best kept (the held-out error of one run is seed-noisy)"""
-    min_share: float = field(default=0.01, metadata=FRACTION)
+    min_share: float = field(default=0.01, metadata={**FRACTION, "cli_panel": "advanced"})
     """--materials auto: smallest share of the training pixels each material must win for n to count"""
     target_dssim: float | None = field(default=None, metadata=FRACTION)
     """with --materials auto: the fewest materials whose held-out DSSIM is at most this"""

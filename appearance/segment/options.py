@@ -28,48 +28,48 @@ class SegmentOptions:
     """number of materials n"""
     steps: int = field(default=1200, metadata=COUNT)
     """joint optimisation steps (after the initialisation)"""
-    init_steps: int = field(default=300, metadata=COUNT_OR_ZERO)
+    init_steps: int = field(default=300, metadata={**COUNT_OR_ZERO, "cli_panel": "advanced"})
     """steps that teach Psi the initial (chromaticity k-means) labels and each DAM its cluster"""
     batch_pixels: int = field(default=4096, metadata=in_range(1, MAX_BATCH_PIXELS))
     """pixels per step"""
-    frames_per_step: int = field(default=1, metadata=in_range(1, 1024))
+    frames_per_step: int = field(default=1, metadata=in_range(1, 1024, cli_panel="advanced"))
     """training frames Psi sees per step"""
     learning_rate: float = field(default=5e-3, metadata=in_range(0, 10, lo_open=True))
     """Adam learning rate of the DAMs (Psi uses a fifth of it)"""
-    sparsity_beta: float = field(default=0.05, metadata=in_range(0, 1e6))
+    sparsity_beta: float = field(default=0.05, metadata=in_range(0, 1e6, cli_panel="advanced"))
     """weight beta of the sparsity cost c_s"""
-    prior_weight: float = field(default=1.0, metadata=in_range(0, 1e6))
+    prior_weight: float = field(default=1.0, metadata=in_range(0, 1e6, cli_panel="advanced"))
     """weight of the initial labels' cross-entropy during the joint phase (0 = the paper's cost
     alone). The labels are the chromaticity k-means of the same frames, so the fit stays
     unsupervised; keeping them as a soft prior stops the DAMs from trading a material boundary
     for a shading one (measured: bench/segment.md)"""
-    illumination_degree: int = field(default=2, metadata=in_range(0, 2))
+    illumination_degree: int = field(default=2, metadata=in_range(0, 2, cli_panel="advanced"))
     """the initial clustering models the illumination's colour as a polynomial of this degree in
     the world normal (0, 1 or 2; 0 = plain chromaticity k-means): under a tinted environment map
     one material is redder where it faces the sun and bluer where it faces the sky, and plain
     k-means splits it by orientation (measured on the segment-dev captures: bench/segment.md)"""
-    init_colour: InitColour = "darkest-view"
+    init_colour: InitColour = field(default="darkest-view", metadata={"cli_panel": "advanced"})
     """the colour the initial clustering sees per pixel: 'pixel' (its own) or 'darkest-view' (the
     least bright observation of the same surface point among the training views). Specular
     reflection only adds light and moves with the view, so the darkest observation is the closest
     to the diffuse colour; a material's highlights (tinted by what they reflect) otherwise cluster
     with another material (measured on the segment-dev captures: bench/segment.md)"""
-    colour_floor: float = field(default=2e-5, metadata=in_range(0, BRIGHT_FRACTION, lo_open=True))
+    colour_floor: float = field(default=2e-5, metadata=in_range(0, BRIGHT_FRACTION, lo_open=True, cli_panel="advanced"))
     """pixels whose mean radiance is below this fraction of the radiance scale (the capture's
     95th percentile) show no usable colour and start unlabelled. The clusters are always fitted to
     the pixels above BRIGHT_FRACTION (0.02); dimmer ones down to this floor (e.g. lit only by interreflection) are
     assigned to the nearest cluster"""
-    psi_resolution: int = field(default=128, metadata=in_range(8, MAX_IMAGE_SIDE))
+    psi_resolution: int = field(default=128, metadata=in_range(8, MAX_IMAGE_SIDE, cli_panel="advanced"))
     """Psi runs on frames area-downsampled to at most this many pixels per side; its weights are
     upsampled bilinearly. Speed vs accuracy, measured on the segment-dev captures (128 px): 64
     takes about 0.6x the time of 128 and loses about 0.02 mean IoU (bench/segment.md)"""
-    psi_channels: int = field(default=8, metadata=in_range(1, 1024))
+    psi_channels: int = field(default=8, metadata=in_range(1, 1024, cli_panel="advanced"))
     """Psi's base channel count (doubles at each of its two levels)"""
     width: int = field(default=32, metadata=in_range(1, MAX_DAM_WIDTH))
     """DAM hidden units"""
     depth: int = field(default=4, metadata=in_range(1, MAX_DAM_DEPTH))
     """DAM hidden layers"""
-    encoding: Encoding = "nr"
+    encoding: Encoding = field(default="nr", metadata={"cli_panel": "advanced"})
     """DAM input encoding (see DamArchitecture)"""
     seed: int = field(default=0, metadata=SEED)
     """seeds k-means, initialisation and sampling"""

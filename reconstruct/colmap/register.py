@@ -78,10 +78,10 @@ class SfmOptions:
     rescaled to the photos' resolution)"""
     max_num_features: int = field(default=4096, metadata=COUNT)
     """SIFT feature budget per photo (before masking)"""
-    upsample_below: int = field(default=800, metadata=in_range(0, MAX_IMAGE_SIDE))
+    upsample_below: int = field(default=800, metadata=in_range(0, MAX_IMAGE_SIDE, cli_panel="advanced"))
     """SIFT starts one octave up (doubles the image) only when the longer side, after
     ``max_image_size``, is below this; large photos skip that costly octave"""
-    retry_upsampled_below: float = field(default=0.95, metadata=in_range(0, 1))
+    retry_upsampled_below: float = field(default=0.95, metadata=in_range(0, 1, cli_panel="advanced"))
     """when the octave was skipped and fewer than this fraction of the photos register, features
     are extracted again with it and the registration with more photos is kept (0 = never). The
     octave costs 2.7x the time on the 119 cape photos (296 s against 111 s, all registered either
@@ -93,11 +93,11 @@ class SfmOptions:
     ``exhaustive_max_images`` photos, else retrieval)"""
     exhaustive_max_images: int = field(default=40, metadata={"cli_exclude": True})
     """'auto' matches all pairs up to this many photos"""
-    sequential_overlap: int = field(default=5, metadata=COUNT)
+    sequential_overlap: int = field(default=5, metadata={**COUNT, "cli_panel": "advanced"})
     """ring pairing: neighbours on each side in file-name order"""
     loop_closure: bool = field(default=True, metadata={"cli_exclude": True})
     """ring pairing wraps around (the last photos of an orbit meet the first ones)"""
-    retrieval_neighbours: int = field(default=8, metadata=COUNT)
+    retrieval_neighbours: int = field(default=8, metadata={**COUNT, "cli_panel": "advanced"})
     """retrieval pairing: most similar photos matched per photo, besides the ring"""
     transitive_neighbours: int = field(default=5, metadata={"cli_exclude": True})
     """after the first matching round, each photo is also matched with this many of its
@@ -129,7 +129,7 @@ class SfmOptions:
     mask_erode: float = field(default=0.01, metadata={"cli_exclude": True})
     """masks are eroded by this fraction of the longer image side before they restrict features
     (descriptors at the silhouette see the background)"""
-    num_threads: int = field(default=-1, metadata={"cli_flag": "--threads", **in_range(-1, 4096)})
+    num_threads: int = field(default=-1, metadata={"cli_panel": "advanced", "cli_flag": "--threads", **in_range(-1, 4096)})
     """CPU threads for COLMAP (-1 = all)"""
     seed: int = field(default=0, metadata=SEED)
     """COLMAP's random seed (RANSAC, mapping): same seed, same result"""

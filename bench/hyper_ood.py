@@ -24,7 +24,9 @@ Run (from the repository root)::
         appearance/hyper/predictors/dam-predictor-v3.safetensors
 
 It writes bench/results/hyper_ood.json and bench/hyper_ood.md (``--out DIR`` elsewhere, ``--tag T``:
-hyper_ood_T.*).
+hyper_ood_T.*). Rewriting a report keeps everything from its :data:`HISTORY_MARK` line on (the
+study's history in bench/hyper_ood.md); a ``--tag`` study's report is merged into that history
+by hand (bench/README.md indexes the reports).
 """
 
 from __future__ import annotations
@@ -220,6 +222,24 @@ def summarise(per_capture: list[dict]) -> dict:
     return out
 
 
+HISTORY_MARK = "<!-- history: bench.hyper_ood keeps everything from this line on when it rewrites this report -->"
+"""the line from which a report's hand-kept history starts: a rerun rewrites only what is above it"""
+
+
+def with_history(new_text: str, old_text: str) -> str:
+    r"""The freshly written report ``new_text`` followed by the history kept in ``old_text`` (from
+    :data:`HISTORY_MARK` on), or ``new_text`` alone when the old report has none.
+
+    >>> with_history("# new\n", "# old\n" + HISTORY_MARK + "\n## History\n")
+    '# new\n\n<!-- history: bench.hyper_ood keeps everything from this line on when it rewrites this report -->\n## History\n'
+    >>> with_history("# new\n", "# old\n")
+    '# new\n'
+    """
+    if HISTORY_MARK not in old_text:
+        return new_text
+    return new_text.rstrip("\n") + "\n\n" + old_text[old_text.index(HISTORY_MARK):]
+
+
 def write_markdown(res: dict, path: Path) -> None:
     nets, refined, solved = res["predictors"], res["refined"], res.get("readout", [])
     cols = ["RM++", "fit"] + nets + solved + refined
@@ -376,7 +396,9 @@ def main(argv: list[str] | None = None) -> int:
     out_md = (args.out or BENCH) / f"{stem}.md"
     out_json.parent.mkdir(parents=True, exist_ok=True)
     out_json.write_text(json.dumps(res, indent=1, default=float))
+    old_md = out_md.read_text() if out_md.exists() else ""
     write_markdown(json.loads(out_json.read_text()), out_md)
+    out_md.write_text(with_history(out_md.read_text(), old_md))
     log(f"wrote {out_json} and {out_md}")
     return 0
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import torch
 
@@ -69,3 +70,12 @@ def test_the_check_set_renders_other_seeds_of_the_same_kinds(tmp_path):
     assert caps == [("closed-form sphere, distant light", tmp_path / "sphere-directional-s4-16px")]
     assert (caps[0][1] / "transforms.json").exists()
     assert not set(hyper_ood.CLOSED_FORM_CHECK) & set(hyper_ood.CLOSED_FORM)
+
+
+def test_the_committed_report_keeps_its_history_on_rerun():
+    """bench/hyper_ood.md holds the study's history below the mark a rerun keeps, exactly once."""
+    report = (Path(__file__).resolve().parents[2] / "bench" / "hyper_ood.md").read_text()
+    assert report.count(hyper_ood.HISTORY_MARK) == 1
+    kept = hyper_ood.with_history("# rerun\n", report)
+    assert kept.startswith("# rerun\n") and kept.endswith(report[report.index(hyper_ood.HISTORY_MARK):])
+    assert "### Run terminator" in kept and "### Run v1-v3" in kept  # the runs merged from the per-run reports

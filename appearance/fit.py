@@ -83,7 +83,7 @@ class FitOptions:
     DSSIM / RM++ 0.24 / 0.14 on the closed-form sphere / torus (joint 32x4: 0.45 / 0.16) and 0.40
     on seven training-part Mitsuba captures (0.47), while fitting the training views less
     exactly (bench/dam_core.md, bench/synth.md). Not the default: on the real cape it gained
-    nothing (novel-view DSSIM 0.421 against 0.420, README), and the other benchmarks were
+    nothing (novel-view DSSIM 0.421 against 0.420, docs/evaluation.md), and the other benchmarks were
     measured with the joint network"""
     adversarial: bool = False
     """add the paper's adversarial cost (patch discriminator)"""

@@ -17,16 +17,16 @@
 #      v6 (retired; at commit 11dc441) = v4 + 800 steps (--init v4 --seed 1 -o v5.safetensors, 1684 s; not shipped; today
 #        git show db45094:appearance/hyper/predictors/dam-predictor-v4.safetensors > v4.safetensors, --init v4.safetensors)
 #        + 800 steps (--init v5.safetensors --seed 2 -o v6.safetensors, 1364 s), each v4's command with
-#        --steps 800 --eval-every 100 --snapshot-every 200 (v4 is at commit db45094; docs/learning-to-learn.md)
+#        --steps 800 --eval-every 100 --snapshot-every 200 (v4 is at commit db45094; bench/hyper_ood.md)
 #      v8 (retired; at commit 2d3e413) = v6 + 800 steps (--init v6 --seed 3 -o v7.safetensors, 1151 s; not shipped)
 #        + 800 steps (--init v7.safetensors --seed 4 -o v8.safetensors, 1126 s), each v6's command with
-#        --scene-lights-only 0.55 --scene-env-only 0.3 (more distant-light scenes; docs/learning-to-learn.md "### v8")
+#        --scene-lights-only 0.55 --scene-env-only 0.3 (more distant-light scenes; bench/hyper_ood.md, history "v8")
 #      v10 (shipped, the default) = v8 + 3 x 800 steps in the light frame, each v8's command with --frame light
 #        --learning-rate 2e-4: --init v8 --seed 7 -o light1.safetensors (1296 s), --init light1.safetensors --seed 8
 #        -o light2.safetensors (1353 s), --init light2.safetensors --seed 9 --val-scenes 32 -o v10.safetensors (1617 s)
-#        (docs/learning-to-learn.md "### v10")
+#        (bench/hyper_ood.md, history "v10")
 # On a machine where damcap is not installed, put it on the module path first (a damcap/ folder
-# whose rooms link to the repository's; see docs/learning-to-learn.md) and run from outside the repository.
+# whose rooms link to the repository's; see bench/hyper_ood.md) and run from outside the repository.
 #      several GPUs:  PYTHON="torchrun --nproc-per-node 4 -m" would need the module form below
 set -euo pipefail
 out=$1

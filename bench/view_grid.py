@@ -5,8 +5,8 @@ alike (divided by the photo's 99th percentile of covered radiance, then
 
     .venv/bin/python -m bench.view_grid CAPTURE --model NAME=FILE.dam [--model ...] --rows 4 --out PNG
 
-docs/learning-to-learn.md shows one (``bench/predict_distant_light.png``), with the commands that
-made its models.
+bench/hyper_ood.md's history shows three (``bench/predict_distant_light*.png``), with the commands
+that made their models.
 """
 
 from __future__ import annotations

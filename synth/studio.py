@@ -82,7 +82,7 @@ class StudioOptions:
     """camera rings, the ring step apart in elevation, centred on the mean elevation. Two rings, as
     photogrammetry guides advise, let the visual hull carve what one ring cannot: the demo's three
     materials, segmented, score 0.59x RM++ on novel views from rings at 15 and 45 deg against
-    0.71x from one ring at 30 (README.md)"""
+    0.71x from one ring at 30 (bench/demo.md)"""
     ring_step_deg: float = field(default=30.0, metadata=in_range(0, 90))
     """elevation between neighbouring rings, degrees"""
     jitter_deg: float = field(default=3.0, metadata=in_range(0, 90, cli_flag="--jitter"))

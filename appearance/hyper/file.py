@@ -32,7 +32,7 @@ SHIPPED = {
     "v10": "dam-predictor-v10.safetensors",
 }
 """the trained predictors shipped in ``damcap.appearance.hyper/predictors/`` by name (each one's
-recipe: the .json beside it; docs/learning-to-learn.md compares them): v1 reads one view and was
+recipe: the .json beside it; bench/hyper_ood.md compares them): v1 reads one view and was
 trained on 202 Mitsuba captures (the paper's method); v3 reads up to 4 views and was trained on
 random closed-form scenes rendered on a GPU (v2, 900 steps, trained 700 steps further); v10 is v3
 trained further through predict's readout solve (``train-hyper --readout-iterations 3``, on the

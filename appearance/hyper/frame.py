@@ -3,7 +3,7 @@
 Under one distant light a DAM is dark on one side of a great circle of normals (the terminator,
 N.L = 0) and lit on the other. A predictor that works in world coordinates has to write that
 circle, wherever the light is, into the DAM's first layer from what it sees; trained on scenes
-lit from every direction it learns a blur instead (``docs/learning-to-learn.md``, v8's picture).
+lit from every direction it learns a blur instead (``bench/hyper_ood.md``, v10's section: v8's picture).
 In a frame where the light always comes from the same direction, the terminator is always the
 same circle, and the mean DAM and its corrections can hold it sharp.
 
@@ -13,7 +13,7 @@ Lambertian surface's clamped cosine, which puts b across the shadow's edge whate
 object the views saw. (The least-squares fit of the log-compressed brightness by ``c + b . N``,
 :func:`brightness_gradient`, the first-order spherical harmonic of the light, points at one
 distant light only for normals spread evenly around it; v10 was trained with it and predicts
-better with the terminator fit: docs/learning-to-learn.md, *The terminator fit*.) Under an
+better with the terminator fit: bench/hyper_ood.md, *The terminator fit*.) Under an
 environment b points at its brightest directions. Then the smallest rotation takes b to +y (the
 world's up, so a light from above leaves the world as it was).
 Rotating the whole world is an exact change of coordinates (object, cameras and lights turn

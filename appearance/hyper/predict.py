@@ -14,7 +14,7 @@ the lowest held-out L1, stopping once it has not improved for ``patience_steps``
 ``max_steps``); then :func:`.fit.refine_dam` refines the prediction for K steps on *all* train
 views, so ``--refine-steps auto`` gives what ``--refine-steps K`` gives. (Keeping the held-out
 choice's own weights instead, trained without the held-out views, was worse on novel views on 7
-of 13 measured captures and better on 4: mean DSSIM 0.129 against 0.122, docs/learning-to-learn.md.)
+of 13 measured captures and better on 4: mean DSSIM 0.129 against 0.122, bench/hyper_ood.md.)
 Pure: tensors and views in, a model out.
 """
 
@@ -84,29 +84,29 @@ class PredictOptions:
     refine_learning_rate: float = field(default=1e-2, metadata=in_range(0, 10, lo_open=True))
     """Adam learning rate of the refinement: the initial rate of K steps (cosine-decayed to 5 % of
     it, as the fit's), and the constant rate at which --refine-steps auto chooses K. On 11
-    captures unlike v1's training set (bench/hyper_ood_refine.md, 2026-11-27),
+    captures unlike v1's training set (bench/hyper_ood.md, run refine, 2026-11-27),
     300 steps from v1 (about 2 s) reached a mean novel-view DSSIM of 0.106
     (x0.86 of the fit) at 1e-2 against 0.110 (x0.93) at 3e-3, the rate before 2026-11-27: better
     on 7 captures, worse on 3 (by 0.001 to 0.012). More, smaller steps did no better (900 steps of 1024 pixels, 3.4 s:
-    x0.87; docs/learning-to-learn.md)"""
+    x0.87; bench/hyper_ood.md)"""
     readout_iterations: int = field(default=3, metadata={**COUNT_OR_ZERO, "cli_panel": "advanced"})
     """without refinement (--refine-steps 0): solve the predicted DAM's output layer (its last 96
     weights; the hidden layers stay as predicted, until --joint-iterations moves the first) on the
     train views' pixels in closed form, at most this many reweighted Gauss-Newton iterations of the fit's L1 cost (appearance/readout.py;
     0 = the network's output as it is). On 11 captures unlike either shipped predictor's training
-    set (bench/hyper_ood_readout.md, 2026-11-27), 3 iterations lowered predict's mean novel-view
+    set (bench/hyper_ood.md, run readout, 2026-11-27), 3 iterations lowered predict's mean novel-view
     DSSIM from 0.201 to 0.166 (x2.51 to x1.98 of the fit) with v1 and from 0.198 to 0.165 (x2.36
     to x2.05) with v3 (and to 0.146, x1.64, with v4, trained through the solve), prediction and
     solve together in 44-72 ms; 1 and 5 iterations helped less
-    (x2.05-x2.11, x2.00-x2.06). v6 reached 0.132 (x1.45; bench/hyper_ood_v5.md), v8 0.121 (x1.23;
-    bench/hyper_ood_v9.md), v10, the default since, 0.103 (x0.91; bench/hyper_ood_v10.md).
+    (x2.05-x2.11, x2.00-x2.06). v6 reached 0.132 (x1.45; bench/hyper_ood.md, run v5), v8 0.121 (x1.23;
+    bench/hyper_ood.md, run v9), v10, the default since, 0.103 (x0.91; bench/hyper_ood.md, run v10).
     Refinement starts from the network's own output instead: on the same captures, 300 steps from
     the solved output layer ended worse with v1, v3 and v4 (x0.98 against x0.86, x0.98 against
-    x0.89 in a side study; x0.86 against x0.80, bench/hyper_ood_v5.md) and no better with v6
+    x0.89 in a side study; x0.86 against x0.80, bench/hyper_ood.md, run v5) and no better with v6
     (mean DSSIM 0.0976 against 0.0967)"""
     readout_samples: int = field(default=4096, metadata={**COUNT, "cli_panel": "advanced"})
     """the output layer is solved on a seeded random subset of at most this many train pixels.
-    16384 gave the same novel-view DSSIM within 0.0015 on average (bench/hyper_ood_readout.md) and
+    16384 gave the same novel-view DSSIM within 0.0015 on average (bench/hyper_ood.md, run readout) and
     took 22-55 ms more"""
     joint_iterations: int = field(default=5, metadata={**COUNT_OR_ZERO, "cli_panel": "advanced"})
     """without refinement, after the output layer's solve: solve the predicted DAM's first layer
@@ -114,13 +114,13 @@ class PredictOptions:
     together on the train pixels, the middle layers (3072 weights) as predicted, at most this
     many Levenberg-Marquardt iterations of the fit's L1 cost plus --joint-prior
     (appearance/readout.py; 0 = the output layer's solve alone). On the 11 captures of
-    bench/hyper_ood_joint.md (2026-11-28), 5 iterations took v10's mean novel-view DSSIM from
+    bench/hyper_ood.md, run joint (2026-11-28), 5 iterations took v10's mean novel-view DSSIM from
     x0.91 to x0.64 of the fit (the sphere under one distant light from x2.44 to x1.25, the blobs
     under one from x1.18 to x0.43), prediction and both solves in 56-79 ms; 3 and 8 iterations
     gave the same mean (x0.64), 3 less on the distant-light kinds (x1.32, x0.51), 8 no better
-    than 5 (docs/learning-to-learn.md, *The joint solve*). With the light frame from
+    than 5 (bench/hyper_ood.md, *The joint solve*). With the light frame from
     frame.terminator_fit since: x0.59, every kind within 1.15x of the fit, in 57-71 ms
-    (bench/hyper_ood_terminator.md)"""
+    (bench/hyper_ood.md, run terminator)"""
     joint_samples: int = field(default=2048, metadata={**COUNT, "cli_panel": "advanced"})
     """the joint solve uses a seeded random subset of at most this many train pixels"""
     joint_prior: float = field(default=1e-4, metadata=in_range(0, 1e3, cli_panel="advanced"))
@@ -130,11 +130,11 @@ class PredictOptions:
     shadows), 0 moved the kinks to fit the train views and did worse on novel ones than the
     output layer's solve alone (spot x1.16 against x0.91); 1e-4 gave x1.07. 1e-3 did better
     there (x0.74) but held back the terminators of the closed-form distant-light captures (the
-    sphere x1.36 against x1.25; bench/hyper_ood_joint.md)"""
+    sphere x1.36 against x1.25; bench/hyper_ood.md, run joint)"""
     refine_threshold: float = field(default=0.10, metadata=in_range(0, 1))
     """the predicted DAM's mean DSSIM on the train views above which predict says refinement is
     needed (the capture lies outside what the predictor learned). Measured with the shipped
-    predictor on 13 captures (docs/learning-to-learn.md): the one where refining lowered the
+    predictor on 13 captures (bench/hyper_ood.md): the one where refining lowered the
     novel-view DSSIM by under 5% had train DSSIM 0.084; the 12 where it lowered it by 18% or more
     had 0.105 to 0.324. One capture on the 'not needed' side: a first calibration"""
 

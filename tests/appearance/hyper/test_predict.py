@@ -174,7 +174,7 @@ def test_predict_threshold_and_integer_refinement(tmp_path, small_capture, tiny_
     prov = load_dam(tmp_path / "a.dam")[1]["provenance"]
     assert prov["refinement_needed"] is False and prov["refine_steps"] == 0 and "train_l1_refined" not in prov
     # the verdict is on the network's own output, also when predict then solves its output layer (the
-    # solved model's train error predicted refinement's gain worse: docs/learning-to-learn.md)
+    # solved model's train error predicted refinement's gain worse: bench/hyper_ood.md)
     raw = prov["train_dssim_predicted"]
     assert prov["train_dssim_readout"] < raw
     code, stdout, err = run(["predict", small_capture, "-o", tmp_path / "s.dam", "--predictor", tiny_predictor, "--refine-threshold",

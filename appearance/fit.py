@@ -132,8 +132,8 @@ class FitOptions:
     this fraction"""
     spatial_min_gain_abs: float = field(default=0.005, metadata=in_range(0, 1, hi_open=True, cli_panel="advanced"))
     """--spatial auto keeps the albedo only when it lowers the held-out views' DSSIM by at least
-    this absolute amount (on a uniform closed-form torus it lowered 0.00085 to 0.00071, 17%, and
-    changed nothing on the novel views)"""
+    this absolute amount. On a uniform closed-form torus it lowered 0.00085 to 0.00071, 17%, and
+    changed nothing on the novel views."""
 
     normal_refine: NormalRefineMode = field(default="off", metadata={"cli_what": "normal refinement"})
     """photometric normal refinement (appearance/normal_refine.py): 'off' (the geometry's normals),
@@ -144,8 +144,8 @@ class FitOptions:
     to 0.272, 0.244 with the albedo (bench/normal_refine.md). Its cost is steps x pixels per
     step, whatever the capture's size ('auto' refines twice)"""
     normal_refine_voxel_px: float = field(default=_REFINE["voxel_px"].default, metadata={**_REFINE["voxel_px"].metadata, "cli_panel": "advanced"})
-    """normal refinement: voxel edge of the offset field, in pixels' footprints on the surface
-    (finer resolves finer relief; 1, 2, 4 px measured in bench/normal_refine.md)"""
+    """normal refinement: voxel edge of the offset field, in pixels' footprints on the surface.
+    Finer resolves finer relief (1, 2, 4 px measured in bench/normal_refine.md)."""
     normal_refine_steps: int = field(default=_REFINE["steps"].default, metadata={**_REFINE["steps"].metadata, "cli_panel": "advanced"})
     """normal refinement: Adam steps, each on 16,384 pixels (NormalRefineOptions.batch)"""
     normal_refine_prior: float = field(default=_REFINE["prior"].default, metadata={**_REFINE["prior"].metadata, "cli_panel": "advanced"})

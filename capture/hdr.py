@@ -63,7 +63,7 @@ class HdrOptions:
     reference_exposure: float | None = field(default=None, metadata=POSITIVE)
     """Exposure factor H (s at ISO 100, f/1; or seconds with ``exposures_s``) the output is relative to; None: the bracket's median."""
     saturation_fraction: float = field(default=SATURATION_FRACTION, metadata={**FRACTION, "cli_panel": "advanced"})
-    """RAW only: fraction of the black-to-white range above which a raw value counts as clipped, in (0, 1]."""
+    """RAW only: fraction of the black-to-white range above which a raw value counts as clipped."""
     response_samples: int = field(default=2000, metadata=in_range(16, MAX_RESPONSE_SAMPLES, cli_panel="advanced"))
     """LDR only: sample pixels for the response recovery."""
     smoothness: float = field(default=12.0, metadata=in_range(0, 1e6, cli_panel="advanced"))
@@ -71,8 +71,8 @@ class HdrOptions:
     flat_fraction: float = field(default=0.1, metadata={**FRACTION, "cli_panel": "advanced"})
     """LDR only: sample pixels are taken among this fraction of flattest pixels, in (0, 1]."""
     sample_phase: float = field(default=0.0, metadata=in_range(0, 1, hi_open=True, cli_panel="advanced"))
-    """LDR only: shift of the sample pixels' brightness ranks, a fraction of their spacing in [0, 1);
-    another phase is another equally valid sample (to see how much a result depends on it)."""
+    """LDR only: shift of the sample pixels' brightness ranks, a fraction of their spacing. Another
+    phase is another equally valid sample (to see how much a result depends on it)."""
     iterations: int = field(default=2, metadata=in_range(0, MAX_ITERATIONS, cli_panel="advanced"))
     """LDR only: reweighting rounds of the response and code reliabilities."""
     dtype: Literal["float", "half"] = "float"

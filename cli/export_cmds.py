@@ -371,7 +371,7 @@ def view(
     *,
     cam: ViewerCamera,
 ) -> None:
-    """Write an HTML page that shows the DAM on a mesh in real time.
+    """Write an HTML page showing the DAM on a mesh in real time.
 
     Self-contained, WebGL 2.
     """

@@ -160,11 +160,41 @@ def plain(text: str) -> str:
     return text.replace("``", "").replace("`", "")
 
 
+MAX_HELP_CHARS = 90
+"""a first sentence longer than this is shown up to its first clause (two lines of help at 80 columns)"""
+
+
+def first_clause(text: str, shortest: int = 24) -> str:
+    """``text`` up to its first ``" ("``, ``"; "`` or ``": "`` outside parentheses and quotes
+    that leaves at least ``shortest`` characters (``text`` itself where there is none).
+
+    >>> first_clause("path-tracing samples per pixel (noise floor: 512 under maps)")
+    'path-tracing samples per pixel'
+    """
+    depth, quote = 0, None
+    for i, c in enumerate(text):
+        if quote:
+            quote = None if c == quote else quote
+        elif c in "'\"" and (i == 0 or not text[i - 1].isalnum()):
+            quote = c
+        elif c in _OPENING:
+            if c == "(" and depth == 0 and i >= shortest and text[i - 1] == " ":
+                return text[:i - 1]
+            depth += 1
+        elif c in _CLOSING:
+            depth = max(0, depth - 1)
+        elif c in ";:" and depth == 0 and i >= shortest and text[i + 1:i + 2] == " ":
+            return text[:i]
+    return text
+
+
 def help_line(doc: str) -> str:
     """A field's help line: its docstring's first sentence in plain text, without its full stop
-    (help lines are phrases: ``optimiser steps (Adam) (>= 1)``)."""
+    (help lines are phrases: ``optimiser steps (Adam) (>= 1)``); a sentence longer than
+    :data:`MAX_HELP_CHARS` up to its first clause (the rest stays in the docstring)."""
     line = plain(first_sentence(doc)).strip()
-    return line[:-1] if line.endswith(".") and not line.endswith("..") else line
+    line = line[:-1] if line.endswith(".") and not line.endswith("..") else line
+    return first_clause(line) if len(line) > MAX_HELP_CHARS else line
 
 
 def kebab(name: str) -> str:
@@ -306,7 +336,7 @@ def option_specs(cls: type, *, exclude: frozenset[str] = frozenset(), prefix: tu
             help_text += _range_note(f.metadata[RANGE])
         field_panel = f.metadata.get(CLI_PANEL) or panel or DEFAULT_PANEL
         advanced = field_panel.lower() == ADVANCED
-        kw: dict[str, Any] = {"help": help_text, "rich_help_panel": ADVANCED_PANEL if advanced else field_panel,
+        kw: dict[str, Any] = {"help": help_text, "rich_help_panel": ADVANCED_PANEL if advanced and not hidden else field_panel,
                               "hidden": hidden or (advanced and not show_all)}
         parse = f.metadata.get(CLI_PARSE)
         origin = get_origin(tp)

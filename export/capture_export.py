@@ -50,8 +50,8 @@ class CaptureExportOptions:
     """Options of ``damcap export-capture``."""
 
     format: Literal["nerfstudio", "colmap"] = "nerfstudio"
-    """'nerfstudio' (its dataset layout: PNG frames, masks, transforms.json, points.ply) or
-    'colmap' (a COLMAP text model of the undistorted capture and its PNG frames)"""
+    """the target tool's layout: 'nerfstudio' (its dataset layout: PNG frames, masks,
+    transforms.json, points.ply) or 'colmap' (a COLMAP text model of the undistorted capture and its PNG frames)"""
     points: int = field(default=100_000, metadata=in_range(0, 100_000_000))
     """surface points written as the point cloud (samples of the frames' covered pixels; 0 = none)"""
     seed: int = field(default=0, metadata=SEED)

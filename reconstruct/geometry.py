@@ -67,8 +67,9 @@ class GeometryOptions:
     sphere_max_rms: float = field(default=0.01, metadata={**FRACTION, "cli_panel": "advanced"})
     """auto: a sphere fits when its rms residual is below this fraction of its radius"""
     mesh_align: MeshAlign = "auto"
-    """mesh:FILE: 'none' (the mesh is in the cameras' frame), 'icp' (always align to the
-    silhouettes/points), 'auto' (align when it does not fit them as given)"""
+    """whether a --geometry mesh:FILE is aligned to the cameras. 'none' (the mesh is in the
+    cameras' frame), 'icp' (always align to the silhouettes/points), 'auto' (align when it does
+    not fit them as given)"""
 
 
 @dataclass

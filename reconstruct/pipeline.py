@@ -74,24 +74,24 @@ class ReconstructOptions:
     """dense multi-view stereo (``--dense-size``, ``--dense-planes``, ``--dense-views``)"""
     auto_dense: bool = True
     """auto: also build the dense geometry when the object is not a sphere, and keep it when the
-    photos agree better through it (reconstruct/photo_consistency.py); --no-auto-dense saves
-    its time (about 70 s on the 119-photo cape at 256 px)"""
+    photos agree better through it (reconstruct/photo_consistency.py). --no-auto-dense saves its
+    time (about 70 s on the 119-photo cape at 256 px)."""
     auto_dense_margin: float = field(default=0.02, metadata=in_range(0, 2, cli_panel="advanced"))
     """auto: the dense geometry is kept when its photo consistency (mean NCC of neighbouring
     photos warped through the surface, over the object's pixels) beats the other geometry's by at
-    least this (cape: dense 0.81 vs visual hull 0.70, dense kept; rendered blob: 0.62 vs 0.73,
-    hull kept; bench/reconstruct.md)"""
+    least this. Measured on the cape: dense 0.81 vs visual hull 0.70, dense kept; rendered blob:
+    0.62 vs 0.73, hull kept (bench/reconstruct.md)."""
     sfm: SfmOptions = field(default_factory=SfmOptions, metadata={"cli_prefix": "", "cli_panel": "Registration"})
     """camera registration (COLMAP; ``--max-image-size``, ``--pairing``, ``--threads``, ``--seed``, ...)"""
     mask_features: Literal["auto", "always", "never"] = "auto"
-    """registration with --masks: 'never' matches features on the whole photo (the static
-    background of a camera moved around a fixed object helps; a background that stands still in
-    the image is filtered anyway); 'always' keeps only features on the object (a turntable whose
-    background does not turn with it); 'auto' registers the whole photos first and, when the
-    self-check flags photos or fewer than 95% register, again with features on the object, and
-    keeps the registration with more photos that pass the self-check"""
+    """with --masks, where registration matches features. 'never' matches features on the whole
+    photo (the static background of a camera moved around a fixed object helps; a background that
+    stands still in the image is filtered anyway); 'always' keeps only features on the object (a
+    turntable whose background does not turn with it); 'auto' registers the whole photos first and,
+    when the self-check flags photos or fewer than 95% register, again with features on the object,
+    and keeps the registration with more photos that pass the self-check"""
     self_check: Literal["drop", "warn", "off"] = "drop"
-    """what the self-check of the cameras (reconstruct/selfcheck.py) does: 'drop' leaves out the
+    """what the self-check of the cameras does (reconstruct/selfcheck.py): 'drop' leaves out the
     photos it flags (named) and refuses a registration where more than half are flagged; 'warn'
     only reports; 'off' does not run it"""
     selfcheck: SelfCheckOptions = field(default_factory=SelfCheckOptions, metadata={"cli_prefix": "", "cli_panel": "Self-check"})
@@ -101,7 +101,8 @@ class ReconstructOptions:
     train_views: int = field(default=10, metadata=COUNT)
     """frames in the train split (the rest are test)"""
     split: SplitKind = "consecutive"
-    """'consecutive' (in file order from ``split_start``, as the paper) or 'spread' (evenly spaced)"""
+    """how the train frames are chosen: 'consecutive' (in file order from ``split_start``, as the
+    paper) or 'spread' (evenly spaced)"""
     split_start: int = field(default=0, metadata=COUNT_OR_ZERO)
     """first train frame of a consecutive split"""
     min_registered: int = field(default=3, metadata={**COUNT, "cli_panel": "advanced"})
@@ -115,24 +116,24 @@ class ReconstructOptions:
     """a response curve file written by ``damcap hdr`` (the ``NAME.exr.json`` record beside its
     output, or that ``NAME.exr``) to undo instead of the sRGB curve for 8-bit photos; None: sRGB"""
     clipped: ClippedPolicy = "auto"
-    """pixels a photo flags clipped (saturated: a display photo's top codes, a RAW file's white
-    level, an EXR's ``clipped`` channel; their radiance is only a lower bound): 'drop' gives them
-    coverage A = 0, 'keep' keeps them, 'auto' keeps a display photo's and drops the others'.
-    Either way reconstruct says how many of the object's pixels were clipped. Why 'auto' keeps the
-    8-bit ones: the photos' white is about where DSSIM's normalisation clips anyway (the
+    """what becomes of pixels a photo flags clipped (saturated: a display photo's top codes, a RAW
+    file's white level, an EXR's ``clipped`` channel; their radiance is only a lower bound): 'drop'
+    gives them coverage A = 0, 'keep' keeps them, 'auto' keeps a display photo's and drops the
+    others'. Either way reconstruct says how many of the object's pixels were clipped. Why 'auto'
+    keeps the 8-bit ones: the photos' white is about where DSSIM's normalisation clips anyway (the
     reference's 95th percentile), and on the bundled studio photos (5 % of the object clipped)
     dropping them made every DAM worse: novel-view DSSIM of the segmentation 0.262 -> 0.274 and of
     one fitted DAM 0.340 -> 0.371, and the export against the truth on the torus x0.71 -> x0.80
-    (aluminium) and x0.29 -> x0.37 (gold) (docs/capture-format.md). Neither wins everywhere:
-    on closed-form captures clipped at 3 or 10 % of the object (``bench/clipped.md``, against the
+    (aluminium) and x0.29 -> x0.37 (gold) (docs/capture-format.md). Neither wins everywhere: on
+    closed-form captures clipped at 3 or 10 % of the object (``bench/clipped.md``, against the
     unclipped truth) dropping them gave the lower novel-view DSSIM under a distant light in 3 of 4
     cases (blob at 3 %: 0.051 against 0.061) and the higher under the environment in all 4 (sphere
-    at 10 %: 0.067 against 0.064), and recovered the highlight better in all 8 (the DAM
-    extrapolates there instead of flattening at the clip). Kept pixels taken as lower bounds
-    (a censored cost: a prediction above them costs nothing) were tried on the same rows and not
-    kept: the DAM overshot the highlight (error the largest of the three in all 8 rows, up to
-    2.92 of the clip level against keep's 0.37), novel-view DSSIM the largest in 7 of 8, and the
-    bundled photos' aluminium export went from x0.57 to x0.61"""
+    at 10 %: 0.067 against 0.064), and recovered the highlight better in all 8 (the DAM extrapolates
+    there instead of flattening at the clip). Kept pixels taken as lower bounds (a censored cost: a
+    prediction above them costs nothing) were tried on the same rows and not kept: the DAM overshot
+    the highlight (error the largest of the three in all 8 rows, up to 2.92 of the clip level
+    against keep's 0.37), novel-view DSSIM the largest in 7 of 8, and the bundled photos' aluminium
+    export went from x0.57 to x0.61"""
     mask_coverage: bool = field(default=True, metadata={"cli_panel": "advanced"})
     """with masks: coverage A is also limited to the mask (keeps background out of silhouettes)"""
     supersample: int = field(default=3, metadata=in_range(1, 16, cli_panel="advanced"))

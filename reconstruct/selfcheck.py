@@ -42,11 +42,11 @@ class SelfCheckOptions:
     the grid's fields are the library's and the bench's)."""
 
     min_silhouette_recall: float = field(default=0.95, metadata={**FRACTION, "cli_panel": "advanced"})
-    """a photo is flagged when fewer of its mask's pixels see the others' visual hull (right
-    cameras: >= 0.985 on every cape photo; one camera turned by 3 deg: 0.85)"""
+    """a photo is flagged when fewer of its mask's pixels see the others' visual hull. Right
+    cameras: >= 0.985 on every cape photo; one camera turned by 3 deg: 0.85."""
     min_silhouette_precision: float = field(default=0.5, metadata={**FRACTION, "cli_panel": "advanced"})
-    """a photo is flagged when less of the others' visual hull lands on its mask (low where a
-    photo alone carves the hull: >= 0.67 on every cape photo with right cameras)"""
+    """a photo is flagged when less of the others' visual hull lands on its mask. It is low where a
+    photo alone carves the hull: >= 0.67 on every cape photo with right cameras."""
     max_reprojection_px: float = field(default=2.0, metadata={**POSITIVE, "cli_panel": "advanced"})
     """a photo whose sparse points reproject worse than this (mean, photo pixels) is flagged"""
     tolerance_fraction: float = field(default=0.1, metadata=in_range(0, 0.5, cli_exclude=True))

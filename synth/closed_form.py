@@ -395,7 +395,7 @@ class ClosedFormOptions:
     """Options of ``damcap closed-form``."""
 
     shape: Literal["sphere", "torus", "blob"] = "sphere"
-    """analytic shape: 'sphere' (radius 1), 'torus' (non-convex; radii 0.9 and 0.4) or 'blob' (the
+    """analytic shape. 'sphere' (radius 1), 'torus' (non-convex; radii 0.9 and 0.4) or 'blob' (the
     smooth union of 2 to 4 spheres drawn from --seed, within the unit sphere; concave blends)"""
     light: Literal["directional", "env"] = "directional"
     """'directional' (one distant light) or 'env' (analytic HDR sky, numerically integrated)"""

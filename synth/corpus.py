@@ -103,8 +103,8 @@ class CorpusOptions:
     """Options of ``damcap synth-set`` (the corpus folder and the shared data folder are arguments)."""
 
     preset: Preset = "small"
-    """what to render (:func:`preset`): 'small' (8 captures, 128 px), 'paper' (720 captures, 256 px),
-    'hyper' (224 predictor-training captures, 128 px), 'segment' (the held-out part with 3
+    """which corpus to render (:func:`preset`). 'small' (8 captures, 128 px), 'paper' (720 captures,
+    256 px), 'hyper' (224 predictor-training captures, 128 px), 'segment' (the held-out part with 3
     materials, 4 captures, 128 px), 'segment-dev' (6 training-part 3-material captures, 128 px:
     where segmentation defaults are chosen)"""
     jobs: int = field(default=1, metadata=in_range(1, 256))

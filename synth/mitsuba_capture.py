@@ -94,8 +94,9 @@ class SynthOptions:
     object: str = "sphere"
     """'sphere' (the analytic unit sphere) or a mesh file (.obj, .ply, .off, .glb, .gltf), normalised into the unit sphere"""
     light: str = "point"
-    """'point[:AZIMUTH_DEG[:ELEVATION_DEG]]' (small spherical area light; position from the seed
-    when not given) or 'env:FILE[:ROTATION_DEG]' (environment map rotated about +y)"""
+    """the light, a small point light or an environment map. 'point[:AZIMUTH_DEG[:ELEVATION_DEG]]'
+    (small spherical area light; position from the seed when not given) or
+    'env:FILE[:ROTATION_DEG]' (environment map rotated about +y)"""
     materials: int = field(default=1, metadata=in_range(1, 8))
     """number of materials: 1 (whole object) or 3 (noise regions) as in the paper; 1..8 allowed"""
     views: int = field(default=32, metadata=in_range(3, MAX_SYNTH_VIEWS))
@@ -103,8 +104,9 @@ class SynthOptions:
     resolution: int = field(default=256, metadata=in_range(8, 4096, cli_flag="--res"))
     """image width and height, pixels"""
     spp: int = field(default=64, metadata=in_range(1, 2 ** 20))
-    """path-tracing samples per pixel (noise floor, bench/synth.md: at 128 px, 512 under environment
-    maps and 256 under the point light keep it under 0.02 DSSIM; twice that at 256 px)"""
+    """path-tracing samples per pixel: more lowers the noise floor and costs time. Noise floor
+    (bench/synth.md): at 128 px, 512 under environment maps and 256 under the point light keep it
+    under 0.02 DSSIM; twice that at 256 px."""
     seed: int = field(default=0, metadata=SEED)
     """chooses camera elevation and start azimuth, material colours and layout, the train start,
     the point light's position (when not given) and the path tracer's random numbers"""

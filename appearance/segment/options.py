@@ -44,10 +44,10 @@ class SegmentOptions:
     unsupervised; keeping them as a soft prior stops the DAMs from trading a material boundary
     for a shading one (measured: bench/segment.md)"""
     illumination_degree: int = field(default=2, metadata=in_range(0, 2, cli_panel="advanced"))
-    """the initial clustering models the illumination's colour as a polynomial of this degree in
-    the world normal (0, 1 or 2; 0 = plain chromaticity k-means): under a tinted environment map
-    one material is redder where it faces the sun and bluer where it faces the sky, and plain
-    k-means splits it by orientation (measured on the segment-dev captures: bench/segment.md)"""
+    """degree of the polynomial in the world normal that models the illumination's colour in the
+    initial clustering (0 = plain chromaticity k-means). Under a tinted environment map one
+    material is redder where it faces the sun and bluer where it faces the sky, and plain k-means
+    splits it by orientation (measured on the segment-dev captures: bench/segment.md)."""
     init_colour: InitColour = field(default="darkest-view", metadata={"cli_panel": "advanced"})
     """the colour the initial clustering sees per pixel: 'pixel' (its own) or 'darkest-view' (the
     least bright observation of the same surface point among the training views). Specular

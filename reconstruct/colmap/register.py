@@ -88,8 +88,9 @@ class SfmOptions:
     way) but decides sparse sets: every 2nd of the first 60 cape photos register 2 of 30 without
     it, 15 of 30 with it (plain pycolmap: 16)"""
     pairing: Pairing = "auto"
-    """'exhaustive' (all pairs), 'sequential' (file order as a ring), 'retrieval' (ring + most
-    similar photos by a vocabulary learned from the set), 'auto' (exhaustive up to
+    """which photo pairs are matched: 'exhaustive' (all pairs), 'sequential' (file order as a
+    ring), 'retrieval' (ring + most similar photos by a vocabulary learned from the set), 'auto'
+    (exhaustive up to
     ``exhaustive_max_images`` photos, else retrieval)"""
     exhaustive_max_images: int = field(default=40, metadata={"cli_exclude": True})
     """'auto' matches all pairs up to this many photos"""
@@ -108,8 +109,8 @@ class SfmOptions:
     camera_model: CameraModelName = "SIMPLE_RADIAL"
     """COLMAP camera model fitted to the photos"""
     principal_point: Literal["auto", "refine", "centre"] = "auto"
-    """after mapping, one more global bundle adjustment with the principal point free tells where
-    the photos put it; 'refine' uses it (instant-ngp's colmap2nerf does), 'centre' keeps the image
+    """where the principal point comes from. After mapping, one more global bundle adjustment
+    with the principal point free tells where the photos put it; 'refine' uses it (instant-ngp's colmap2nerf does), 'centre' keeps the image
     centre (COLMAP's and LLFF's convention), 'auto' uses it where the photos support it
     (:func:`~damcap.reconstruct.colmap.principal_point.photos_support_offset`). It turns every
     camera by about atan(offset / focal): Strecha's ground truth sits (-7.4, -8.35) px off

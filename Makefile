@@ -95,9 +95,9 @@ CAPE := bench/.cache/reconstruct/realworld/cape-8-256
 tables: venv
 	$(VENV)/bin/damcap synth-set $(SMALL) --preset small
 	$(VENV)/bin/damcap synth-set $(SEGMENT) --preset segment
-	$(VENV)/bin/damcap evaluate --table1 $(SMALL) --table1 $(SEGMENT) --out bench/tables
+	$(VENV)/bin/damcap tables --table1 $(SMALL) --table1 $(SEGMENT) --out bench/tables
 	@test -f $(CAPE)/transforms.json || $(PY) -m bench.reconstruct --part realworld
-	$(VENV)/bin/damcap evaluate --table2 $(CAPE) --out bench/tables
+	$(VENV)/bin/damcap tables --table2 $(CAPE) --out bench/tables
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT)

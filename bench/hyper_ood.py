@@ -21,7 +21,10 @@ than RM++; predict + refinement within 2 s at most 1.0x the fit; prediction unde
 Run (from the repository root)::
 
     .venv/bin/python -m bench.hyper_ood --predictors appearance/hyper/predictors/dam-predictor-v1.safetensors \\
-        appearance/hyper/predictors/dam-predictor-v3.safetensors
+        appearance/hyper/predictors/dam-predictor-v10.safetensors
+
+(a retired predictor, e.g. v3, from the history first: ``git show d796965:appearance/hyper/predictors/dam-predictor-v3.safetensors
+> v3.safetensors``; bench/train_predictor.sh holds the recipes).
 
 It writes bench/results/hyper_ood.json and bench/hyper_ood.md (``--out DIR`` elsewhere, ``--tag T``:
 hyper_ood_T.*). Rewriting a report keeps everything from its :data:`HISTORY_MARK` line on (the

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The recipe of the shipped predictors (appearance/hyper/predictors/dam-predictor-v2, -v3, and the start of -v10): train on
+# The recipe of the multi-view predictors (dam-predictor-v2 and -v3, retired, and the start of the shipped -v10): train on
 # random closed-form scenes rendered on the fly on the training device (a GPU where one is
 # present), for a wall-clock budget: 20 calibration steps measure the seconds per step, then the
 # run takes as many steps as fit the budget, writing snapshots at 1/4, 1/2 and 3/4 of it
@@ -7,13 +7,15 @@
 #
 # usage: [NAME=dam-predictor-vN] bench/train_predictor.sh OUT_DIR [SECONDS] [extra train-hyper options, which win]
 # e.g. on a GPU:      NAME=dam-predictor-v2 bench/train_predictor.sh runs/v2 390
-#      v3 = v2 trained further (v2 from the history: git show f25b5a5:appearance/hyper/predictors/dam-predictor-v2.safetensors):
+#      v3 (retired; at commit d796965, its .json there holds the exact command) = v2 trained further (v2 from the history:
+#        git show f25b5a5:appearance/hyper/predictors/dam-predictor-v2.safetensors > v2.safetensors):
 #                        NAME=dam-predictor-v3 bench/train_predictor.sh runs/v3 470 --init v2.safetensors --learning-rate 2e-4
+#        or the file itself: git show d796965:appearance/hyper/predictors/dam-predictor-v3.safetensors > v3.safetensors
 #      v4 = v3 trained through predict's readout solve (ran on the 2-core CPU, 1489 s; its .json holds the command):
 #        damcap train-hyper -o v4.safetensors --procedural 1 --input-views 4 --input-size 128 --channels 16,32,64,128,128,256,256
-#          --pixels 4096 --scene-px 64 --scene-env-grid 8 --device cpu --init v3 --checkpoint-every 100 --learning-rate 1e-4
+#          --pixels 4096 --scene-px 64 --scene-env-grid 8 --device cpu --init v3.safetensors --checkpoint-every 100 --learning-rate 1e-4
 #          --batch-size 8 --steps 400 --eval-every 50 --val-scenes 16 --readout-iterations 3
-#        (on a GPU: this script with --init v3 --readout-iterations 3 --learning-rate 1e-4)
+#        (on a GPU: this script with --init v3.safetensors --readout-iterations 3 --learning-rate 1e-4)
 #      v6 (retired; at commit 11dc441) = v4 + 800 steps (--init v4 --seed 1 -o v5.safetensors, 1684 s; not shipped; today
 #        git show db45094:appearance/hyper/predictors/dam-predictor-v4.safetensors > v4.safetensors, --init v4.safetensors)
 #        + 800 steps (--init v5.safetensors --seed 2 -o v6.safetensors, 1364 s), each v4's command with

@@ -58,7 +58,10 @@ def fit(
     opts: FitOptions,
     given: frozenset[str],
 ) -> None:
-    """Fit a deep appearance map to a capture (L1 or quantile data cost, optional adversarial cost)."""
+    """Fit a deep appearance map to a capture.
+
+    L1 or quantile data cost, optional adversarial cost.
+    """
     from damcap.appearance.coverage import training_normal_histogram
     from damcap.appearance.dam_file import save_dam
     from damcap.appearance.fit import adversarial_frames, fit_dam, holdout_frames
@@ -183,7 +186,10 @@ def render(
     split: str = typer.Option("test", parser=parse_choice("--split", ("test", "train", "all")), metavar="[test|train|all]",
                               help="frames to render"),
 ) -> None:
-    """Render the model into every frame of a split: one linear EXR per frame, background 0."""
+    """Render the model into every frame of a split.
+
+    One linear EXR per frame, background 0.
+    """
     import numpy as np
 
     from damcap.appearance.dam_file import load_dam
@@ -216,47 +222,48 @@ def render(
     typer.echo(f"wrote {len(frames)} frames to {output}")
 
 
-@command(table="damcap.paper.tables:TableOptions")
+@command(table="damcap.paper.tables:TableOptions", hidden=("table",))
 def evaluate(
-    capture: Optional[Path] = typer.Argument(None, help="capture folder (not with --table1 / --table2)"),
+    capture: Optional[Path] = typer.Argument(None, help="capture folder"),
     model: Optional[list[Path]] = typer.Option(None, "--model", help="model file (.dam), repeatable (e.g. a predicted and a fitted one); without it only the baselines"),
     json_path: Optional[Path] = typer.Option(None, "--json", help="write the results as JSON"),
     plot: Optional[Path] = typer.Option(None, "--plot", help="sorted per-frame DSSIM plot (PNG); default next to --json"),
     segmentation: Optional[Path] = typer.Option(None, "--segmentation", help="a folder written by damcap segment"),
     kmeans: Optional[int] = typer.Option(None, "--kmeans", parser=parse_int("--kmeans", (1, MAX_MATERIALS)), metavar="INTEGER",
                                          help="also the k-means baseline with this many materials"),
-    table1: Optional[list[Path]] = typer.Option(None, "--table1", help="the paper's Table 1 on the held-out captures of this synth-set corpus (repeatable: corpora are pooled)"),
-    table2: Optional[Path] = typer.Option(None, "--table2", help="the paper's Table 2 (all three tasks) on this real capture"),
-    out: Optional[Path] = typer.Option(None, "--out", help="folder for the --table1 / --table2 markdown, JSON and plots"),
-    predictor: Optional[Path] = typer.Option(None, "--predictor", help="--table1/--table2: predictor file (default: the shipped v1, the paper's one-view predictor, whatever predict's default)"),
-    table_materials: str = typer.Option("auto", "--table-materials", help="--table2: materials of the segmentation, a number or 'auto'"),
-    fresh: bool = typer.Option(False, "--fresh", help="--table1: recompute every capture instead of resuming"),
+    # the paper's tables, now 'damcap tables': still accepted here (hidden) for existing scripts
+    table1: Optional[list[Path]] = typer.Option(None, "--table1", hidden=True),
+    table2: Optional[Path] = typer.Option(None, "--table2", hidden=True),
+    out: Optional[Path] = typer.Option(None, "--out", hidden=True),
+    predictor: Optional[Path] = typer.Option(None, "--predictor", hidden=True),
+    table_materials: str = typer.Option("auto", "--table-materials", hidden=True),
+    fresh: bool = typer.Option(False, "--fresh", hidden=True),
     *,
     table: TableOptions,
     given: frozenset[str],
 ) -> None:
-    """Mean DSSIM, same view (train) and novel view (test), for the model, RM and RM++
-    (and segmentations: ours and the k-means baseline); or the paper's Table 1 / Table 2."""
+    """Mean DSSIM of the model, RM and RM++, same and novel view.
+
+    Same view (train) and novel view (test), for the model, RM and RM++ (and segmentations: ours
+    and the k-means baseline). The paper's tables: damcap tables.
+    """
     if table1 or table2:
-        from damcap.cli.tables_cmds import run_table1, run_table2
+        from damcap.cli.tables_cmds import run_tables
 
         if capture is not None or model or segmentation or kmeans is not None or json_path or plot:
             raise DamcapError("--table1 / --table2 run every method themselves: give no CAPTURE, --model, --segmentation, --kmeans, --json or --plot")
-        if table1 and table2:
-            raise DamcapError("give --table1 or --table2, not both (they write different tables)")
-        if out is None:
-            raise DamcapError("--table1 / --table2 need --out FOLDER for the markdown, JSON and plots")
-        check_paths([*(table1 or [table2]), predictor], [folder_out(out)])
-        if table1:
-            run_table1(list(table1), out, predictor, fresh, table)
-        else:
-            run_table2(table2, out, predictor, table_materials, table)
+        typer.echo("note: the paper's tables are now 'damcap tables' (same options: damcap tables --table1 CORPUS / --table2 CAPTURE "
+                   "--out DIR); evaluate still runs them", err=True)
+        run_tables(table1, table2, out, predictor, table_materials, fresh, table)
         return
-    if given:
-        raise DamcapError(f"--{sorted(given)[0].replace('.', '-').replace('_', '-')} is an option of --table1 / --table2; "
+    table_only = [flag for flag, on in (("--out", out is not None), ("--predictor", predictor is not None),
+                                        ("--table-materials", table_materials != "auto"), ("--fresh", fresh)) if on]
+    table_only += [f"--{name.replace('.', '-').replace('_', '-')}" for name in sorted(given)]
+    if table_only:
+        raise DamcapError(f"{table_only[0]} is an option of the paper's tables (damcap tables --table1 / --table2); "
                           "without them evaluate scores the given models")
     if capture is None:
-        raise DamcapError("evaluate needs a CAPTURE folder (or --table1 CORPUS / --table2 CAPTURE)")
+        raise DamcapError("evaluate needs a CAPTURE folder (the paper's tables: damcap tables --table1 CORPUS / --table2 CAPTURE)")
     from rich.console import Console
     from rich.table import Table
 

@@ -26,6 +26,7 @@ import typer
 from damcap.common.errors import DamcapError
 
 from damcap.cli import appearance_cmds  # noqa: F401  (registers inspect, fit, render, evaluate)
+from damcap.cli import tables_cmds  # noqa: F401  (registers tables)
 from damcap.cli import capture_cmds  # noqa: F401
 from damcap.cli import synth_cmds  # noqa: F401  (registers closed-form, synth, synth-set, synth-photos, shape)
 from damcap.cli import reconstruct_cmds  # noqa: F401

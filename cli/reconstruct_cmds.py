@@ -25,7 +25,11 @@ def reconstruct(
     opts: ReconstructOptions,
     given: frozenset[str],
 ) -> None:
-    """Photos -> capture folder: cameras (COLMAP or known poses), geometry, linear radiance, buffers, split."""
+    """Photos -> capture folder: cameras, geometry, radiance.
+
+    Cameras (COLMAP or known poses), geometry, linear radiance, per-pixel buffers and the
+    train/test split.
+    """
     from damcap.reconstruct.datasets import dataset_inputs
     from damcap.reconstruct.pipeline import WORK_FOLDER, reconstruct_capture
 

@@ -1,9 +1,11 @@
-"""``damcap evaluate --table1 CORPUS`` and ``--table2 REAL_CAPTURE``: the paper's tables.
+"""``damcap tables --table1 CORPUS`` and ``damcap tables --table2 REAL_CAPTURE``: the paper's tables.
 
 Outputs (in ``--out``): ``table1.md`` / ``table1.json`` / ``table1_<task>_<light>.png``, or
 ``table2.md`` / ``table2.json`` / ``table2_<view>.png`` / ``table2_materials.png``. Table 1 is
 computed capture by capture and ``table1.json`` is rewritten after each one: an interrupted run
 resumes where it stopped (rows of captures already done are reused when the options match).
+``damcap evaluate --table1 / --table2`` (the tables' first home) still runs them, through
+:func:`run_tables`, and says where they are now.
 """
 
 from __future__ import annotations
@@ -13,11 +15,61 @@ import shlex
 import sys
 from dataclasses import asdict
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import typer
 
+from damcap.appearance.hyper.file import PAPER_SHIPPED
+from damcap.cli.app import command
+from damcap.cli.paths import check_paths, folder_out
 from damcap.common.errors import DamcapError
+
+if TYPE_CHECKING:
+    from damcap.paper.tables import TableOptions
+
+TABLE1_HELP = "the paper's Table 1 on the held-out captures of this synth-set corpus (repeatable: corpora are pooled)"
+TABLE2_HELP = "the paper's Table 2 (all three tasks) on this real capture"
+OUT_HELP = "folder for the tables' markdown, JSON and plots"
+PREDICTOR_HELP = (f"predictor file of the learning-to-learn rows (default: the shipped {PAPER_SHIPPED}, the paper's one-view "
+                  "predictor, whatever predict's default)")
+MATERIALS_HELP = "--table2: materials of the segmentation, a number or 'auto'"
+FRESH_HELP = "--table1: recompute every capture instead of resuming"
+
+
+@command(table="damcap.paper.tables:TableOptions")
+def tables(
+    table1: Optional[list[Path]] = typer.Option(None, "--table1", help=TABLE1_HELP),
+    table2: Optional[Path] = typer.Option(None, "--table2", help=TABLE2_HELP),
+    out: Optional[Path] = typer.Option(None, "--out", help=OUT_HELP),
+    predictor: Optional[Path] = typer.Option(None, "--predictor", help=PREDICTOR_HELP),
+    table_materials: str = typer.Option("auto", "--table-materials", help=MATERIALS_HELP),
+    fresh: bool = typer.Option(False, "--fresh", help=FRESH_HELP),
+    *,
+    table: TableOptions,
+) -> None:
+    """The paper's Table 1 or Table 2: markdown, JSON and plots.
+
+    The paper's tables: Table 1 (--table1 CORPUS: representation, learning to learn and segmentation
+    on the held-out captures of synth-set corpora) or Table 2 (--table2 CAPTURE: the three tasks on
+    a real capture), as markdown, JSON and plots in --out.
+    """
+    run_tables(table1, table2, out, predictor, table_materials, fresh, table)
+
+
+def run_tables(table1: Optional[list[Path]], table2: Optional[Path], out: Optional[Path], predictor: Optional[Path],
+               table_materials: str, fresh: bool, opts: "TableOptions") -> None:
+    """``damcap tables`` (and ``evaluate --table1 / --table2``): check the arguments, then one table."""
+    if not table1 and table2 is None:
+        raise DamcapError("give --table1 CORPUS (Table 1) or --table2 CAPTURE (Table 2)")
+    if table1 and table2 is not None:
+        raise DamcapError("give --table1 or --table2, not both (they write different tables)")
+    if out is None:
+        raise DamcapError("--table1 / --table2 need --out FOLDER for the markdown, JSON and plots")
+    check_paths([*(table1 or [table2]), predictor], [folder_out(out)])
+    if table1:
+        run_table1(list(table1), out, predictor, fresh, opts)
+    else:
+        run_table2(table2, out, predictor, table_materials, opts)
 
 
 def _command() -> str:
@@ -36,7 +88,7 @@ def _options_record(opts, predictor: Optional[Path]) -> dict:
 
 
 def run_table1(corpora: list[Path], out: Path, predictor_path: Optional[Path], fresh: bool, opts) -> None:
-    """``--table1``: ``opts`` is the TableOptions of the command line."""
+    """Table 1: ``opts`` is the TableOptions of the command line."""
     from damcap.cli.app import make_bar, stage_progress
     from damcap.paper.tables import heldout_entries, plot_table1, summarise, table1_markdown, table1_rows
     from damcap.common.atomic import write_json_atomic, write_text_atomic
@@ -85,7 +137,7 @@ def run_table1(corpora: list[Path], out: Path, predictor_path: Optional[Path], f
 
 
 def run_table2(capture: Path, out: Path, predictor_path: Optional[Path], materials: str, opts) -> None:
-    """``--table2``: ``opts`` is the TableOptions of the command line."""
+    """Table 2: ``opts`` is the TableOptions of the command line."""
     from damcap.appearance.evaluate import plot_sorted_dssim
     from damcap.cli.app import stage_progress
     from damcap.paper.tables import false_colour_figure, table2_markdown, table2_rows

@@ -4,6 +4,9 @@ Like ``.dam`` files (:mod:`.dam_file`), opening a stranger's predictor executes 
 key ``damcap`` holds JSON with ``format_version``, ``kind`` = ``"dam-predictor"``,
 ``architecture`` (:class:`.hyper.HyperArchitecture`) and ``training`` (command, data, options,
 validation curve, ...).
+
+This module imports torch only when a predictor is read or written: the command line reads its
+names of the shipped predictors (:data:`DEFAULT_SHIPPED`, :data:`PAPER_SHIPPED`) for its help.
 """
 
 from __future__ import annotations
@@ -12,41 +15,39 @@ import json
 import os
 from importlib import resources
 from pathlib import Path
-from typing import Any
-
-import torch
-from safetensors.torch import save as st_save
+from typing import TYPE_CHECKING, Any
 
 from damcap.common.atomic import atomic_path
 from damcap.common.errors import DamcapError
 from damcap.common.validate import loads_json
 
-from damcap.appearance.dam_file import METADATA_KEY, read_damcap_safetensors
-from damcap.appearance.hyper.model import HyperArchitecture, HyperNet
+if TYPE_CHECKING:
+    from damcap.appearance.hyper.model import HyperNet
 
 PREDICTOR_FORMAT_VERSION = 1
 KIND = "dam-predictor"
-SHIPPED = {
-    "v1": "dam-predictor-v1.safetensors",
-    "v3": "dam-predictor-v3.safetensors",
-    "v10": "dam-predictor-v10.safetensors",
-}
-"""the trained predictors shipped in ``damcap.appearance.hyper/predictors/`` by name (each one's
-recipe: the .json beside it; bench/hyper_ood.md compares them): v1 reads one view and was
-trained on 202 Mitsuba captures (the paper's method); v3 reads up to 4 views and was trained on
-random closed-form scenes rendered on a GPU (v2, 900 steps, trained 700 steps further); v10 is v3
-trained further through predict's readout solve (``train-hyper --readout-iterations 3``, on the
-CPU: 400 steps to v4, 1600 to v6, 1600 on a mix with more distant lights to v8, ``--scene-lights-only
-0.55 --scene-env-only 0.3``), then 2400 in its light frame (``--frame light``), for use with that solve"""
-RETIRED = {"v2": "f25b5a5", "v4": "db45094", "v6": "11dc441", "v8": "2d3e413"}
-"""predictors shipped once and no longer, by name: the commit whose
-``appearance/hyper/predictors/`` still holds them (v2 became v3, v4 v6, v6 v8, v8 v10 by further training)"""
 DEFAULT_SHIPPED = "v10"
-"""the predictor ``damcap predict`` uses when none is named"""
+"""the predictor ``damcap predict`` uses when none is named: up to 4 views, random closed-form
+scenes, trained through predict's readout solve, in its light frame"""
 PAPER_SHIPPED = "v1"
-"""the predictor the paper's reproductions use whatever the default (``damcap evaluate --table1 /
---table2`` and bench/hyper.py, bench/dam_core.py): the paper's method, one input view and the
-network's own output, so their published numbers stay the ones measured with it"""
+"""the predictor the paper's reproductions use whatever the default (``damcap tables`` and
+bench/hyper.py, bench/dam_core.py): the paper's method (Sec. 3.3: one input view, the network's own
+output), so their published numbers stay the ones measured with it"""
+SHIPPED = {
+    PAPER_SHIPPED: "dam-predictor-v1.safetensors",
+    DEFAULT_SHIPPED: "dam-predictor-v10.safetensors",
+}
+"""the trained predictors shipped in ``damcap.appearance.hyper/predictors/`` by name, one per
+command that uses one (each one's recipe: the .json beside it; bench/hyper_ood.md compares
+them): v1 reads one view and was trained on 202 Mitsuba captures (the paper's method); v10 reads
+up to 4 views: v3 (random closed-form scenes rendered on a GPU, bench/train_predictor.sh) trained
+further through predict's readout solve (``train-hyper --readout-iterations 3``, on the CPU: 400
+steps to v4, 1600 to v6, 1600 on a mix with more distant lights to v8, ``--scene-lights-only 0.55
+--scene-env-only 0.3``), then 2400 in its light frame (``--frame light``), for use with that solve"""
+RETIRED = {"v2": "f25b5a5", "v3": "d796965", "v4": "db45094", "v6": "11dc441", "v8": "2d3e413"}
+"""predictors shipped once and no longer, by name: the commit whose
+``appearance/hyper/predictors/`` still holds them (v2 became v3, v3 v4, v4 v6, v6 v8, v8 v10 by
+further training; bench/train_predictor.sh holds each one's recipe)"""
 
 
 def shipped_predictor_path(name: str = DEFAULT_SHIPPED) -> Path:
@@ -62,10 +63,10 @@ def shipped_predictor_path(name: str = DEFAULT_SHIPPED) -> Path:
 
 def predictor_path(choice: str | os.PathLike | None) -> Path:
     """The predictor a ``--predictor`` value names: None = the default shipped one, a shipped
-    name (``v1``, ``v3``, ``v10``), or a file path.
+    name (``v1``, ``v10``), or a file path.
 
-    >>> predictor_path("v3").name, predictor_path("my.safetensors").name
-    ('dam-predictor-v3.safetensors', 'my.safetensors')
+    >>> predictor_path("v10").name, predictor_path("my.safetensors").name
+    ('dam-predictor-v10.safetensors', 'my.safetensors')
 
     Raises:
         DamcapError: a retired shipped name (:data:`RETIRED`) that is not also a file here.
@@ -82,6 +83,9 @@ def predictor_path(choice: str | os.PathLike | None) -> Path:
 
 def save_predictor(path: str | os.PathLike, net: HyperNet, training: dict[str, Any]) -> None:
     """Write a predictor atomically (float32 tensors + metadata)."""
+    from safetensors.torch import save as st_save
+
+    from damcap.appearance.dam_file import METADATA_KEY
     meta = {"format_version": PREDICTOR_FORMAT_VERSION, "kind": KIND, "architecture": net.arch.to_json(), "training": training}
     tensors = {k: v.detach().float().contiguous().cpu() for k, v in net.state_dict().items()}
     blob = st_save(tensors, metadata={METADATA_KEY: json.dumps(meta)})
@@ -97,6 +101,11 @@ def load_predictor(path: str | os.PathLike) -> tuple[HyperNet, dict[str, Any]]:
             predictor, a newer format version, tensors that do not match the stated architecture,
             non-finite tensors.
     """
+    import torch
+
+    from damcap.appearance.dam_file import read_damcap_safetensors
+    from damcap.appearance.hyper.model import HyperArchitecture, HyperNet
+
     path = Path(path)
     tensors, meta_text = read_damcap_safetensors(path, "predictor", "predictor")
     meta = loads_json(meta_text, path, "predictor metadata")

@@ -336,3 +336,143 @@ def refine_auto(model: DeepAppearanceMap, samples: PixelSamples, *, max_steps: i
     refined, _, _ = refine_dam(model, samples, chosen.steps_used, learning_rate,
                                progress=refine_progress(chosen.steps_used) if refine_progress else None)
     return refined, chosen
+
+
+# --------------------------------------------------------------------------------------------
+# A capture in, a predicted DAM out (what ``damcap predict`` runs)
+# --------------------------------------------------------------------------------------------
+
+BarFactory = Callable[[str, int], Callable[[int, int, dict], None]]
+"""``(description, total) -> progress(step, steps, stats)``: one progress bar per loop"""
+
+
+@dataclass
+class PredictResult:
+    """What :func:`predict_capture` made: the DAM, what to tell the user, and the record to save."""
+
+    model: DeepAppearanceMap
+    advice: str
+    """the re-synthesis line of the prediction itself (:func:`resynthesis_line`): how well it
+    re-synthesises the train views and whether refining is advised"""
+    summary: str
+    """what was done after the forward pass (solves, refinement) and what it changed, e.g.
+    ``" + 12 ms solving its output layer ...: train DSSIM 0.1 -> 0.05, ..."``; "" for none"""
+    record: dict
+    """the provenance record to save with the model (``save_dam(provenance=...)``)"""
+    input_frames: list
+    """the capture's :class:`~damcap.common.capture_folder.Frame` s the predictor read (the first is ``--view``)"""
+    predict_seconds: float
+    """the forward pass (and the light frame's fit), seconds"""
+    capture: object
+    """the :class:`~damcap.common.capture_folder.Capture` (its colorspace and up direction go with the model)"""
+    normal_histogram: object
+    """:func:`.coverage.training_normal_histogram` of the train pixels (saved with the model)"""
+
+
+def predict_capture(capture, opts: PredictOptions = PredictOptions(), predictor_path=None, *, view: str | None = None,
+                    device: str = "cpu", progress: BarFactory | None = None,
+                    log: Callable[[str], None] | None = None) -> PredictResult:
+    """Predict a DAM from a capture's train views (``damcap predict`` without the command line):
+    the forward pass (in its light frame for a light-frame predictor), then predict's solves of
+    the output layer and of the first and output layers together, or ``opts.refine_steps`` of
+    refinement (``'auto'``: :func:`refine_auto`).
+
+    Args:
+        capture: a capture folder (path) or a :class:`~damcap.common.capture_folder.Capture`.
+        opts: :class:`PredictOptions` (validated here).
+        predictor_path: a predictor file, a shipped predictor's name, or None: the default
+            (:data:`.file.DEFAULT_SHIPPED`).
+        view: the (first) input frame, a train-split file_path or its stem; None: the best
+            covered lit one.
+        device: torch device of the predictor ('cpu', 'cuda', 'auto').
+        progress: a progress bar per refinement loop (:data:`BarFactory`); None: none.
+        log: called with the re-synthesis line (:attr:`PredictResult.advice`) as soon as it is
+            known, before any solve or refinement.
+
+    Raises:
+        DamcapError: a bad option, predictor or capture, or a view that is not in the train split.
+    """
+    from pathlib import Path
+
+    from damcap.appearance.coverage import training_normal_histogram
+    from damcap.appearance.hyper.file import load_predictor, predictor_path as resolve_predictor
+    from damcap.appearance.hyper.frame import rotation_to_up, terminator_fit, unit_direction
+    from damcap.appearance.hyper.model import input_images, predict_from_images, predictor_inputs
+    from damcap.appearance.views import load_views, samples_of
+    from damcap.common.capture_folder import Capture, read_capture
+    from damcap.common.device import resolve_device
+    from damcap.common.version import damcap_version
+    from dataclasses import asdict
+
+    opts.validate()
+    bar = progress or (lambda desc, total: None)
+    pred_path = resolve_predictor(predictor_path)
+    net, meta = load_predictor(pred_path)
+    net.to(resolve_device(device))
+    cap = capture if isinstance(capture, Capture) else read_capture(capture)
+    train_views = load_views(cap, "train")
+    try:
+        ks, crops, capture_scale = predictor_inputs(train_views, net.arch.input_views, None if view is None else Path(view).stem)
+    except DamcapError as e:
+        raise DamcapError(f"{cap.root}: {e}") from None
+    frames = [cap.split("train")[k] for k in ks]
+    t0 = time.perf_counter()
+    images, scale = input_images(crops, net.arch.input_size, capture_scale)
+    # a light-frame predictor: its frame (frame.light_frame) is fitted once, for the network and the record
+    light_fit = terminator_fit(images[None]) if net.arch.frame == "light" else None
+    model = predict_from_images(net, images, scale, None if light_fit is None else rotation_to_up(light_fit)[0])
+    predict_s = time.perf_counter() - t0
+    samples = samples_of(train_views)
+    err = resynthesis_error(model, train_views, samples)
+    advice = resynthesis_line(err, opts.refine_threshold)
+    if log is not None:
+        log(advice)
+    # where the frame put the light: a diagnosis of a poor prediction (frame.light_up_world)
+    frame_record = {} if light_fit is None else {"light_frame_up_world": [float(x) for x in unit_direction(light_fit)[0]]}
+    record = {"damcap_version": damcap_version(), "capture": str(Path(cap.root).resolve()), "predictor": str(Path(pred_path).resolve()),
+              "predictor_command": meta.get("training", {}).get("command"), "view": frames[0].file_path,
+              "input_views": [f.file_path for f in frames],
+              "predict_seconds": predict_s, "options": asdict(opts), "refine_steps": opts.refine_steps,
+              "train_views": err.views, "train_dssim_predicted": err.dssim, "train_l1_predicted": err.l1,
+              "refine_threshold": opts.refine_threshold, "refinement_needed": refinement_needed(err.dssim, opts.refine_threshold),
+              **frame_record}
+    summary = ""
+    if not opts.refine_steps and (opts.readout_iterations or opts.joint_iterations):
+        solved = solve_prediction(model, samples, opts)
+        model, parts = solved.model, []
+        if solved.readout is not None:
+            after = resynthesis_error(solved.readout.model, train_views, samples)
+            record.update(readout_seconds=solved.readout_seconds, readout_iterations_used=solved.readout.iterations,
+                          train_dssim_readout=after.dssim, train_l1_readout=after.l1)
+            parts.append(f"{1000 * solved.readout_seconds:.0f} ms solving its output layer on {min(len(samples), opts.readout_samples)} "
+                         f"train pixels ({solved.readout.iterations} iterations)")
+        if solved.joint is not None:
+            after = resynthesis_error(model, train_views, samples)
+            record.update(joint_seconds=solved.joint_seconds, joint_iterations_used=solved.joint.iterations,
+                          train_dssim_joint=after.dssim, train_l1_joint=after.l1)
+            parts.append(f"{1000 * solved.joint_seconds:.0f} ms solving its first and output layers together on "
+                         f"{min(len(samples), opts.joint_samples)} ({solved.joint.iterations} iterations)")
+        summary = " + " + " + ".join(parts) + f": train DSSIM {err.dssim:.4f} -> {after.dssim:.4f}, L1 {err.l1:.4f} -> {after.l1:.4f}"
+    if opts.refine_steps == AUTO:
+        t1 = time.perf_counter()
+        model, auto = refine_auto(model, samples, max_steps=opts.refine_max_steps, patience_steps=opts.refine_patience,
+                                  learning_rate=opts.refine_learning_rate,
+                                  choose_progress=bar("choose refine steps", opts.refine_max_steps),
+                                  refine_progress=lambda n: bar("refine", n))
+        record.update(refine_seconds=time.perf_counter() - t1, refine_steps_used=auto.steps_used, refine_steps_run=auto.steps_run,
+                      refine_stopped_by=auto.stopped_by, refine_held_out_views=[train_views[i].name for i in auto.held_out],
+                      refine_holdout_curve=auto.curve)
+        why = ("held-out views stopped improving" if auto.stopped_by == "patience"
+               else f"held-out views still improving at --refine-max-steps {opts.refine_max_steps}")
+        summary = f", refined {auto.steps_used} steps (auto: {why}; {auto.steps_run} tried)"
+    elif opts.refine_steps:
+        t1 = time.perf_counter()
+        model, _, _ = refine_dam(model, samples, opts.refine_steps, opts.refine_learning_rate, progress=bar("refine", opts.refine_steps))
+        record.update(refine_seconds=time.perf_counter() - t1, refine_steps_used=opts.refine_steps)
+        summary = f", refined {opts.refine_steps} steps"
+    if opts.refine_steps:
+        after = resynthesis_error(model, train_views, samples)
+        record.update(train_dssim_refined=after.dssim, train_l1_refined=after.l1)
+        summary += f": train DSSIM {err.dssim:.4f} -> {after.dssim:.4f}, L1 {err.l1:.4f} -> {after.l1:.4f}"
+    return PredictResult(model=model, advice=advice, summary=summary, record=record, input_frames=frames, predict_seconds=predict_s,
+                         capture=cap, normal_histogram=training_normal_histogram(samples))

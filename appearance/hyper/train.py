@@ -100,7 +100,7 @@ class HyperTrainOptions:
     """random closed-form scenes (fixed, never trained on) scored by the validation curve when
     ``--procedural`` is above 0"""
     init: str = ""
-    """predictor file, or a shipped one by name (v1, v3, v10), whose weights start the run instead of a
+    """predictor file, or a shipped one by name (v1, v10), whose weights start the run instead of a
     random initialisation: trains a predictor further (the architecture options must match it;
     the learning-rate schedule starts afresh). '' = random initialisation"""
     readout_iterations: int = field(default=0, metadata=in_range(0, 20, cli_panel="advanced"))

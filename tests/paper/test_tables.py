@@ -1,4 +1,4 @@
-"""The paper's tables as one evaluation (evaluate --table1 / --table2) on a tiny closed-form corpus."""
+"""The paper's tables as one evaluation (damcap tables --table1 / --table2) on a tiny closed-form corpus."""
 
 from __future__ import annotations
 
@@ -93,9 +93,9 @@ def test_cells_are_means_over_captures_and_markdown_quotes_the_paper(rows):
     assert got == pytest.approx(rows[0].scores["representation"]["RM++"]["novel"].mean)
     assert cells["segmentation"]["env"]["ours (true weights)"]["same"] == pytest.approx(
         statistics.fmean(r.scores["segmentation"]["ours (true weights)"]["same"].mean for r in rows[2:]))
-    md = table1_markdown(rows, "damcap evaluate --table1 X --out Y")
+    md = table1_markdown(rows, "damcap tables --table1 X --out Y")
     for needle in ("## representation (1 point-light, 1 environment-map captures)", "## learning-to-learn", "## segmentation",
-                   "(paper: 0.800)", "(paper: 0.850)", "0.154 vs 0.164", "damcap evaluate --table1 X --out Y"):
+                   "(paper: 0.800)", "(paper: 0.850)", "0.154 vs 0.164", "damcap tables --table1 X --out Y"):
         assert needle in md, needle
 
 
@@ -121,23 +121,44 @@ def test_table2_covers_all_three_tasks(corpus, predictor):
     assert set(row.scores) == {"representation", "learning-to-learn", "segmentation"}
     assert {"fit", "segment"} <= _finished_stages(calls)
     assert seg.materials == 2 and row.materials == 2
-    md = table2_markdown(row, "damcap evaluate --table2 C --out D", "table2_materials.png")
+    md = table2_markdown(row, "damcap tables --table2 C --out D", "table2_materials.png")
     assert "paper, on its own real spheres" in md and "| segmentation | ours (estimated weights) |" in md
 
 
 def test_table_commands_refuse_bad_input(corpus, tmp_path, capsys):
     empty = tmp_path / "empty"
     empty.mkdir()
-    code, _, err = run_cli(["evaluate", "--table1", empty, "--out", tmp_path / "o"], capsys)
+    code, _, err = run_cli(["tables", "--table1", empty, "--out", tmp_path / "o"], capsys)
     assert_one_line_error(code, err, str(empty), "corpus.json")
-    code, _, err = run_cli(["evaluate", "--table1", corpus], capsys)
+    code, _, err = run_cli(["tables", "--table1", corpus], capsys)
     assert_one_line_error(code, err, "--out")
-    code, _, err = run_cli(["evaluate", corpus / "captures" / "torus_env_m1", "--table1", corpus, "--out", tmp_path / "o"], capsys)
-    assert_one_line_error(code, err, "CAPTURE")
-    code, _, err = run_cli(["evaluate", "--table1", corpus, "--out", corpus / "inside"], capsys)
+    code, _, err = run_cli(["tables", "--table1", corpus, "--table2", corpus / "captures" / "torus_env_m1", "--out", tmp_path / "o"], capsys)
+    assert_one_line_error(code, err, "not both")
+    code, _, err = run_cli(["tables", "--table1", corpus, "--out", corpus / "inside"], capsys)
     assert_one_line_error(code, err, "input")
-    code, _, err = run_cli(["evaluate", "--table2", corpus / "captures" / "torus_env_m1", "--out", tmp_path / "o", "--table-materials", "x"], capsys)
+    code, _, err = run_cli(["tables", "--table2", corpus / "captures" / "torus_env_m1", "--out", tmp_path / "o", "--table-materials", "x"], capsys)
     assert_one_line_error(code, err, "'x'")
+    code, _, err = run_cli(["tables"], capsys)
+    assert_one_line_error(code, err, "--table1")
     code, _, err = run_cli(["evaluate"], capsys)
     assert_one_line_error(code, err, "CAPTURE")
+
+
+def test_evaluate_still_runs_the_tables_and_says_where_they_are_now(corpus, tmp_path, capsys):
+    """``evaluate --table1 / --table2`` and their options (hidden from its help) forward to
+    ``damcap tables``: the same checks, after one note line."""
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    code, _, err = run_cli(["evaluate", "--table1", empty, "--out", tmp_path / "o", "--fit-steps", "5", "--fresh"], capsys)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 2 and lines[0].startswith("note: the paper's tables are now 'damcap tables'")
+    assert str(empty) in lines[1] and "corpus.json" in lines[1]
+    code, _, err = run_cli(["evaluate", corpus / "captures" / "torus_env_m1", "--table1", corpus, "--out", tmp_path / "o"], capsys)
+    assert_one_line_error(code, err, "CAPTURE")
+    code, _, err = run_cli(["evaluate", corpus / "captures" / "torus_env_m1", "--fit-steps", "5"], capsys)
+    assert_one_line_error(code, err, "--fit-steps", "damcap tables")
+    code, out, _ = run_cli(["evaluate", "--help"], capsys)
+    assert code == 0 and "--table1" not in out and "--fit-steps" not in out and "damcap tables" in " ".join(out.split()), out
+
+
     assert heldout_entries([corpus])[0][1]["name"] == "sphere_dir_m1"

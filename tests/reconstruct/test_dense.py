@@ -211,7 +211,7 @@ def test_every_numeric_option_declares_its_range():
 
 
 @pytest.mark.parametrize("change, needle", [
-    ({"depth_planes": 0}, "--depth-planes must be an integer in [4, 1024]"),
+    ({"depth_planes": 0}, "--dense-planes must be an integer in [4, 1024]"),  # reconstruct's flag for it
     ({"min_ncc": float("nan")}, "--min-ncc must be a finite number in [-1, 1]"),
     ({"consistency_depth": 0.0}, "--consistency-depth"),
     ({"ncc_window": 8}, "--ncc-window must be odd"),

@@ -43,6 +43,7 @@ COMMANDS = {
     "evaluate": (lambda i, o: ["evaluate", i / "cap", "--model", i / "m.dam", "--json", o], "file", ".json", "cap"),
     "evaluate-plot": (lambda i, o: ["evaluate", i / "cap", "--model", i / "m.dam", "--plot", o], "file", ".png", "cap"),
     "evaluate-table": (lambda i, o: ["evaluate", "--table2", i / "cap", "--out", o], "folder", "", "cap"),
+    "tables": (lambda i, o: ["tables", "--table2", i / "cap", "--out", o], "folder", "", "cap"),
     "predict": (lambda i, o: ["predict", i / "cap", "--predictor", i / "m.dam", "-o", o], "file", ".dam", "cap"),
     "train-hyper": (lambda i, o: ["train-hyper", i / "cap", "-o", o], "file", ".safetensors", "cap"),
     "hdr": (lambda i, o: ["hdr", i / "a.jpg", i / "b.jpg", "-o", o], "file", ".exr", None),

@@ -32,9 +32,11 @@ def train_hyper_cmd(
     opts: HyperTrainOptions,
     scene: ProceduralOptions,
 ) -> None:
-    """Train the predictor network (learning-to-learn) on a corpus, on random closed-form scenes
-    rendered on the fly (--procedural), or both. Data-parallel under
-    `torchrun --nproc-per-node N -m damcap.cli.main train-hyper ...`."""
+    """Train the predictor network (learning-to-learn).
+
+    On a corpus, on random closed-form scenes rendered on the fly (--procedural), or both.
+    Data-parallel under `torchrun --nproc-per-node N -m damcap.cli.main train-hyper ...`.
+    """
     import os
 
     import hashlib

@@ -281,3 +281,24 @@ def test_solve_prediction_runs_each_solve_at_its_own_count():
     both = solve_prediction(model, samples, PredictOptions(readout_iterations=2, joint_iterations=2))
     assert abs(both.joint.l1_before - both.readout.l1_after) < 1e-5 * both.readout.l1_after  # one after the other (all 500 samples in both)
     assert both.readout_seconds > 0 and both.joint_seconds > 0
+
+
+def test_predict_capture_is_what_the_command_saves(tmp_path, small_capture, tiny_predictor, capsys):
+    """The library call (a Capture in, no command line) gives the model, the lines and the
+    provenance record ``damcap predict`` prints and saves."""
+    import json
+
+    from damcap.appearance.hyper.predict import predict_capture
+
+    said = []
+    result = predict_capture(read_capture(small_capture), PredictOptions(refine_steps=5), tiny_predictor, log=said.append)
+    assert said == [result.advice] and result.advice.startswith("re-synthesis of the 4 train views")
+    assert result.summary.startswith(", refined 5 steps: train DSSIM") and len(result.input_frames) == 1
+    code, stdout, err = run(["predict", small_capture, "-o", tmp_path / "p.dam", "--predictor", tiny_predictor, "--refine-steps", "5"], capsys)
+    assert code == 0, err
+    model, meta = load_dam(tmp_path / "p.dam")
+    assert torch.equal(model.get_flat_weights(), result.model.get_flat_weights())
+    untimed = lambda record: {k: v for k, v in json.loads(json.dumps(record)).items() if not k.endswith("_seconds")}  # noqa: E731
+    assert untimed(meta["provenance"]) == untimed(result.record)
+    lines = stdout.strip().splitlines()
+    assert lines[0] == result.advice and lines[-1].endswith(f"ms{result.summary})")

@@ -116,11 +116,12 @@ class FitOptions:
     held-out views with the same cost"""
 
     spatial: SpatialMode = field(default="off", metadata={"cli_what": "spatial factor"})
-    """the spatial factor (appearance/spatial.py): 'off' (the DAM alone, a function of view and
-    normal only), 'albedo' (an RGB albedo texture on the surface multiplies the DAM: print,
-    tarnish, fine relief) or 'auto' (the albedo only when it lowers the DSSIM of the held-out
-    training views by at least ``spatial_min_gain``). On the real cape (8 train views, 256 px,
-    dense geometry) the albedo lowered novel-view DSSIM from 0.411 to 0.266 (bench/reconstruct.md)"""
+    """an albedo texture on the surface that multiplies the DAM (the spatial factor). 'off' (the
+    DAM alone, a function of view and normal only), 'albedo' (an RGB albedo texture on the surface
+    multiplies the DAM: print, tarnish, fine relief) or 'auto' (the albedo only when it lowers the
+    DSSIM of the held-out training views by at least ``spatial_min_gain``). On the real cape (8
+    train views, 256 px, dense geometry) the albedo lowered novel-view DSSIM from 0.411 to 0.266
+    (bench/reconstruct.md). The factor: appearance/spatial.py."""
     spatial_voxel_px: float = field(default=0.75, metadata=in_range(0.05, 64, cli_panel="advanced"))
     """spatial factor: voxel edge of the albedo texture, in pixels' footprints on the surface
     (smaller: sharper texture, fewer training pixels per voxel)"""
@@ -136,13 +137,14 @@ class FitOptions:
     changed nothing on the novel views."""
 
     normal_refine: NormalRefineMode = field(default="off", metadata={"cli_what": "normal refinement"})
-    """photometric normal refinement (appearance/normal_refine.py): 'off' (the geometry's normals),
-    'on' (a field of normal offsets on the surface, optimised together with the DAM so that it
-    reproduces the training photos: relief the geometry lacks) or 'auto' (the field only when it
-    lowers the DSSIM of the held-out training views by at least ``normal_refine_min_gain``). On
-    the real cape (8 train views, 256 px, dense geometry) it lowered novel-view DSSIM from 0.411
-    to 0.272, 0.244 with the albedo (bench/normal_refine.md). Its cost is steps x pixels per
-    step, whatever the capture's size ('auto' refines twice)"""
+    """normal offsets fitted with the DAM, for relief the geometry lacks
+    (appearance/normal_refine.py). 'off' (the geometry's normals), 'on' (a field of normal offsets
+    on the surface, optimised together with the DAM so that it reproduces the training photos:
+    relief the geometry lacks) or 'auto' (the field only when it lowers the DSSIM of the held-out
+    training views by at least ``normal_refine_min_gain``). On the real cape (8 train views, 256 px,
+    dense geometry) it lowered novel-view DSSIM from 0.411 to 0.272, 0.244 with the albedo
+    (bench/normal_refine.md). Its cost is steps x pixels per step, whatever the capture's size
+    ('auto' refines twice)"""
     normal_refine_voxel_px: float = field(default=_REFINE["voxel_px"].default, metadata={**_REFINE["voxel_px"].metadata, "cli_panel": "advanced"})
     """normal refinement: voxel edge of the offset field, in pixels' footprints on the surface.
     Finer resolves finer relief (1, 2, 4 px measured in bench/normal_refine.md)."""

@@ -14,7 +14,7 @@ from pathlib import Path
 import typer
 from typer.core import TyperCommand
 
-from damcap.cli.options import ADVANCED_PANEL, COMMANDS, OWN_PANEL, command, first_sentence, plain  # noqa: F401  (command: the decorator every command module uses)
+from damcap.cli.options import ADVANCED_PANEL, COMMANDS, DEFAULT_PANEL, OWN_PANEL, command, first_sentence, plain  # noqa: F401  (command: the decorator every command module uses)
 
 WORKFLOW: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("Capture", ("hdr", "linearize", "frames")),
@@ -95,7 +95,8 @@ def _metavar(param, ctx) -> str:
         return param.metavar
     shown = param.display_type_rich(ctx) if hasattr(param, "display_type_rich") else param.type.name
     shown = str(shown or "")
-    return shown[1:-1].upper() if shown.startswith("<") and shown.endswith(">") else shown.upper()
+    shown = shown[1:-1].upper() if shown.startswith("<") and shown.endswith(">") else shown.upper()
+    return {"STR": "TEXT", "INT": "INTEGER"}.get(shown, shown)
 
 
 def _names(param, ctx) -> tuple[list[str], str]:
@@ -143,8 +144,8 @@ def _usage(cmd, ctx) -> str:
 
 def print_command_help(cmd, ctx) -> None:
     """``damcap CMD --help``: usage, the command's docstring, then its visible options in panels
-    (:data:`~damcap.cli.options.OWN_PANEL` first, :data:`~damcap.cli.options.ADVANCED_PANEL`
-    last), each one flag column and one help column, and how many advanced options
+    (:data:`~damcap.cli.options.OWN_PANEL`, then :data:`~damcap.cli.options.DEFAULT_PANEL`, the
+    nested groups' panels, :data:`~damcap.cli.options.ADVANCED_PANEL` last), each one flag column and one help column, and how many advanced options
     ``--help-all`` adds. Nothing is cut: the flag column is as wide as the longest flag."""
     from rich import box
     from rich.console import Console, Group
@@ -173,7 +174,7 @@ def print_command_help(cmd, ctx) -> None:
             advanced += panel == ADVANCED_PANEL
             continue
         panels.setdefault(panel, []).append(param)
-    order = [OWN_PANEL] + [p for p in panels if p not in (OWN_PANEL, ADVANCED_PANEL)] + [ADVANCED_PANEL]
+    order = [OWN_PANEL, DEFAULT_PANEL] + [p for p in panels if p not in (OWN_PANEL, DEFAULT_PANEL, ADVANCED_PANEL)] + [ADVANCED_PANEL]
     rows = {p: [(param, *_names(param, ctx)) for param in panels[p]] for p in order if p in panels}
     cells = [(names, mv) for group in rows.values() for _, names, mv in group]
     longest_token = max((len(n) for names, mv in cells for n in names + [mv]), default=0)
@@ -203,7 +204,7 @@ def print_command_help(cmd, ctx) -> None:
             if default:
                 help_text.append(f" [default: {default}]", style="dim")
             table.add_row("*" if param.required else "", name, help_text)
-        console.print(Panel(table, title=title, title_align="left", border_style="dim", box=box.ROUNDED))
+        console.print(Panel(table, title=title[:1].upper() + title[1:], title_align="left", border_style="dim", box=box.ROUNDED))
     epilog = []
     if advanced:
         epilog.append(f"{advanced} advanced option{'s' if advanced != 1 else ''}: {ctx.command_path} --help-all")

@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import re
 import sys
+from dataclasses import dataclass, field
 
 import pytest
 import typer
@@ -14,7 +15,8 @@ import typer
 import damcap.cli.main  # noqa: F401  (registers every command)
 from damcap.cli import app as app_module
 from damcap.cli.app import WORKFLOW, LineProgress, build_app, make_bar, summary
-from damcap.cli.options import ADVANCED_PANEL, COMMANDS, first_clause, first_sentence, help_line, plain
+from damcap.cli.options import ADVANCED_PANEL, COMMANDS, DEFAULT_PANEL, first_clause, first_sentence, help_line, option_specs, plain
+from damcap.common.validate import in_range
 
 from tests.conftest import run_cli as run
 
@@ -196,3 +198,30 @@ def test_a_terminal_with_a_width_gets_a_tqdm_bar(fake_terminal):
         assert isinstance(bar, tqdm)
     finally:
         bar.close()
+
+
+@dataclass(frozen=True)
+class Inner:
+    a: int = 1
+    """in the group's panel"""
+    b: int = field(default=2, metadata=in_range(0, 9, cli_panel="advanced"))
+    """a research knob"""
+    c: int = field(default=3, metadata={"cli_panel": "Elsewhere"})
+    """its own panel"""
+
+
+@dataclass(frozen=True)
+class Outer:
+    inner: Inner = field(default_factory=Inner, metadata={"cli_prefix": "", "cli_panel": "Group"})
+    top: int = 4
+    """a top-level field"""
+
+
+def test_a_field_panel_wins_over_its_group_and_advanced_is_hidden_until_help_all():
+    panels = {s.flags[0]: (s.info.rich_help_panel, s.info.hidden) for s in option_specs(Outer)}
+    assert panels == {"--a": ("Group", False), "--b": (ADVANCED_PANEL, True), "--c": ("Elsewhere", False),
+                      "--top": (DEFAULT_PANEL, False)}
+    shown = {s.flags[0]: s.info.hidden for s in option_specs(Outer, show_all=True)}
+    assert shown["--b"] is False
+    hidden_group = {s.flags[0]: (s.info.rich_help_panel, s.info.hidden) for s in option_specs(Outer, hidden=True, show_all=True)}
+    assert all(h for _, h in hidden_group.values()) and hidden_group["--b"][0] != ADVANCED_PANEL  # aliases stay hidden

@@ -71,10 +71,10 @@ class PredictOptions:
     view and the device are the command's own)."""
 
     refine_steps: RefineSteps = field(default=0, metadata={"cli_parse": parse_refine_steps})
-    """refinement after predicting: K = K steps of the fit's cost on all train views (0 = none),
-    or 'auto' = choose K as the step where the views the fit's stopping rule holds out stop
-    improving (refining on the other train views, at most --refine-max-steps), then take K steps
-    on all train views"""
+    """refinement steps after predicting: a number K (0 = none) or 'auto'. K = K steps of the fit's
+    cost on all train views; 'auto' = choose K as the step where the views the fit's stopping rule
+    holds out stop improving (refining on the other train views, at most --refine-max-steps), then
+    take K steps on all train views"""
     refine_max_steps: int = field(default=1000, metadata={**COUNT, "cli_panel": "advanced"})
     """--refine-steps auto: most steps it may choose (it runs at most twice this many: choosing, then
     refining)"""

@@ -17,6 +17,7 @@ from damcap.cli.main import main
 from damcap.common.capture_folder import inspect_capture, read_capture, read_frame
 from damcap.common.errors import DamcapError
 from damcap.reconstruct.normalize import rotation_agreement_deg, similarity_scale, transform_world_from_cam, umeyama_similarity
+from damcap.reconstruct.colmap.register import SfmOptions
 from damcap.reconstruct.dense import DenseOptions
 from damcap.reconstruct.geometry import GeometryOptions
 from damcap.reconstruct.pipeline import ReconstructOptions, reconstruct_capture, split_indices
@@ -34,8 +35,12 @@ N_PHOTOS = 20
 PHOTO_SIZE = 256
 SEED = 0
 LIGHT = np.array([0.4, 0.8, 0.45]) / np.linalg.norm([0.4, 0.8, 0.45])
-FAST = dict(capture_size=96, geometry=GeometryOptions(voxels=64), train_views=5, supersample=2)
-FAST_EXCEPT_GEOMETRY = {k: v for k, v in FAST.items() if k != "geometry"}
+#: the dense surface ``--geometry auto`` also builds, small where a test is about something else
+#: (the dense tests below and test_dense.py measure it); the CLI runs pass the same as flags
+SMALL_DENSE = DenseOptions(image_size=64, depth_planes=32)
+SMALL_DENSE_FLAGS = ["--dense-size", "64", "--dense-planes", "32"]
+FAST = dict(capture_size=96, geometry=GeometryOptions(voxels=64), dense=SMALL_DENSE, train_views=5, supersample=2)
+FAST_EXCEPT_GEOMETRY = {k: v for k, v in FAST.items() if k not in ("geometry", "dense")}
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +59,7 @@ def sfm_capture(scene, tmp_path_factory) -> tuple[Path, object]:
     out = tmp_path_factory.mktemp("sfm") / "capture"
     code = main([
         "reconstruct", str(scene["root"] / "images"), "-o", str(out), "--masks", str(scene["root"] / "masks"),
-        "--capture-size", "96", "--voxels", "64", "--train-views", "5", "--supersample", "2",
+        "--capture-size", "96", "--voxels", "64", "--train-views", "5", "--supersample", "2", *SMALL_DENSE_FLAGS,
     ])
     assert code == 0
     return out
@@ -74,6 +79,8 @@ def test_sfm_capture_is_valid(sfm_capture):
     doc = json.loads((sfm_capture / "transforms.json").read_text())
     src = doc["damcap_source"]
     assert src["tool"] == "damcap reconstruct" and src["options"]["capture_size"] == 96 and src["damcap_version"]
+    # the resolved options, nested as ReconstructOptions holds them (--voxels is the geometry's)
+    assert src["options"]["geometry"]["voxels"] == 64 and src["options"]["sfm"]["max_image_size"] == SfmOptions().max_image_size
     assert src["registration"]["source"] == "sfm" and src["registration"]["registered"] == N_PHOTOS
     pp = src["registration"]["principal_point"]  # estimated on a copy; the cameras keep the centre
     assert pp["used"] is False and len(pp["offset_px"]) == len(pp["sd_px"]) == 2 and pp["tilt_deg"] >= 0
@@ -176,7 +183,7 @@ def test_rendered_turntable_and_orbit_sets_register_correctly_by_default(motion,
     make_photo_set(photos, PhotoSetOptions(views=views, size=size, motion=motion, room=True, jitter_deg=2.0))
     out = tmp_path / "capture"
     assert main(["reconstruct", str(photos / "images"), "-o", str(out), "--masks", str(photos / "masks"), "--capture-size", "64",
-                 "--voxels", "48", "--supersample", "1", "--train-views", "5"]) == 0
+                 "--voxels", "48", "--supersample", "1", "--train-views", "5", *SMALL_DENSE_FLAGS]) == 0
     cap = read_capture(out)
     src = cap.extra["damcap_source"]
     assert len(cap.frames) == views and src["self_check"]["verdict"] == "consistent"
@@ -315,7 +322,6 @@ def test_cli_mirrors_the_options_one_to_one():
 
     from damcap.cli.options import option_specs
     from damcap.cli.reconstruct_cmds import reconstruct
-    from damcap.reconstruct.colmap.register import SfmOptions
     from damcap.reconstruct.selfcheck import SelfCheckOptions
 
     opts = ReconstructOptions()
@@ -366,7 +372,7 @@ def test_auto_builds_the_dense_surface_too_and_keeps_the_one_the_photos_agree_wi
 
     common = dict(masks_dir=scene["root"] / "masks", poses=str(scene["root"] / "transforms.json"))
     cap, report = reconstruct_capture(scene["root"] / "images", tmp_path / "auto",
-                                      ReconstructOptions(dense=DenseOptions(image_size=96), **FAST), **common)  # type: ignore[arg-type]
+                                      ReconstructOptions(**{**FAST, "dense": DenseOptions(image_size=96)}), **common)  # type: ignore[arg-type]
     check = report.geometry_check
     assert check is not None and check["built"] and set(check["photo_consistency"]) == {"visual-hull", "dense"}
     scores = {k: Consistency(**v) for k, v in check["photo_consistency"].items()}

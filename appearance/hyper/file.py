@@ -107,6 +107,10 @@ def load_predictor(path: str | os.PathLike) -> tuple[HyperNet, dict[str, Any]]:
     from damcap.appearance.hyper.model import HyperArchitecture, HyperNet
 
     path = Path(path)
+    retired = path.name.removeprefix("dam-predictor-").removesuffix(".safetensors")
+    if not path.exists() and path.name.startswith("dam-predictor-") and retired in RETIRED:
+        raise DamcapError(f"{path}: not found; damcap no longer ships predictor {retired}: git show {RETIRED[retired]}:"
+                          f"appearance/hyper/predictors/{path.name} > {path.name} (bench/train_predictor.sh holds its recipe)")
     tensors, meta_text = read_damcap_safetensors(path, "predictor", "predictor")
     meta = loads_json(meta_text, path, "predictor metadata")
     if not isinstance(meta, dict) or meta.get("kind") != KIND:

@@ -63,6 +63,10 @@ def test_every_shipped_predictor_loads_and_a_retired_name_says_which_commit_hold
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "v4: damcap no longer ships" in err[0] and RETIRED["v4"] in err[0] and "Traceback" not in err[0]
     assert main(["train-hyper", "-o", str(tmp_path / "p.safetensors"), "--procedural", "1", "--init", "v4"]) == 2
+    # a bench's path to a retired predictor's old file says how to get it back
+    with pytest.raises(DamcapError, match=rf"no longer ships predictor v3: git show {RETIRED['v3']}:appearance/hyper/predictors/"
+                                          r"dam-predictor-v3.safetensors > dam-predictor-v3.safetensors"):
+        load_predictor(tmp_path / "predictors" / "dam-predictor-v3.safetensors")
     (tmp_path / "v4").write_bytes(b"")  # a file by that name is the user's file, not the retired predictor
     assert predictor_path("v4") == Path("v4")
 

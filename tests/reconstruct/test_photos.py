@@ -36,6 +36,7 @@ from damcap.reconstruct.photos import (
     proxy_srgb_u8,
     read_photo_radiance,
 )
+from damcap.reconstruct.dense import DenseOptions
 from damcap.reconstruct.geometry import GeometryOptions
 from damcap.reconstruct.pipeline import ReconstructOptions, ReconstructReport, reconstruct_capture
 from damcap.synth.photos import (
@@ -489,7 +490,8 @@ def test_sfm_registers_linear_exrs_through_8bit_proxies(tmp_path):
     cams = orbit_cameras(n, 3.2, (25.0,), jitter_deg=4, seed=0)
     names = write_photo_set(tmp_path, bumpy_blob(subdivisions=5), cams, default_intrinsics(256), exposure_series(n, 0))
     linearize_files(linearize_list(tmp_path / "images"), tmp_path / "linear", LinearizeOptions())
-    opts = ReconstructOptions(capture_size=64, geometry=GeometryOptions(voxels=48), train_views=3, supersample=1)
+    opts = ReconstructOptions(capture_size=64, geometry=GeometryOptions(voxels=48), dense=DenseOptions(image_size=64, depth_planes=32),
+                              train_views=3, supersample=1)
     out = tmp_path / "capture"
     _, report = reconstruct_capture(tmp_path / "linear", out, opts, masks_dir=tmp_path / "masks")
     assert report.registered == n and report.registration["source"] == "sfm"

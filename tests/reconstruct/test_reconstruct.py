@@ -78,7 +78,9 @@ def test_sfm_capture_is_valid(sfm_capture):
     assert s.frames == N_PHOTOS and (s.train, s.test) == (5, N_PHOTOS - 5) and s.resolution == (96, 96)
     doc = json.loads((sfm_capture / "transforms.json").read_text())
     src = doc["damcap_source"]
-    assert src["tool"] == "damcap reconstruct" and src["options"]["capture_size"] == 96 and src["damcap_version"]
+    assert src["tool"] == "damcap reconstruct" and src["options"]["capture_size"] == 96
+    # the package's version string; "damcap_version" is the capture format's integer, at the top
+    assert src["damcap_package_version"] and "damcap_version" not in src and doc["damcap_version"] == 1
     # the resolved options, nested as ReconstructOptions holds them (--voxels is the geometry's)
     assert src["options"]["geometry"]["voxels"] == 64 and src["options"]["sfm"]["max_image_size"] == SfmOptions().max_image_size
     assert src["registration"]["source"] == "sfm" and src["registration"]["registered"] == N_PHOTOS

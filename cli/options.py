@@ -20,6 +20,8 @@ Per-field metadata (plain keys, so the library never imports ``cli``):
 
 - ``cli_flag``: the flag where an existing spelling differs from the field name
   (``{"cli_flag": "--res"}``; for a bool ``"--single-camera/--camera-per-photo"``);
+- ``cli_old_flags``: a field's earlier spelling(s), comma-separated (``"--frame"``): they still
+  parse, for users' scripts, and stay out of ``--help``; giving both spellings is an error;
 - ``cli_exclude``: True for a field that is not a user option;
 - ``cli_parse``: ``str -> value`` for a value with its own syntax (raises DamcapError);
 - ``cli_what``: what a rejected choice is called (``"DAM input encoding"`` -> ``unknown DAM
@@ -66,6 +68,7 @@ from damcap.common.validate import RANGE, Range, check_value
 
 CLI_FLAG = "cli_flag"
 CLI_EXCLUDE = "cli_exclude"
+CLI_OLD_FLAGS = "cli_old_flags"
 CLI_PARSE = "cli_parse"
 CLI_WHAT = "cli_what"
 CLI_PREFIX = "cli_prefix"
@@ -304,6 +307,8 @@ class OptionSpec:
     """the annotation typer sees"""
     info: Any
     """the ``typer.Option(...)`` default"""
+    old: bool = False
+    """an earlier spelling of the field's option (``cli_old_flags``): parsed, hidden from the help"""
 
 
 def option_specs(cls: type, *, exclude: frozenset[str] = frozenset(), prefix: tuple[str, ...] = (),
@@ -378,6 +383,13 @@ def option_specs(cls: type, *, exclude: frozenset[str] = frozenset(), prefix: tu
         flags = tuple(flag.split(",")) if "," in flag else (flag,)
         info = typer.Option(default, *flags, **kw)
         specs.append(OptionSpec("__".join(path), path, flags, default, annotation, info))
+        if f.metadata.get(CLI_OLD_FLAGS):
+            old_flags = tuple(f.metadata[CLI_OLD_FLAGS].split(","))
+            old_kw = {**kw, "hidden": True, "rich_help_panel": None}
+            if "parser" in old_kw and origin is Literal:  # a rejected value names the spelling typed
+                old_kw["parser"] = parse_choice(old_flags[0], get_args(tp), f.metadata.get(CLI_WHAT))
+            specs.append(OptionSpec("__".join(path) + "__old", path, old_flags, default, annotation,
+                                    typer.Option(default, *old_flags, **old_kw), old=True))
     return specs
 
 
@@ -504,10 +516,16 @@ class DerivedCommand:
             given: set[str] = set()
             for pname, group in specs.items():
                 values = {}
-                for s in group:
-                    values[s.path] = kwargs.pop(s.param)
+                for s in group:  # an old spelling comes right after its field's own option
+                    value = kwargs.pop(s.param)
                     source = ctx.get_parameter_source(s.param)
-                    if source is not None and source.name in ("COMMANDLINE", "ENVIRONMENT"):
+                    typed = source is not None and source.name in ("COMMANDLINE", "ENVIRONMENT")
+                    if s.old and typed and ".".join(s.path) in given:
+                        new = next(t.flags[0] for t in group if t.path == s.path and not t.old)
+                        raise typer.BadParameter(f"{s.flags[0]} is the old spelling of {new}: give one of them")
+                    if typed or not s.old:
+                        values[s.path] = value
+                    if typed:
                         given.add(".".join(s.path))
                 kwargs[pname] = build_options(classes[pname], values)
             if self.wants_given:
@@ -525,7 +543,7 @@ class DerivedCommand:
 
     def flags(self) -> dict[str, tuple[str, ...]]:
         """Every derived option's flags by field path (``"fit.steps"``), for help and tests."""
-        return {".".join(s.path): s.flags for group in self.specs().values() for s in group}
+        return {".".join(s.path): s.flags for group in self.specs().values() for s in group if not s.old}
 
 
 COMMANDS: list[DerivedCommand] = []

@@ -14,7 +14,7 @@ import damcap.cli.main  # noqa: F401  (registers every command)
 from damcap.cli import app as app_module
 from damcap.cli.options import COMMANDS, DerivedCommand, field_docs
 from damcap.common.validate import RANGE, number_kind, in_range
-from damcap.common.version import damcap_version
+from damcap.common.version import package_version
 
 from tests.conftest import assert_one_line_error
 from tests.conftest import run_cli as run
@@ -57,6 +57,14 @@ class Outer:
     """rounds of the outer loop"""
 
 
+@dataclass(frozen=True)
+class Renamed:
+    """Options one of whose flags was renamed."""
+
+    shade: Literal["light", "dark"] = field(default="light", metadata={"cli_old_flags": "--tone,--hue"})
+    """the shade"""
+
+
 @pytest.fixture()
 def toy(monkeypatch):
     """``damcap toy`` and ``damcap outer``, registered for one test; the calls they received."""
@@ -70,7 +78,12 @@ def toy(monkeypatch):
         """A command with nested options."""
         calls.append((opts,))
 
-    cmds = [DerivedCommand(toy_fn, "toy", {"opts": Toy}, {}), DerivedCommand(outer_fn, "outer", {"opts": Outer}, {})]
+    def renamed_fn(*, opts: Renamed, given: frozenset[str]) -> None:
+        """A command with a renamed flag."""
+        calls.append((opts, given))
+
+    cmds = [DerivedCommand(toy_fn, "toy", {"opts": Toy}, {}), DerivedCommand(outer_fn, "outer", {"opts": Outer}, {}),
+            DerivedCommand(renamed_fn, "renamed", {"opts": Renamed}, {})]
     monkeypatch.setattr(app_module, "COMMANDS", COMMANDS + cmds)
     return calls
 
@@ -151,6 +164,25 @@ def test_nested_options_dataclass_is_flattened_with_its_instance_defaults(toy, c
     assert toy[-1] == (Outer(inner=Toy(steps=3, mode="exact"), rounds=4),)
 
 
+def test_an_old_flag_spelling_parses_and_stays_out_of_the_help(toy, capsys, monkeypatch):
+    for flag in ("--help", "--help-all"):
+        out = help_text(["renamed"], capsys, monkeypatch, flag=flag)
+        assert "--shade" in out and "--tone" not in out and "--hue" not in out
+    for args in (["--tone", "dark"], ["--hue", "dark"], ["--shade", "dark"]):
+        code, _, err = run(["renamed", *args], capsys)
+        assert code == 0, err
+        assert toy[-1] == (Renamed(shade="dark"), frozenset({"shade"}))
+    code, _, err = run(["renamed"], capsys)
+    assert code == 0 and toy[-1] == (Renamed(), frozenset())  # the old spelling's default does not count as given
+    n = len(toy)
+    code, _, err = run(["renamed", "--tone", "grey"], capsys)
+    assert_one_line_error(code, err, "--tone must be one of light, dark, got 'grey'")
+    code, _, err = run(["renamed", "--shade", "dark", "--tone", "dark"], capsys)
+    assert_one_line_error(code, err, "--tone", "--shade")
+    assert len(toy) == n
+    assert DerivedCommand(lambda *, opts: None, "x", {"opts": Renamed}, {}).flags() == {"shade": ("--shade",)}
+
+
 def _fields(cls, prefix=""):
     """Every user-option field of an options dataclass, nested ones as 'outer.inner'."""
     out = []
@@ -191,7 +223,7 @@ def test_every_field_of_every_command_is_reachable_from_its_help(cmd, capsys, mo
 
 def test_version_prints_damcap_and_its_version(capsys):
     code, out, _ = run(["--version"], capsys)
-    assert code == 0 and out.strip() == f"damcap {damcap_version()}"
+    assert code == 0 and out.strip() == f"damcap {package_version()}"
 
 
 def test_listing_commands_imports_no_options_dataclass():

@@ -48,7 +48,7 @@ from bench.common import BENCH, CACHE, RESULTS, command_line, log, machine_info
 from damcap.appearance.evaluate import evaluate_split
 from damcap.appearance.fit import FitOptions, fit_dam, refine_dam
 from damcap.appearance.hyper.file import load_predictor
-from damcap.appearance.hyper.frame import light_up_world
+from damcap.appearance.hyper.orientation import light_up_world
 from damcap.appearance.hyper.model import input_images, predict_dam, predictor_inputs
 from damcap.appearance.hyper.predict import PredictOptions, refine_auto
 from damcap.appearance.readout import solve_first_and_output_layers, solve_output_layer
@@ -141,9 +141,9 @@ def solved_refine_runs(name: str, refine_steps: list[int]) -> list[tuple[str, in
     return [(f"{name} readout + {k}", k) for k in refine_steps]
 
 
-def light_frame_record(net: torch.nn.Module, crops: list[torch.Tensor], scale: float, light_world: torch.Tensor | None) -> dict:
-    """Where a light-frame predictor's frame puts the light (:mod:`damcap.appearance.hyper.frame`):
-    ``frame.light_up_world`` of its input images, world space (0 when it has no direction),
+def light_orientation_record(net: torch.nn.Module, crops: list[torch.Tensor], scale: float, light_world: torch.Tensor | None) -> dict:
+    """Where a light-orientation predictor puts the light (:mod:`damcap.appearance.hyper.orientation`):
+    ``orientation.light_up_world`` of its input images, world space (0 when it has no direction),
     and its angle in degrees to the capture's one distant light when both are known
     (``light_world``, unit; else None)."""
     images, _ = input_images(crops, net.arch.input_size, scale)
@@ -172,8 +172,8 @@ def bench_capture(kind: str, path: Path, nets: dict[str, torch.nn.Module], refin
             times.append(time.perf_counter() - t)
         models[name] = model
         rec["predict_ms"][name] = 1000 * statistics.median(times)
-        if name in nets and net.arch.frame == "light":
-            rec.setdefault("light_frame", {})[name] = light_frame_record(net, crops, scale, light_world)
+        if name in nets and net.arch.orientation == "light":
+            rec.setdefault("light_orientation", {})[name] = light_orientation_record(net, crops, scale, light_world)
         for key, k, n in readout_runs(name, *readout) if name in nets else []:
             solve_times = []
             for _ in range(5):
@@ -295,16 +295,17 @@ def write_markdown(res: dict, path: Path) -> None:
             return f" {statistics.mean(vals):.4f} | x{ratio:.2f} |"
         for name, step, total in sorted(points, key=lambda x: x[2]):
             lines.append(f"| {name} | {step} | {total} |" + cells(name) + (cells(solved_rows.get(name, "")) if solved_rows else ""))
-    frames = [(r, n, f) for r in res["per_capture"] for n, f in (r.get("light_frame") or {}).items()]
-    if frames:
+    # results written before the predictor's coordinates were called its orientation say "light_frame"
+    lights = [(r, n, f) for r in res["per_capture"] for n, f in (r.get("light_orientation") or r.get("light_frame") or {}).items()]
+    if lights:
         how = {"terminator_fit": "the unit least-absolute-deviations fit of its input views' radiance by c + max(0, b . N) "
-                                 "(`frame.terminator_fit`)"}.get(res.get("light_frame_fit", ""),
-                                                                   "the unit least-squares brightness gradient of its input views over their normals")
-        lines += ["", "## Light frame", "", f"Where each light-frame predictor's frame puts the light (its +y): {how}, world space, "
+                                 "(`orientation.terminator_fit`)"}.get(res.get("light_orientation_fit", res.get("light_frame_fit", "")),
+                                                                       "the unit least-squares brightness gradient of its input views over their normals")
+        lines += ["", "## Light orientation", "", f"Where each light-orientation predictor puts the light (its +y): {how}, world space, "
                   "and on the closed-form captures under one distant light its angle to that light.", "",
-                  "| capture | predictors | light frame's +y, world | angle to the light, deg |", "|---|---|---|---:|"]
-        rows: dict[tuple, list[str]] = {}  # predictors reading the same views find the same frame: one row
-        for r, n, f in frames:
+                  "| capture | predictors | light orientation's +y, world | angle to the light, deg |", "|---|---|---|---:|"]
+        rows: dict[tuple, list[str]] = {}  # predictors reading the same views find the same orientation: one row
+        for r, n, f in lights:
             angle = "" if f["angle_to_light_deg"] is None else f"{f['angle_to_light_deg']:.1f}"
             rows.setdefault((Path(r["capture"]).name, f"({', '.join(f'{x:.2f}' for x in f['up_world'])})", angle), []).append(n)
         lines += [f"| {cap} | {', '.join(names)} | {up} | {angle} |" for (cap, up, angle), names in rows.items()]
@@ -393,7 +394,7 @@ def main(argv: list[str] | None = None) -> int:
            "snapshots": snap_steps,
            "snapshot_readout": {n: first_readout_key(n, readout) for n in [*snaps, *nets]} if args.readout and snaps else {},
            "predictor_steps": pred_steps, "per_capture": per, "summary": summarise(per),
-           "light_frame_fit": "terminator_fit"}  # what frame.light_up_world fits (before 2026-11-28 05:00 UTC: brightness_gradient)
+           "light_orientation_fit": "terminator_fit"}  # what orientation.light_up_world fits (before 2026-11-28 05:00 UTC: brightness_gradient)
     stem = f"hyper_ood_{args.tag}" if args.tag else "hyper_ood"
     out_json = (args.out or RESULTS) / f"{stem}.json"
     out_md = (args.out or BENCH) / f"{stem}.md"

@@ -23,7 +23,8 @@
 #      v8 (retired; at commit 2d3e413) = v6 + 800 steps (--init v6 --seed 3 -o v7.safetensors, 1151 s; not shipped)
 #        + 800 steps (--init v7.safetensors --seed 4 -o v8.safetensors, 1126 s), each v6's command with
 #        --scene-lights-only 0.55 --scene-env-only 0.3 (more distant-light scenes; bench/hyper_ood.md, history "v8")
-#      v10 (shipped, the default) = v8 + 3 x 800 steps in the light frame, each v8's command with --frame light
+#      v10 (shipped, the default) = v8 + 3 x 800 steps in the light orientation, each v8's command with --orientation light
+#        (its recorded command spells it --frame light, the old spelling, which still parses)
 #        --learning-rate 2e-4: --init v8 --seed 7 -o light1.safetensors (1296 s), --init light1.safetensors --seed 8
 #        -o light2.safetensors (1353 s), --init light2.safetensors --seed 9 --val-scenes 32 -o v10.safetensors (1617 s)
 #        (bench/hyper_ood.md, history "v10")

@@ -104,7 +104,7 @@ def predict(
     view: Optional[str] = typer.Option(None, "--view", help="(first) input frame (a train-split file_path or its stem); default: the best "
                                        "covered lit one; a predictor reading several views adds the lit views that spread the cameras most"),
     predictor: Optional[str] = typer.Option(None, "--predictor", help=f"predictor file, or a shipped one by name: {DEFAULT_SHIPPED} (the default: up "
-                                            "to 4 views, random closed-form scenes, trained through the readout solve, in its light frame) "
+                                            "to 4 views, random closed-form scenes, trained through the readout solve, in its light orientation) "
                                             f"or {PAPER_SHIPPED} (one view, trained on Mitsuba captures: the paper's); "
                                             "docs/learning-to-learn.md compares them"),
     device: str = typer.Option("cpu", help="cpu | cuda | auto"),

@@ -28,7 +28,7 @@ PREDICTOR_FORMAT_VERSION = 1
 KIND = "dam-predictor"
 DEFAULT_SHIPPED = "v10"
 """the predictor ``damcap predict`` uses when none is named: up to 4 views, random closed-form
-scenes, trained through predict's readout solve, in its light frame"""
+scenes, trained through predict's readout solve, in its light orientation"""
 PAPER_SHIPPED = "v1"
 """the predictor the paper's reproductions use whatever the default (``damcap tables`` and
 bench/hyper.py, bench/dam_core.py): the paper's method (Sec. 3.3: one input view, the network's own
@@ -43,7 +43,7 @@ them): v1 reads one view and was trained on 202 Mitsuba captures (the paper's me
 up to 4 views: v3 (random closed-form scenes rendered on a GPU, bench/train_predictor.sh) trained
 further through predict's readout solve (``train-hyper --readout-iterations 3``, on the CPU: 400
 steps to v4, 1600 to v6, 1600 on a mix with more distant lights to v8, ``--scene-lights-only 0.55
---scene-env-only 0.3``), then 2400 in its light frame (``--frame light``), for use with that solve"""
+--scene-env-only 0.3``), then 2400 in its light orientation (``--orientation light``), for use with that solve"""
 RETIRED = {"v2": "f25b5a5", "v3": "d796965", "v4": "db45094", "v6": "11dc441", "v8": "2d3e413"}
 """predictors shipped once and no longer, by name: the commit whose
 ``appearance/hyper/predictors/`` still holds them (v2 became v3, v3 v4, v4 v6, v6 v8, v8 v10 by

@@ -8,8 +8,8 @@ weight vector (so an untrained predictor already outputs a valid DAM: the mean a
 A predictor with ``input_views`` above 1 is a set encoder: it runs the convolutions on each of up
 to that many views and averages their features before the output layer, so the prediction does
 not depend on the views' order and works with any number of them (:func:`predictor_inputs`
-chooses views that spread the cameras). A predictor whose ``frame`` is 'light' (:mod:`.frame`)
-first turns the world so that its input's dominant light comes from +y, and turns the DAM it
+chooses views that spread the cameras). A predictor whose ``orientation`` is 'light'
+(:mod:`.orientation`) first turns the world so that its input's dominant light comes from +y, and turns the DAM it
 predicts back.
 
 Units: the RGB channels are the view's linear radiance divided by the *capture's* radiance
@@ -36,7 +36,7 @@ from damcap.common.errors import DamcapError
 from damcap.common.validate import MAX_CHANNELS, MAX_CONV_LAYERS, MAX_IMAGE_SIDE, bounded_int, require_memory
 
 from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap, dam_forward, encode_inputs, init_weights, rotated_world_weights
-from damcap.appearance.hyper.frame import FRAMES, Frame, light_frame, rotate_images
+from damcap.appearance.hyper.orientation import ORIENTATIONS, Orientation, light_rotation, rotate_images
 from damcap.appearance.views import ViewData, radiance_scale_of
 from damcap.appearance.readout import solved_weights
 from damcap.appearance.pixels import FOREGROUND_COVERAGE, view_dir_world
@@ -58,9 +58,10 @@ class HyperArchitecture:
     input_views: int = 1
     """views it reads at once: each view's features are averaged before the output layer (a set
     encoder: the prediction does not depend on the order of the views); 1 = the paper's one view"""
-    frame: Frame = "world"
-    """coordinates the network reads and writes (:mod:`.frame`): 'world' (v1-v8), or 'light' (v10), the
-    world turned so that the input's dominant light comes from +y (the DAM is turned back)"""
+    orientation: Orientation = "world"
+    """coordinates the network reads and writes (:mod:`.orientation`): 'world' (v1-v8), or 'light'
+    (v10), the world turned so that the input's dominant light comes from +y (the DAM is turned
+    back). Predictor files store it as ``"orientation"``; older ones as ``"frame"`` (still read)"""
 
     def __post_init__(self) -> None:
         # bounded before any layer is built from them (a predictor file's metadata, an option)
@@ -69,8 +70,8 @@ class HyperArchitecture:
             bounded_int(c, 1, MAX_CHANNELS, "predictor channels")
         bounded_int(self.input_size, 1, MAX_IMAGE_SIDE, "predictor --input-size")
         bounded_int(self.input_views, 1, 64, "predictor --input-views")
-        if self.frame not in FRAMES:
-            raise DamcapError(f"unknown predictor frame {self.frame!r}; use one of {', '.join(FRAMES)}")
+        if self.orientation not in ORIENTATIONS:
+            raise DamcapError(f"unknown predictor orientation {self.orientation!r}; use one of {', '.join(ORIENTATIONS)}")
         if not isinstance(self.dam, DamArchitecture):
             raise DamcapError(f"predictor dam must be a DamArchitecture, got {type(self.dam).__name__}")
         dims = (IN_CHANNELS,) + tuple(self.channels)
@@ -87,7 +88,8 @@ class HyperArchitecture:
 
     @staticmethod
     def from_json(d: dict) -> HyperArchitecture:
-        """Inverse of :meth:`to_json`.
+        """Inverse of :meth:`to_json`; reads the ``"frame"`` key of files written before the
+        field was called ``orientation``.
 
         >>> a = HyperArchitecture(input_size=64, channels=(4, 8))
         >>> HyperArchitecture.from_json(a.to_json()) == a
@@ -96,12 +98,12 @@ class HyperArchitecture:
         d = dict(d)
         return HyperArchitecture(input_size=int(d["input_size"]), channels=tuple(int(c) for c in d["channels"]),
                                  dam=DamArchitecture(**d["dam"]), input_views=int(d.get("input_views", 1)),
-                                 frame=d.get("frame", "world"))
+                                 orientation=d.get("orientation", d.get("frame", "world")))
 
 
 class HyperNet(nn.Module):
     """Theta: (B, 9, S, S) predictor images, or (B, V, 9, S, S) sets of views -> (B, P) flat DAM
-    weights (world coordinates, whatever the architecture's ``frame``)."""
+    weights (world coordinates, whatever the architecture's ``orientation``)."""
 
     def __init__(self, arch: HyperArchitecture, generator: torch.Generator | None = None) -> None:
         super().__init__()
@@ -122,17 +124,17 @@ class HyperNet(nn.Module):
         """Args:
             images: (B, 9, S, S), or (B, V, 9, S, S) with any V.
             view_mask: (B, V) bool, the views present (default all); each set needs one.
-            rotation: (B, 3, 3) a light-frame predictor's :func:`.frame.light_frame` of these
-                images when the caller has found it already (default: found here; ignored by a
-                world-frame predictor).
+            rotation: (B, 3, 3) a light-orientation predictor's :func:`.orientation.light_rotation`
+                of these images when the caller has found it already (default: found here;
+                ignored by a world-orientation predictor).
         """
         if images.dim() == 4:
             images = images[:, None]
-        if self.arch.frame != "light":
+        if self.arch.orientation != "light":
             rotation = None
         elif rotation is None:
             with torch.no_grad():  # a change of coordinates, a constant of the step
-                rotation = light_frame(images, view_mask)
+                rotation = light_rotation(images, view_mask)
         if rotation is not None:
             images = rotate_images(images, rotation.to(images.device))
         b, v = images.shape[:2]
@@ -428,7 +430,7 @@ def predict_dam(net: HyperNet, crops: torch.Tensor | list[torch.Tensor], radianc
 @torch.no_grad()
 def predict_from_images(net: HyperNet, images: torch.Tensor, scale: float, rotation: torch.Tensor | None = None) -> DeepAppearanceMap:
     """:func:`predict_dam` from its :func:`input_images` (V, 9, S, S), whose RGB is in units of
-    ``scale`` (``rotation``: (3, 3), their light frame when the caller has found it already)."""
+    ``scale`` (``rotation``: (3, 3), their light rotation when the caller has found it already)."""
     net.eval()
     device = next(net.parameters()).device
     weights = net(images[None].to(device), rotation=None if rotation is None else rotation[None])[0].float().cpu()

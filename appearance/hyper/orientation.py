@@ -1,13 +1,13 @@
-"""A predictor's own frame: the world turned so that the input's dominant light comes from +y.
+"""A predictor's orientation: the world turned so that the input's dominant light comes from +y.
 
 Under one distant light a DAM is dark on one side of a great circle of normals (the terminator,
-N.L = 0) and lit on the other. A predictor that works in world coordinates has to write that
+N.L = 0) and lit on the other. A predictor that works in the world orientation has to write that
 circle, wherever the light is, into the DAM's first layer from what it sees; trained on scenes
 lit from every direction it learns a blur instead (``bench/hyper_ood.md``, v10's section: v8's picture).
-In a frame where the light always comes from the same direction, the terminator is always the
-same circle, and the mean DAM and its corrections can hold it sharp.
+In an orientation where the light always comes from the same direction, the terminator is always
+the same circle, and the mean DAM and its corrections can hold it sharp.
 
-The frame is found from the predictor's input images by :func:`terminator_fit`: a
+The light orientation is found from the predictor's input images by :func:`terminator_fit`: a
 least-absolute-deviations fit of the covered pixels' radiance by ``c + max(0, b . N)``, a
 Lambertian surface's clamped cosine, which puts b across the shadow's edge whatever part of the
 object the views saw. (The least-squares fit of the log-compressed brightness by ``c + b . N``,
@@ -18,7 +18,7 @@ environment b points at its brightest directions. Then the smallest rotation tak
 world's up, so a light from above leaves the world as it was).
 Rotating the whole world is an exact change of coordinates (object, cameras and lights turn
 together), so nothing is lost: the predictor reads the rotated normals and view directions,
-predicts a DAM in its frame, and :func:`.dam.rotated_world_weights` turns that DAM back.
+predicts a DAM in its light orientation, and :func:`.dam.rotated_world_weights` turns that DAM back.
 
 Pure: tensors in, tensors out.
 """
@@ -33,11 +33,12 @@ import torch
 
 from damcap.common.cameras import rotation_between
 
-Frame = Literal["world", "light"]
-"""'world': the predictor reads and writes world coordinates (v1-v8); 'light': its own frame (v10)"""
-FRAMES: tuple[str, ...] = get_args(Frame)
+Orientation = Literal["world", "light"]
+"""'world': the predictor reads and writes world coordinates (v1-v8); 'light': the world turned so
+that its input's dominant light comes from +y (v10)"""
+ORIENTATIONS: tuple[str, ...] = get_args(Orientation)
 
-#: a fitted |b| below this (:func:`terminator_fit`'s, radiance-scale units per unit of N) has no direction: the frame is the world
+#: a fitted |b| below this (:func:`terminator_fit`'s, radiance-scale units per unit of N) has no direction: the light orientation is the world's
 MIN_GRADIENT = 1e-4
 #: Gauss-Newton iterations of :func:`terminator_fit`
 TERMINATOR_ITERATIONS = 10
@@ -83,7 +84,7 @@ def _weighted_solve(a: torch.Tensor, y: torch.Tensor, w: torch.Tensor) -> torch.
 def brightness_gradient(images: torch.Tensor, view_mask: torch.Tensor | None = None, linear: bool = False) -> torch.Tensor:
     """Least-squares b of ``brightness ~ c + b . N`` over every covered pixel of each set of views
     (:func:`covered_brightness`): the first-order spherical harmonic of the light (v10 was
-    trained with its direction as the frame's +y).
+    trained with its direction as the light orientation's +y).
 
     Args:
         images: (B, V, 9, S, S) predictor images.
@@ -184,17 +185,17 @@ def rotate_images(images: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
 
 def unit_direction(b: torch.Tensor) -> torch.Tensor:
     """(B, 3) b / |b| of fitted (B, 3) b, 0 where |b| is below :data:`MIN_GRADIENT` (no direction:
-    the frame :func:`rotation_to_up` gives there is the world)."""
+    :func:`rotation_to_up` keeps the world's orientation there)."""
     length = b.norm(dim=-1, keepdim=True)
     return torch.where(length < MIN_GRADIENT, torch.zeros_like(b), b / length.clamp_min(1e-30))
 
 
 def light_up_world(images: torch.Tensor, view_mask: torch.Tensor | None = None) -> torch.Tensor:
-    """(B, 3) the light frame's +y in world coordinates: where each set's dominant light comes
-    from, as the frame sees it (the unit :func:`terminator_fit`; 0 where it has no direction)."""
+    """(B, 3) the light orientation's +y in world coordinates: where each set's dominant light
+    comes from, as the predictor sees it (the unit :func:`terminator_fit`; 0 where it has no direction)."""
     return unit_direction(terminator_fit(images, view_mask))
 
 
-def light_frame(images: torch.Tensor, view_mask: torch.Tensor | None = None) -> torch.Tensor:
-    """(B, 3, 3) R taking world vectors into each set's light frame (its :func:`terminator_fit`'s b to +y)."""
+def light_rotation(images: torch.Tensor, view_mask: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, 3, 3) R taking world vectors into each set's light orientation (its :func:`terminator_fit`'s b to +y)."""
     return rotation_to_up(terminator_fit(images, view_mask))

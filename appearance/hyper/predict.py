@@ -118,8 +118,8 @@ class PredictOptions:
     x0.91 to x0.64 of the fit (the sphere under one distant light from x2.44 to x1.25, the blobs
     under one from x1.18 to x0.43), prediction and both solves in 56-79 ms; 3 and 8 iterations
     gave the same mean (x0.64), 3 less on the distant-light kinds (x1.32, x0.51), 8 no better
-    than 5 (bench/hyper_ood.md, *The joint solve*). With the light frame from
-    frame.terminator_fit since: x0.59, every kind within 1.15x of the fit, in 57-71 ms
+    than 5 (bench/hyper_ood.md, *The joint solve*). With the light orientation from
+    orientation.terminator_fit since: x0.59, every kind within 1.15x of the fit, in 57-71 ms
     (bench/hyper_ood.md, run terminator)"""
     joint_samples: int = field(default=2048, metadata={**COUNT, "cli_panel": "advanced"})
     """the joint solve uses a seeded random subset of at most this many train pixels"""
@@ -362,7 +362,7 @@ class PredictResult:
     input_frames: list
     """the capture's :class:`~damcap.common.capture_folder.Frame` s the predictor read (the first is ``--view``)"""
     predict_seconds: float
-    """the forward pass (and the light frame's fit), seconds"""
+    """the forward pass (and the light orientation's fit), seconds"""
     capture: object
     """the :class:`~damcap.common.capture_folder.Capture` (its colorspace and up direction go with the model)"""
     normal_histogram: object
@@ -373,7 +373,7 @@ def predict_capture(capture, opts: PredictOptions = PredictOptions(), predictor_
                     device: str = "cpu", progress: BarFactory | None = None,
                     log: Callable[[str], None] | None = None) -> PredictResult:
     """Predict a DAM from a capture's train views (``damcap predict`` without the command line):
-    the forward pass (in its light frame for a light-frame predictor), then predict's solves of
+    the forward pass (in its light orientation for a light-orientation predictor), then predict's solves of
     the output layer and of the first and output layers together, or ``opts.refine_steps`` of
     refinement (``'auto'``: :func:`refine_auto`).
 
@@ -396,7 +396,7 @@ def predict_capture(capture, opts: PredictOptions = PredictOptions(), predictor_
 
     from damcap.appearance.coverage import training_normal_histogram
     from damcap.appearance.hyper.file import load_predictor, predictor_path as resolve_predictor
-    from damcap.appearance.hyper.frame import rotation_to_up, terminator_fit, unit_direction
+    from damcap.appearance.hyper.orientation import rotation_to_up, terminator_fit, unit_direction
     from damcap.appearance.hyper.model import input_images, predict_from_images, predictor_inputs
     from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import Capture, read_capture
@@ -418,8 +418,8 @@ def predict_capture(capture, opts: PredictOptions = PredictOptions(), predictor_
     frames = [cap.split("train")[k] for k in ks]
     t0 = time.perf_counter()
     images, scale = input_images(crops, net.arch.input_size, capture_scale)
-    # a light-frame predictor: its frame (frame.light_frame) is fitted once, for the network and the record
-    light_fit = terminator_fit(images[None]) if net.arch.frame == "light" else None
+    # a light-orientation predictor: its rotation (orientation.light_rotation) is fitted once, for the network and the record
+    light_fit = terminator_fit(images[None]) if net.arch.orientation == "light" else None
     model = predict_from_images(net, images, scale, None if light_fit is None else rotation_to_up(light_fit)[0])
     predict_s = time.perf_counter() - t0
     samples = samples_of(train_views)
@@ -427,15 +427,15 @@ def predict_capture(capture, opts: PredictOptions = PredictOptions(), predictor_
     advice = resynthesis_line(err, opts.refine_threshold)
     if log is not None:
         log(advice)
-    # where the frame put the light: a diagnosis of a poor prediction (frame.light_up_world)
-    frame_record = {} if light_fit is None else {"light_frame_up_world": [float(x) for x in unit_direction(light_fit)[0]]}
+    # where the light orientation put the light: a diagnosis of a poor prediction (orientation.light_up_world)
+    light_record = {} if light_fit is None else {"light_up_world": [float(x) for x in unit_direction(light_fit)[0]]}
     record = {"damcap_version": damcap_version(), "capture": str(Path(cap.root).resolve()), "predictor": str(Path(pred_path).resolve()),
               "predictor_command": meta.get("training", {}).get("command"), "view": frames[0].file_path,
               "input_views": [f.file_path for f in frames],
               "predict_seconds": predict_s, "options": asdict(opts), "refine_steps": opts.refine_steps,
               "train_views": err.views, "train_dssim_predicted": err.dssim, "train_l1_predicted": err.l1,
               "refine_threshold": opts.refine_threshold, "refinement_needed": refinement_needed(err.dssim, opts.refine_threshold),
-              **frame_record}
+              **light_record}
     summary = ""
     if not opts.refine_steps and (opts.readout_iterations or opts.joint_iterations):
         solved = solve_prediction(model, samples, opts)

@@ -37,7 +37,7 @@ from damcap.common.errors import DamcapError
 from damcap.common.validate import COUNT, COUNT_OR_ZERO, MAX_BATCH_PIXELS, MAX_CHANNELS, MAX_IMAGE_SIDE, SEED, check_ranges, in_range
 
 from damcap.appearance.dam import DamArchitecture, Encoding
-from damcap.appearance.hyper.frame import Frame
+from damcap.appearance.hyper.orientation import Orientation
 from damcap.common.fingerprint import FINGERPRINT_KEY, fingerprint
 from damcap.common.version import damcap_version
 
@@ -65,8 +65,8 @@ class HyperTrainOptions:
     """convolution channels (one stride-2 layer each)"""
     encoding: Encoding = field(default="nr", metadata={"cli_panel": "advanced"})
     """input encoding of the predicted DAM (32 x 4, no biases)"""
-    frame: Frame = "world"
-    """the predictor's coordinates (appearance/hyper/frame.py): 'world', or 'light' (the world
+    orientation: Orientation = field(default="world", metadata={"cli_old_flags": "--frame"})
+    """the predictor's coordinates (appearance/hyper/orientation.py): 'world', or 'light' (the world
     turned so that each input's dominant light comes from +y; the predicted DAM is turned back)"""
     augment: bool = field(default=True, metadata={"cli_panel": "advanced"})
     """exact augmentations: rotation about +y, mirror, tinted light"""
@@ -120,7 +120,7 @@ class HyperTrainOptions:
     @property
     def architecture(self) -> HyperArchitecture:
         return HyperArchitecture(self.input_size, tuple(self.channels), DamArchitecture(encoding=self.encoding), self.input_views,
-                                 self.frame)
+                                 self.orientation)
 
 
 @dataclass
@@ -419,14 +419,14 @@ def init_weights(choice: str, arch: HyperArchitecture) -> tuple[dict[str, torch.
 
     path = predictor_path(choice)
     net, meta = load_predictor(path)
-    if replace(net.arch, frame=arch.frame) != arch:  # the frame is no tensor's shape: a run may change it
+    if replace(net.arch, orientation=arch.orientation) != arch:  # the orientation is no tensor's shape: a run may change it
         raise DamcapError(f"{path}: --init predictor has architecture {net.arch.to_json()}, but the options ask for {arch.to_json()}; "
                           f"give the same --input-size, --channels, --encoding and --input-views as it was trained with")
     training = meta.get("training") or {}
     prior = training.get("init") or {}
     steps = int((training.get("options") or {}).get("steps", 0)) + int(prior.get("steps", 0))
     seconds = float(training.get("seconds", 0.0)) + float(prior.get("seconds", 0.0))
-    record = {"file": path.name, "weights_sha256": weights_sha256(net), "steps": steps, "seconds": seconds, "frame": net.arch.frame}
+    record = {"file": path.name, "weights_sha256": weights_sha256(net), "steps": steps, "seconds": seconds, "orientation": net.arch.orientation}
     return {k: v.detach().clone() for k, v in net.state_dict().items()}, record
 
 

@@ -17,7 +17,7 @@ def test_ood_study_writes_every_method_per_kind(tmp_path, is_dssim):
     for name, views in (("one", 1), ("set", 2)):
         p = tmp_path / f"{name}.safetensors"
         started = {"init": {"file": "first.safetensors", "steps": 10, "seconds": 2.0}, "best_step": 7} if name == "set" else {}
-        arch = HyperArchitecture(input_size=32, channels=(4, 8), input_views=views, frame="light" if name == "set" else "world")
+        arch = HyperArchitecture(input_size=32, channels=(4, 8), input_views=views, orientation="light" if name == "set" else "world")
         save_predictor(p, HyperNet(arch, torch.Generator().manual_seed(0)),
                        {"command": "test", "seconds": 1.0, **started})
         paths.append(p)
@@ -47,12 +47,19 @@ def test_ood_study_writes_every_method_per_kind(tmp_path, is_dssim):
         assert set(r["auto_steps"]) == {"one", "set"} and all(k >= 0 for k in r["auto_steps"].values())
         assert r["novel"]["one + 5"] != r["novel"]["one + 5 (lr 0.003)"]  # another rate, another model
         assert r["novel"]["set.step5 readout 3"] != r["novel"]["set.step5"]
-    # the light frame of the light-frame predictor: found within a few degrees of the one distant light
-    sun, sky = (r["light_frame"]["set"] for r in doc["per_capture"])
-    assert "one" not in doc["per_capture"][0]["light_frame"] and sky["angle_to_light_deg"] is None
+    # the light orientation of the light-orientation predictor: found within a few degrees of the one distant light
+    sun, sky = (r["light_orientation"]["set"] for r in doc["per_capture"])
+    assert "one" not in doc["per_capture"][0]["light_orientation"] and sky["angle_to_light_deg"] is None
     assert sun["angle_to_light_deg"] < 20, sun
-    assert "## Light frame" in (out / "hyper_ood.md").read_text() and "`frame.terminator_fit`" in (out / "hyper_ood.md").read_text()
-    assert doc["light_frame_fit"] == "terminator_fit"
+    assert "## Light orientation" in (out / "hyper_ood.md").read_text()
+    assert "`orientation.terminator_fit`" in (out / "hyper_ood.md").read_text()
+    assert doc["light_orientation_fit"] == "terminator_fit"
+    # a result stored under the old keys ("light_frame", "light_frame_fit") renders the same table
+    old = json.loads(json.dumps(doc).replace('"light_orientation', '"light_frame'))
+    hyper_ood.write_markdown(doc, tmp_path / "new.md")
+    hyper_ood.write_markdown(old, tmp_path / "old.md")
+    assert (tmp_path / "old.md").read_text() == (tmp_path / "new.md").read_text()
+    assert "| angle to the light, deg |" in (tmp_path / "old.md").read_text()
     assert doc["snapshots"] == {"set.step5": {"step": 5, "total": 15}, "run2.step3": {"step": 3, "total": 43}}  # counted after the 10 steps of the predictor it started from
     s = doc["summary"]["closed-form sphere, environment"]
     assert s["captures"] == 1 and s["novel"]["fit"] == doc["per_capture"][1]["novel"]["fit"]

@@ -49,3 +49,29 @@ def _flags(name: str) -> set[str]:
 def test_every_old_flag_spelling_still_parses(name, old):
     missing = sorted(set(old) - _flags(name))
     assert not missing, f"damcap {name} lost flag(s): {missing}"
+
+
+def test_train_hyper_still_parses_frame_the_old_spelling_of_orientation(tmp_path, capsys, monkeypatch):
+    """``--frame world|light`` named the predictor's orientation before it had its own word;
+    bench/train_predictor.sh's recipes and the shipped v10's recorded command use it."""
+    from damcap.appearance.hyper import train as train_module
+    from damcap.cli.main import main
+    from damcap.common.errors import DamcapError
+
+    assert {"--orientation", "--frame"} <= _flags("train-hyper")
+    seen = []
+
+    def stop(paths, opts, **kw):
+        seen.append(opts.orientation)
+        raise DamcapError("stopped by the test")
+
+    monkeypatch.setattr(train_module, "train_hyper", stop)
+    monkeypatch.chdir(tmp_path)
+    for flag in ("--frame", "--orientation"):
+        assert main(["train-hyper", "-o", "p.safetensors", "--procedural", "1", flag, "light"]) != 0
+    assert seen == ["light", "light"]
+    assert "stopped by the test" in capsys.readouterr().err
+    monkeypatch.setenv("COLUMNS", "200")
+    assert main(["train-hyper", "--help-all"]) == 0
+    out = capsys.readouterr().out
+    assert "--orientation" in out and "--frame" not in out

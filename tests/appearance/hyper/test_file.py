@@ -71,6 +71,29 @@ def test_every_shipped_predictor_loads_and_a_retired_name_says_which_commit_hold
     assert predictor_path("v4") == Path("v4")
 
 
+def test_a_predictor_file_that_says_frame_loads_as_the_same_orientation(tmp_path, small_capture):
+    """The shipped v10 was written when the predictor's orientation was called its frame: its
+    metadata says ``"frame": "light"``. It loads as a light-orientation predictor, and the same
+    weights written again (the writer says ``"orientation"``) predict bit for bit the same DAM."""
+    from safetensors import safe_open
+
+    shipped = shipped_predictor_path("v10")
+    with safe_open(str(shipped), "pt") as f:
+        stored = json.loads(f.metadata()["damcap"])["architecture"]
+    assert stored["frame"] == "light" and "orientation" not in stored  # the shipped bytes are as they were
+    net, _ = load_predictor(shipped)
+    assert net.arch.orientation == "light"
+    again = tmp_path / "v10-again.safetensors"
+    save_predictor(again, net, {"command": "test"})
+    with safe_open(str(again), "pt") as f:
+        written = json.loads(f.metadata()["damcap"])["architecture"]
+    assert written["orientation"] == "light" and "frame" not in written
+    back, _ = load_predictor(again)
+    assert back.arch == net.arch and weights_sha256(back) == weights_sha256(net)
+    crops = [_crop_of(small_capture, 0), _crop_of(small_capture, 1)]
+    assert torch.equal(predict_dam(back, crops).get_flat_weights(), predict_dam(net, crops).get_flat_weights())
+
+
 def test_shipped_predictor_predicts_the_heldout_sample(tmp_path):
     sample = Path(__file__).resolve().parents[3] / "samples" / "synth_spot_sunset"
     assert shipped_predictor_path().is_file(), "the trained predictor must ship with damcap"
@@ -84,10 +107,10 @@ def test_shipped_predictor_predicts_the_heldout_sample(tmp_path):
     cap = read_capture(sample)
     train, test = load_views(cap, "train"), load_views(cap, "test")
     scores = evaluate_split(train, test, {"predict": dam}, baselines=True)
-    # measured with the default predictor (dam-predictor-v10, its frame from frame.terminator_fit)
+    # measured with the default predictor (dam-predictor-v10, its light orientation from orientation.terminator_fit)
     # and predict's default solves (the output layer, 3 iterations, then the first and output
     # layers, 5): novel-view DSSIM 0.076 (0.092 with the output layer's alone, --joint-iterations
-    # 0, 0.195 with neither; with the frame v10 was trained with, 0.068, 0.086 and 0.187; v8
+    # 0, 0.195 with neither; with the orientation fit v10 was trained with, 0.068, 0.086 and 0.187; v8
     # 0.110, v6 0.128, v1 0.113 and 0.161, with the output layer's alone and with neither), RM++
     # 0.219, RM 0.247
     assert meta["provenance"]["readout_iterations_used"] >= 1 and meta["provenance"]["joint_iterations_used"] >= 1

@@ -137,55 +137,59 @@ def test_predicted_loss_with_a_readout_solves_on_even_samples_and_scores_odd_one
     assert torch.isfinite(w.grad).all() and w.grad[:, :-96].abs().sum() > 0  # the hidden layers learn through the solve
 
 
-def test_a_light_frame_network_predicts_in_its_frame_and_returns_world_weights(small_capture):
-    """frame 'light': the convolutions read the images turned into the light frame, and the DAM
-    comes back turned to the world (same parameters as a world-frame network)."""
+def test_a_light_orientation_network_predicts_in_it_and_returns_world_weights(small_capture):
+    """orientation 'light': the convolutions read the images turned into the light orientation,
+    and the DAM comes back turned to the world (same parameters as a world-orientation network)."""
     from damcap.appearance.dam import rotated_world_weights
-    from damcap.appearance.hyper.frame import light_frame, rotate_images
+    from damcap.appearance.hyper.orientation import light_rotation, rotate_images
     from damcap.common.errors import DamcapError
 
     world = HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), input_views=2), torch.Generator().manual_seed(0))
-    light = HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), input_views=2, frame="light"))
+    light = HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), input_views=2, orientation="light"))
     light.load_state_dict(world.state_dict())
     img = predictor_image(_crop_of(small_capture), 32)[0]
     images = torch.stack([img, predictor_image(_crop_of(small_capture), 32, rotation=rotation_y(1.0))[0]])[None]
-    r = light_frame(images)
+    r = light_rotation(images)
     assert not torch.allclose(r, torch.eye(3))
     expect = rotated_world_weights(world(rotate_images(images, r)), light.arch.dam, r)
     assert torch.allclose(light(images), expect, rtol=1e-5, atol=1e-6)
     assert not torch.allclose(light(images), world(images), atol=1e-3)
-    # the frame is part of the file's architecture; files without it are world-frame predictors
+    # the orientation is part of the file's architecture, written as "orientation"; files written
+    # before it had that name say "frame"; files without either are world-orientation predictors
     assert HyperArchitecture.from_json(light.arch.to_json()) == light.arch
-    old = world.arch.to_json()
-    del old["frame"]
-    assert HyperArchitecture.from_json(old).frame == "world"
-    with pytest.raises(DamcapError, match="unknown predictor frame 'sky'"):
-        HyperArchitecture(frame="sky")
+    assert light.arch.to_json()["orientation"] == "light" and "frame" not in light.arch.to_json()
+    old = {k: v for k, v in light.arch.to_json().items() if k != "orientation"}
+    assert HyperArchitecture.from_json({**old, "frame": "light"}) == light.arch
+    assert HyperArchitecture.from_json(old).orientation == "world"
+    with pytest.raises(DamcapError, match="unknown predictor orientation 'sky'"):
+        HyperArchitecture(orientation="sky")
+    with pytest.raises(DamcapError, match="unknown predictor orientation 'sky'"):
+        HyperArchitecture.from_json({**old, "frame": "sky"})
 
 
-def test_predict_records_where_a_light_frame_predictor_put_the_light(tmp_path, small_capture):
-    for frame in ("world", "light"):
-        pred = tmp_path / f"{frame}.safetensors"
-        save_predictor(pred, HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), frame=frame)), {"command": "test"})
-        out = tmp_path / f"{frame}.dam"
+def test_predict_records_where_a_light_orientation_predictor_put_the_light(tmp_path, small_capture):
+    for orientation in ("world", "light"):
+        pred = tmp_path / f"{orientation}.safetensors"
+        save_predictor(pred, HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), orientation=orientation)), {"command": "test"})
+        out = tmp_path / f"{orientation}.dam"
         assert main(["predict", str(small_capture), "-o", str(out), "--predictor", str(pred)]) == 0
         prov = load_dam(out)[1]["provenance"]
-        if frame == "world":
-            assert "light_frame_up_world" not in prov
+        if orientation == "world":
+            assert "light_up_world" not in prov
         else:
-            assert math.isclose(math.hypot(*prov["light_frame_up_world"]), 1.0, rel_tol=1e-5)
+            assert math.isclose(math.hypot(*prov["light_up_world"]), 1.0, rel_tol=1e-5)
 
 
-def test_a_light_frame_found_by_the_caller_gives_the_same_weights(small_capture):
-    """HyperNet(images, rotation=light_frame(images)) is the plain call (damcap predict finds the
-    frame once for the network and its record); a world-frame network ignores a rotation."""
-    from damcap.appearance.hyper.frame import light_frame, light_up_world, rotation_to_up, terminator_fit, unit_direction
+def test_a_light_rotation_found_by_the_caller_gives_the_same_weights(small_capture):
+    """HyperNet(images, rotation=light_rotation(images)) is the plain call (damcap predict finds the
+    rotation once for the network and its record); a world-orientation network ignores a rotation."""
+    from damcap.appearance.hyper.orientation import light_rotation, light_up_world, rotation_to_up, terminator_fit, unit_direction
 
-    light = HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), input_views=2, frame="light"), torch.Generator().manual_seed(1))
+    light = HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), input_views=2, orientation="light"), torch.Generator().manual_seed(1))
     world = HyperNet(HyperArchitecture(input_size=32, channels=(4, 8), input_views=2), torch.Generator().manual_seed(1))
     img = predictor_image(_crop_of(small_capture), 32)[0]
     images = torch.stack([img, predictor_image(_crop_of(small_capture), 32, rotation=rotation_y(1.0))[0]])[None]
-    r = light_frame(images)
+    r = light_rotation(images)
     assert torch.equal(light(images, rotation=r), light(images))
     assert torch.equal(rotation_to_up(terminator_fit(images)), r) and torch.equal(unit_direction(terminator_fit(images)), light_up_world(images))
     assert torch.equal(world(images, rotation=r), world(images))

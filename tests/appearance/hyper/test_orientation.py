@@ -1,4 +1,4 @@
-"""The predictor's light frame: the brightness gradient, the terminator fit, the rotation to +y,
+"""The predictor's light orientation: the brightness gradient, the terminator fit, the rotation to +y,
 turned images."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import math
 import pytest
 import torch
 
-from damcap.appearance.hyper.frame import (MIN_GRADIENT, brightness_gradient, light_frame, light_up_world, rotate_images, rotation_to_up,
-                                           terminator_fit)
+from damcap.appearance.hyper.orientation import (MIN_GRADIENT, brightness_gradient, light_rotation, light_up_world, rotate_images,
+                                                 rotation_to_up, terminator_fit)
 
 
 def _sphere_images(brightness, side: int = 48, views: int = 1, cap=None) -> torch.Tensor:
@@ -75,10 +75,10 @@ def test_rotation_to_up_keeps_the_world_for_light_from_above_or_no_direction():
     assert (r - torch.eye(3)).abs().max() < 0.011
 
 
-def test_in_its_light_frame_an_image_is_lit_from_up():
+def test_in_its_light_orientation_an_image_is_lit_from_up():
     light = torch.tensor([-0.6, -0.2, 0.77])
     img = _sphere_images(lambda n: torch.log1p((n @ light).clamp_min(0)))
-    r = light_frame(img)
+    r = light_rotation(img)
     turned = rotate_images(img, r)
     assert torch.equal(turned[:, :, 0:3], img[:, :, 0:3])  # RGB as it was
     assert _angle_deg(brightness_gradient(turned)[0], torch.tensor([0.0, 1, 0])) < 1.0
@@ -100,13 +100,13 @@ def test_the_terminator_fit_finds_one_light_where_the_views_saw_part_of_the_obje
     shiny = _sphere_images(lambda n: torch.log1p(0.05 + 2 * (n @ light).clamp_min(0) + 20 * (n @ spec).clamp_min(0) ** 200), cap=cap)
     assert 0.001 < float((shiny[0, 0, 0] > img[0, 0, 0] + 0.1).float().mean()) < 0.1  # some pixels are highlight
     assert _angle_deg(terminator_fit(shiny)[0], light) < 1.0
-    assert _angle_deg(light_up_world(shiny)[0], light) < 1.0 and _angle_deg(light_frame(shiny)[0] @ light, torch.tensor([0.0, 1, 0])) < 1.0
+    assert _angle_deg(light_up_world(shiny)[0], light) < 1.0 and _angle_deg(light_rotation(shiny)[0] @ light, torch.tensor([0.0, 1, 0])) < 1.0
 
 
 def test_the_terminator_fit_without_light_or_pixels_names_no_direction():
     flat = _sphere_images(lambda n: torch.full_like(n[:, 0], 0.3))
     assert float(terminator_fit(flat)[0].norm()) < MIN_GRADIENT
-    assert torch.equal(light_frame(flat)[0], torch.eye(3))
+    assert torch.equal(light_rotation(flat)[0], torch.eye(3))
     assert torch.equal(terminator_fit(torch.zeros(1, 2, 9, 8, 8)), torch.zeros(1, 3))  # a single set, nothing covered
     assert torch.equal(terminator_fit(torch.zeros(3, 2, 9, 8, 8)), torch.zeros(3, 3))
     light = torch.tensor([0.0, 0.0, 1.0])

@@ -115,15 +115,15 @@ def test_longer_training_fits_the_training_captures(tiny_corpus):
     assert after < 0.5 * before, (before, after)
 
 
-@pytest.mark.parametrize("frame", ["world", "light"])
-def test_random_scenes_alone_lower_the_validation_loss(frame):
+@pytest.mark.parametrize("orientation", ["world", "light"])
+def test_random_scenes_alone_lower_the_validation_loss(orientation):
     from functools import partial
 
     from damcap.synth.procedural import ProceduralOptions, render_scenes
 
     scenes = partial(render_scenes, opts=ProceduralOptions(scene_px=24, scene_views_max=8))
     opts = HyperTrainOptions(**{**TINY, "steps": 60, "batch_size": 8, "eval_every": 1, "procedural": 1.0, "input_views": 2,
-                                "val_scenes": 8, "learning_rate": 3e-3, "checkpoint_every": 0, "frame": frame})
+                                "val_scenes": 8, "learning_rate": 3e-3, "checkpoint_every": 0, "orientation": orientation})
     with pytest.raises(Exception, match="needs a scene source"):
         train_hyper([], opts)
     res = train_hyper([], opts, scenes=scenes)
@@ -203,16 +203,16 @@ def test_init_starts_from_a_predictor_and_never_ends_worse(tmp_path):
     again = train_hyper([], HyperTrainOptions(**{**base, "steps": 5, "learning_rate": 1.0, "init": str(start)}), scenes=scenes)
     assert again.curve[0]["step"] == 0 and again.curve[0]["val_l1"] == pytest.approx(min(c["val_l1"] for c in first.curve), rel=1e-5)
     assert again.init == {"file": "start.safetensors", "weights_sha256": weights_sha256(first.net), "steps": 10, "seconds": 2.5,
-                          "frame": "world"}
+                          "orientation": "world"}
     # a learning rate of 1 throws the weights off: the result is the start, not the wreck
     assert again.best_step == 0 and weights_sha256(again.net) == weights_sha256(first.net)
     with pytest.raises(DamcapError, match=r"start\.safetensors: --init predictor has architecture"):
         train_hyper([], HyperTrainOptions(**{**base, "input_views": 2, "init": str(start)}), scenes=scenes)
-    # the frame is not a shape: a world-frame predictor may start a light-frame run
+    # the orientation is not a shape: a world-orientation predictor may start a light-orientation run
     snaps = []
-    turned = train_hyper([], HyperTrainOptions(**{**base, "steps": 2, "frame": "light", "init": str(start), "snapshot_every": 1}),
+    turned = train_hyper([], HyperTrainOptions(**{**base, "steps": 2, "orientation": "light", "init": str(start), "snapshot_every": 1}),
                          scenes=scenes, snapshot=lambda step, net, init: snaps.append((step, init)))
-    assert turned.net.arch.frame == "light" and turned.init["frame"] == "world"
+    assert turned.net.arch.orientation == "light" and turned.init["orientation"] == "world"
     assert snaps == [(1, turned.init), (2, turned.init)]  # each snapshot knows the 10 steps it started from
 
 

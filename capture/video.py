@@ -1,14 +1,15 @@
-"""Photos from a video: sharp, well-spread frames (``damcap frames VIDEO -o PHOTOS/``).
+"""Photos from a video: sharp, well-spread video frames (``damcap frames VIDEO -o PHOTOS/``).
 
+Here "frame" means a video frame (not a capture folder's frame, a view in ``transforms.json``).
 People film objects with phones. The video is decoded twice through PyAV (FFmpeg): the first pass
-scores every frame's sharpness (variance of the Laplacian of its grey image, downscaled to
-:data:`SCORE_SIDE`), the second writes the chosen frames as JPEGs. The frames are chosen by
-:func:`pick_frames`: the video is cut into ``count`` windows of consecutive frames and the
-sharpest frame of each window is kept, so the photos spread over the whole video (the camera's
-path) and motion blur is avoided where a window has a sharper frame. ``frames.json`` records the
-video, each photo's frame index, time and sharpness. Frames are turned upright as the video's
-display matrix says (phones store portrait video as rotated landscape frames), as players show
-them. A video has no EXIF exposure: ``reconstruct`` then treats the photos as sharing one exposure
+scores every video frame's sharpness (variance of the Laplacian of its grey image, downscaled to
+:data:`SCORE_SIDE`), the second writes the chosen video frames as JPEGs. They are chosen by
+:func:`pick_video_frames`: the video is cut into ``count`` windows of consecutive video frames
+and the sharpest of each window is kept, so the photos spread over the whole video (the camera's
+path) and motion blur is avoided where a window has a sharper video frame. ``frames.json``
+records the video, each photo's video frame index (``video_frame_index``), time and sharpness.
+Video frames are turned upright as the video's display matrix says (phones store portrait video
+as rotated landscape frames), as players show them. A video has no EXIF exposure: ``reconstruct`` then treats the photos as sharing one exposure
 (as it says).
 """
 
@@ -27,7 +28,7 @@ from damcap.common.exr import write_image_u8
 from damcap.common.validate import MAX_IMAGE_SIDE, check_ranges, in_range
 
 SCORE_SIDE = 480
-"""longer side of the grey image a frame's sharpness is measured on, pixels"""
+"""longer side of the grey image a video frame's sharpness is measured on, pixels"""
 
 
 @dataclass(frozen=True)
@@ -35,7 +36,7 @@ class VideoFrameOptions:
     """Options of ``damcap frames``."""
 
     count: int = field(default=60, metadata=in_range(2, 100_000))
-    """photos to extract (fewer when the video has fewer frames)"""
+    """photos to extract (fewer when the video has fewer video frames)"""
     max_side: int = field(default=0, metadata=in_range(0, MAX_IMAGE_SIDE))
     """downscale photos so their longer side is at most this, pixels (0 = as filmed)"""
     quality: int = field(default=95, metadata=in_range(1, 100))
@@ -58,13 +59,13 @@ def sharpness(gray: np.ndarray) -> float:
     return float(cv2.Laplacian(gray, cv2.CV_64F).var())
 
 
-def pick_frames(scores: list[float] | np.ndarray, count: int) -> list[int]:
-    """The sharpest frame of each of ``count`` equal windows of consecutive frames (all frames
-    when there are at most ``count``), in order.
+def pick_video_frames(scores: list[float] | np.ndarray, count: int) -> list[int]:
+    """The index of the sharpest video frame of each of ``count`` equal windows of consecutive
+    video frames (all of them when there are at most ``count``), in order.
 
-    >>> pick_frames([1, 5, 2, 9, 1, 1, 7, 3], 4)
+    >>> pick_video_frames([1, 5, 2, 9, 1, 1, 7, 3], 4)
     [1, 3, 4, 6]
-    >>> pick_frames([1, 2], 5)
+    >>> pick_video_frames([1, 2], 5)
     [0, 1]
     """
     n = len(scores)
@@ -89,8 +90,8 @@ def _open(path: Path) -> Any:
 
 
 def upright(rgb: np.ndarray, rotation_deg: float) -> np.ndarray:
-    """A decoded frame turned as its display matrix says (a phone filming upright stores the
-    sensor's landscape frames and a rotation): ``rotation_deg`` counter-clockwise, FFmpeg's
+    """A decoded video frame turned as its display matrix says (a phone filming upright stores
+    the sensor's landscape frames and a rotation): ``rotation_deg`` counter-clockwise, FFmpeg's
     ``av_display_rotation_get`` (PyAV's ``VideoFrame.rotation``), rounded to quarter turns.
 
     >>> img = np.zeros((2, 4), np.uint8); img[:, 0] = 1  # landscape, the left column marked
@@ -101,8 +102,8 @@ def upright(rgb: np.ndarray, rotation_deg: float) -> np.ndarray:
     return np.ascontiguousarray(np.rot90(rgb, turns)) if turns else rgb
 
 
-def _frames(path: Path) -> Any:
-    """Yield (index, time_s, (H, W, 3) uint8 RGB upright, display rotation deg) of every decoded frame."""
+def _video_frames(path: Path) -> Any:
+    """Yield (video frame index, time_s, (H, W, 3) uint8 RGB upright, display rotation deg) of every decoded video frame."""
     import av
 
     container = _open(path)
@@ -118,13 +119,13 @@ def _frames(path: Path) -> Any:
         except av.FFmpegError as e:
             if k == 0:
                 raise DamcapError(f"{path}: cannot decode the video ({e})") from None
-            # a truncated tail: the frames decoded so far are kept (the record says how many)
+            # a truncated tail: the video frames decoded so far are kept (the record says how many)
     finally:
         container.close()
 
 
-def _frame_count(path: Path) -> int:
-    """Frames the container says the video has (0 when it does not say)."""
+def _video_frame_count(path: Path) -> int:
+    """Video frames the container says the video has (0 when it does not say)."""
     container = _open(path)
     try:
         return int(container.streams.video[0].frames or 0)
@@ -142,19 +143,20 @@ def _resized(rgb: np.ndarray, max_side: int) -> np.ndarray:
     return cv2.resize(rgb, (max(1, round(w * f)), max(1, round(h * f))), interpolation=cv2.INTER_AREA)
 
 
-def extract_frames(video: str | os.PathLike, out: str | os.PathLike, opts: VideoFrameOptions,
-                   progress: Callable[[str, int, int], None] | None = None) -> dict[str, Any]:
-    """Write the chosen frames of ``video`` into ``out`` as ``frame_NNNNN.jpg`` and ``frames.json``.
+def extract_video_frames(video: str | os.PathLike, out: str | os.PathLike, opts: VideoFrameOptions,
+                         progress: Callable[[str, int, int], None] | None = None) -> dict[str, Any]:
+    """Write the chosen video frames of ``video`` into ``out`` as ``frame_NNNNN.jpg`` (NNNNN: the
+    video frame index) and ``frames.json``.
 
     Args:
-        progress: ``progress(stage, done, total)`` ('scoring' every decoded frame, total 0 when the
-            container does not say; 'writing' the chosen ones).
+        progress: ``progress(stage, done, total)`` ('scoring' every decoded video frame, total 0
+            when the container does not say; 'writing' the chosen ones).
 
     Returns:
         the record written to ``frames.json``.
 
     Raises:
-        DamcapError: an unreadable video, one without a video stream, or one with fewer than 2 frames.
+        DamcapError: an unreadable video, one without a video stream, or one with fewer than 2 video frames.
     """
     import cv2
 
@@ -163,8 +165,8 @@ def extract_frames(video: str | os.PathLike, out: str | os.PathLike, opts: Video
     if not video.is_file():
         raise DamcapError(f"{video}: video file not found")
     scores, times, rotations = [], [], set()
-    total = _frame_count(video) if progress else 0
-    for k, t, rgb, rotation in _frames(video):
+    total = _video_frame_count(video) if progress else 0
+    for k, t, rgb, rotation in _video_frames(video):
         rotations.add(rotation)
         gray = cv2.cvtColor(_resized(rgb, SCORE_SIDE), cv2.COLOR_RGB2GRAY)
         scores.append(sharpness(gray))
@@ -172,22 +174,22 @@ def extract_frames(video: str | os.PathLike, out: str | os.PathLike, opts: Video
         if progress:
             progress("scoring", k + 1, total)
     if len(scores) < 2:
-        raise DamcapError(f"{video}: {len(scores)} frame(s) decoded; a capture needs at least 2")
-    chosen = pick_frames(scores, opts.count)
+        raise DamcapError(f"{video}: {len(scores)} video frame(s) decoded; a capture needs at least 2")
+    chosen = pick_video_frames(scores, opts.count)
     wanted = set(chosen)
     out.mkdir(parents=True, exist_ok=True)
     photos = []
-    for k, _, rgb, _ in _frames(video):
+    for k, _, rgb, _ in _video_frames(video):
         if k in wanted:
             name = f"frame_{k:05d}.jpg"
             write_image_u8(out / name, _resized(rgb, opts.max_side), {"Compression": f"jpeg:{opts.quality}"})
-            photos.append({"photo": name, "frame": k, "time_s": times[k], "sharpness": scores[k]})
+            photos.append({"photo": name, "video_frame_index": k, "time_s": times[k], "sharpness": scores[k]})
             if progress:
                 progress("writing", len(photos), len(chosen))
         if k >= chosen[-1]:
             break
     median = float(np.median(scores))
-    record = {"video": str(video.resolve()), "frames_decoded": len(scores), "count": len(photos), "options": {"count": opts.count,
+    record = {"video": str(video.resolve()), "video_frames_decoded": len(scores), "count": len(photos), "options": {"count": opts.count,
               "max_side": opts.max_side, "quality": opts.quality}, "median_sharpness": median,
               # the display matrix's rotation (counter-clockwise degrees), applied to every photo
               "display_rotation_deg": sorted(rotations), "photos": photos}

@@ -78,17 +78,17 @@ def frames(
     *,
     opts: VideoFrameOptions,
 ) -> None:
-    """Video -> photos: the sharpest frame of each stretch.
+    """Video -> photos: the sharpest video frame of each stretch.
 
-    Video -> photos: the sharpest frame of each of --count equal stretches of the video (JPEG), and
-    frames.json recording which frame each photo is.
+    Video -> photos: the sharpest video frame of each of --count equal stretches of the video
+    (JPEG), and frames.json recording which video frame each photo is.
     """
-    from damcap.capture.video import extract_frames
+    from damcap.capture.video import extract_video_frames
     from damcap.cli.app import stage_progress
 
     opts.validate()
     check_paths([video], [folder_out(output, replaces=holds("frames.json"))])
     with staged_folder(output, replace=True) as stage:
-        record = extract_frames(video, stage, opts, progress=stage_progress())
-    typer.echo(f"wrote {record['count']} photos of {record['frames_decoded']} frames to {output} (frames.json says which); "
+        record = extract_video_frames(video, stage, opts, progress=stage_progress())
+    typer.echo(f"wrote {record['count']} photos of {record['video_frames_decoded']} video frames to {output} (frames.json says which); "
                f"next: damcap reconstruct {output} -o CAPTURE")

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from damcap.capture.video import VideoFrameOptions, extract_frames, pick_frames
+from damcap.capture.video import VideoFrameOptions, extract_video_frames, pick_video_frames
 from damcap.common.errors import DamcapError
 from damcap.common.exr import read_image_u8
 
@@ -31,8 +31,8 @@ def video(tmp_path_factory):
 
 
 def test_the_sharp_frames_of_each_stretch_are_kept(video, tmp_path):
-    record = extract_frames(video, tmp_path / "photos", VideoFrameOptions(count=10))
-    assert record["frames_decoded"] == 40 and [p["frame"] for p in record["photos"]] == list(range(1, 40, 4))
+    record = extract_video_frames(video, tmp_path / "photos", VideoFrameOptions(count=10))
+    assert record["video_frames_decoded"] == 40 and [p["video_frame_index"] for p in record["photos"]] == list(range(1, 40, 4))
     names = sorted(p.name for p in (tmp_path / "photos").glob("*.jpg"))
     assert names == [f"frame_{k:05d}.jpg" for k in range(1, 40, 4)]
     assert read_image_u8(tmp_path / "photos" / names[0]).shape == (200, 320, 3)
@@ -43,23 +43,23 @@ def test_the_sharp_frames_of_each_stretch_are_kept(video, tmp_path):
 
 def test_photos_are_downscaled_to_max_side(video, tmp_path):
     calls: list[tuple[str, int, int]] = []
-    extract_frames(video, tmp_path / "small", VideoFrameOptions(count=3, max_side=160), progress=lambda *a: calls.append(a))
+    extract_video_frames(video, tmp_path / "small", VideoFrameOptions(count=3, max_side=160), progress=lambda *a: calls.append(a))
     assert calls[-1] == ("writing", 3, 3) and ("scoring", 40, 40) in calls  # the container says 40 frames
     assert read_image_u8(next((tmp_path / "small").glob("*.jpg"))).shape == (100, 160, 3)
 
 
-def test_pick_frames_spreads_over_the_video():
-    assert pick_frames(np.ones(100), 4) == [0, 25, 50, 75]
-    assert pick_frames(np.arange(10.0), 2) == [4, 9]
+def test_pick_video_frames_spreads_over_the_video():
+    assert pick_video_frames(np.ones(100), 4) == [0, 25, 50, 75]
+    assert pick_video_frames(np.arange(10.0), 2) == [4, 9]
 
 
 def test_what_is_not_a_video_is_refused_in_one_line(tmp_path):
     bad = tmp_path / "notes.mp4"
     bad.write_text("not a video")
     with pytest.raises(DamcapError, match="notes.mp4: cannot read a video here"):
-        extract_frames(bad, tmp_path / "out", VideoFrameOptions())
+        extract_video_frames(bad, tmp_path / "out", VideoFrameOptions())
     with pytest.raises(DamcapError, match="video file not found"):
-        extract_frames(tmp_path / "missing.mp4", tmp_path / "out", VideoFrameOptions())
+        extract_video_frames(tmp_path / "missing.mp4", tmp_path / "out", VideoFrameOptions())
 
 
 def test_a_phone_video_is_turned_upright_as_its_display_matrix_says(tmp_path):
@@ -78,7 +78,7 @@ def test_a_phone_video_is_turned_upright_as_its_display_matrix_says(tmp_path):
                 c.mux(packet)
         for packet in s.encode():
             c.mux(packet)
-    record = extract_frames(path, tmp_path / "photos", VideoFrameOptions(count=2))
+    record = extract_video_frames(path, tmp_path / "photos", VideoFrameOptions(count=2))
     assert record["display_rotation_deg"] == [-90.0]
     photo = read_image_u8(tmp_path / "photos" / record["photos"][0]["photo"])
     assert photo.shape == (64, 32, 3)  # portrait

@@ -36,7 +36,7 @@ from damcap.common.device import resolve_device
 from damcap.common.errors import DamcapError
 from damcap.common.validate import COUNT, COUNT_OR_ZERO, MAX_BATCH_PIXELS, MAX_DAM_DEPTH, MAX_DAM_WIDTH, SEED, check_ranges, in_range
 from damcap.common.fingerprint import FINGERPRINT_KEY, fingerprint
-from damcap.common.version import damcap_version
+from damcap.common.version import package_version
 
 from damcap.appearance.adversarial import PatchDiscriminator, discriminator_loss, generator_loss
 from damcap.appearance.dam import Activation, DamArchitecture, DeepAppearanceMap, Encoding, dam_forward, encode_inputs
@@ -269,7 +269,7 @@ def fit_fingerprint(samples: PixelSamples, opts: FitOptions, frames_for_adversar
     bit), the adversarial cost's whole frames, the initial model, the resolved options (but the
     spatial factor's and the normal refinement's, which act after the fit) and the damcap version. A checkpoint is resumed only by a fit with the same fingerprint."""
     dam_opts = {k: v for k, v in asdict(opts).items() if not k.startswith(AFTER_FIT_PREFIXES)}  # applied after fit_dam
-    parts: list[Any] = ["fit", damcap_version(), dam_opts, samples.view_dir_world, samples.normal_world,
+    parts: list[Any] = ["fit", package_version(), dam_opts, samples.view_dir_world, samples.normal_world,
                         samples.radiance_lin, samples.weight, samples.frame_index]
     for f in frames_for_adversarial or []:
         parts += [f.radiance_norm, f.inputs, f.foreground]
@@ -431,7 +431,7 @@ def fit_dam(
     def snapshot() -> dict[str, Any]:
         """The training state after the last completed step (what a checkpoint holds)."""
         return {
-            FINGERPRINT_KEY: fp, "damcap_version": damcap_version(), "options": _state_json(opts), "n_samples": len(samples),
+            FINGERPRINT_KEY: fp, "damcap_package_version": package_version(), "options": _state_json(opts), "n_samples": len(samples),
             "step": completed, "weights": model.get_flat_weights().cpu(), "optim": optim.state_dict(),
             "generator": gen_after, "best_loss": best_loss, "best_step": best_step, "best_weights": best_weights,
             "history": json.dumps(history), "elapsed": elapsed_before + time.perf_counter() - t0,

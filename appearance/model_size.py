@@ -97,10 +97,10 @@ def _ladder_key(opts: FitOptions, train: list[ViewData], samples: PixelSamples) 
     """What finished sizes depend on: the fit options other than width/depth, the views, their
     pixels (bit for bit: another capture under the same frame names differs) and the version."""
     from damcap.common.fingerprint import fingerprint
-    from damcap.common.version import damcap_version
+    from damcap.common.version import package_version
 
     o = {k: v for k, v in asdict(opts).items() if k not in ("width", "depth")}
-    data = fingerprint(damcap_version(), samples.view_dir_world, samples.normal_world, samples.radiance_lin, samples.weight,
+    data = fingerprint(package_version(), samples.view_dir_world, samples.normal_world, samples.radiance_lin, samples.weight,
                        samples.frame_index)
     return json.dumps({"options": o, "frames": [v.name for v in train], "n_samples": len(samples), "data": data}, sort_keys=True)
 

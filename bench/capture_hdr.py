@@ -58,7 +58,7 @@ from damcap.capture.metrics import abs_log_ratio_error, centred_log_ratio, rgbe_
 from damcap.synth.brackets import bracket_times, simulate_raw_bracket
 from damcap.common.atomic import write_json_atomic, write_text_atomic
 from damcap.common.exr import read_exr
-from damcap.common.version import damcap_version
+from damcap.common.version import package_version
 
 TARGETS = {"memorial_median": 0.025, "memorial_p90": 0.08, "raw_speedup": 2.0}
 
@@ -87,7 +87,7 @@ def machine() -> dict:
 
     return {"cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
             "numpy": np.__version__, "opencv": cv2.__version__, "rawpy": rawpy.__version__, "OpenImageIO": oiio.__version__,
-            "colour-science": colour.__version__, "colour-hdri": colour_hdri.__version__, "damcap": damcap_version()}
+            "colour-science": colour.__version__, "colour-hdri": colour_hdri.__version__, "damcap": package_version()}
 
 
 # --------------------------------------------------------------------------------------------

@@ -392,7 +392,7 @@ def write_hdr(path: str | os.PathLike, result: HdrResult, opts: HdrOptions) -> P
     """
     from damcap.common.atomic import write_json_atomic
     from damcap.common.exr import CLIPPED_CHANNEL, write_exr
-    from damcap.common.version import damcap_version
+    from damcap.common.version import package_version
 
     path = Path(path)
     peak = float(result.radiance_lin.max()) if result.radiance_lin.size else 0.0
@@ -407,10 +407,10 @@ def write_hdr(path: str | os.PathLike, result: HdrResult, opts: HdrOptions) -> P
         "damcap:exposures": json.dumps(records),
         "damcap:reference_exposure": float(result.reference_exposure),
         "damcap:clipped_pixels": int(result.clipped.sum()),
-        "damcap:version": damcap_version(),
+        "damcap:version": package_version(),
     })
     record = {
-        "damcap_version": damcap_version(),
+        "damcap_package_version": package_version(),
         "command": "hdr",
         "options": asdict(opts),
         "kind": result.kind,

@@ -34,9 +34,9 @@ NAME_COLUMN_MAX = 30
 
 def _print_version(value: bool) -> None:
     if value:
-        from damcap.common.version import damcap_version
+        from damcap.common.version import package_version
 
-        typer.echo(f"damcap {damcap_version()}")
+        typer.echo(f"damcap {package_version()}")
         raise typer.Exit()
 
 

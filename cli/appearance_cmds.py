@@ -69,7 +69,7 @@ def fit(
     from damcap.appearance.spatial_fit import choose_spatial
     from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import read_capture
-    from damcap.common.version import damcap_version
+    from damcap.common.version import package_version
 
     opts.validate()  # numeric options and --precision, before reading the capture
     opts.architecture  # validates width/depth/encoding/activation
@@ -102,7 +102,7 @@ def fit(
         spatial = choose_spatial(normals.model, views, opts, log=say, heldout_model=normals.heldout_model)
     last = result.history[-1] if result.history else {}
     save_dam(output, spatial.model, colorspace=cap.colorspace, made_by="fit", provenance={
-        "damcap_version": damcap_version(), "options": asdict(opts), "capture": str(capture.resolve()),
+        "damcap_package_version": package_version(), "options": asdict(opts), "capture": str(capture.resolve()),
         "split": split, "frames": [v.name for v in views], "pixels": len(samples), "best_step": result.best_step,
         "train_l1": last.get("train_l1"), "holdout_l1": last.get("holdout_l1"), "seconds": result.seconds,
         "history": result.history, "normal_refine": normals.record(), "spatial": spatial.record(),
@@ -144,7 +144,7 @@ def _fit_to_target(capture: Path, cap, views, split: str, target: float, opts, o
     from damcap.appearance.dam_file import save_dam
     from damcap.appearance.model_size import fit_to_target, remove_target_checkpoints, target_checkpoint_files
     from damcap.appearance.views import samples_of
-    from damcap.common.version import damcap_version
+    from damcap.common.version import package_version
 
     if width_or_depth_given:
         raise DamcapError("--target-dssim chooses the width and depth itself; leave out --width and --depth")
@@ -165,7 +165,7 @@ def _fit_to_target(capture: Path, cap, views, split: str, target: float, opts, o
     with on_interrupt(kept):
         choice = fit_to_target(views, target, opts, progress=lambda line: typer.echo(line, err=True), checkpoint_path=ckpt)
     save_dam(output, choice.model, colorspace=cap.colorspace, made_by="fit", provenance={
-        "damcap_version": damcap_version(), "options": asdict(opts), "capture": str(capture.resolve()), "split": split,
+        "damcap_package_version": package_version(), "options": asdict(opts), "capture": str(capture.resolve()), "split": split,
         "frames": [v.name for v in views], "target_dssim": target, "target_reached": choice.reached, "sizes_tried": choice.tried,
     }, up_world=cap.up_world, normal_histogram=training_normal_histogram(samples_of(views)))
     n = choice.model.arch.num_weights
@@ -197,7 +197,7 @@ def render(
     from damcap.common.atomic import write_json_atomic
     from damcap.common.capture_folder import RADIANCE_CHANNELS, read_capture, read_frame
     from damcap.common.exr import write_exr
-    from damcap.common.version import damcap_version
+    from damcap.common.version import package_version
 
     check_paths([model, capture], [folder_out(output, replaces=holds("render.json"))])  # an earlier render is replaced, nothing else touched
     dam, meta = load_dam(model)
@@ -215,7 +215,7 @@ def render(
                 raise DamcapError(f"{model}: the model's radiance overflows float32 (inf or NaN) on frame {f.file_path}")
             write_exr(stage / name, img, RADIANCE_CHANNELS, dtype="float",
                       attributes={"damcap:colorspace": meta.get("colorspace", "lin_rec709")})
-        write_json_atomic(stage / "render.json", {"damcap_version": damcap_version(), "model": str(model.resolve()),
+        write_json_atomic(stage / "render.json", {"damcap_package_version": package_version(), "model": str(model.resolve()),
                                                    "capture": str(capture.resolve()), "split": split,
                                                    "frames": [f.file_path for f in frames],
                                                    "outputs": dict(zip((f.file_path for f in frames), names))})
@@ -272,7 +272,7 @@ def evaluate(
     from damcap.appearance.views import load_views
     from damcap.common.atomic import write_json_atomic
     from damcap.common.capture_folder import read_capture
-    from damcap.common.version import damcap_version
+    from damcap.common.version import package_version
 
     model_paths = list(model or [])
     if plot is None and json_path is not None:
@@ -327,7 +327,7 @@ def evaluate(
         typer.echo(f"plot: {plot}")
     if json_path is not None:
         write_json_atomic(json_path, {
-            "damcap_version": damcap_version(), "capture": str(capture.resolve()),
+            "damcap_package_version": package_version(), "capture": str(capture.resolve()),
             "model": str(model_paths[0].resolve()) if len(model_paths) == 1 else None,
             "models": {label: {"path": str(p.resolve()), "made_by": made_by[label]} for label, p in zip(models, model_paths)},
             "ratios": ratios, "metric": "DSSIM (capture-format.md)",

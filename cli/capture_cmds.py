@@ -57,14 +57,14 @@ def linearize(
     from damcap.capture.linearize import linearize_files, list_photos
     from damcap.cli.app import stage_progress
     from damcap.common.atomic import write_json_atomic
-    from damcap.common.version import damcap_version
+    from damcap.common.version import package_version
 
     opts.validate()
     check_paths([photos], [folder_out(output)])
     files = list_photos(photos)
     with staged_folder(output) as stage:  # the EXRs move into OUTPUT together, at the end
         record = linearize_files(files, stage, opts, progress=stage_progress())  # its warnings: one line each (cli.main)
-        record = {"damcap_version": damcap_version(), "photos_folder": str(photos.resolve()), **record}
+        record = {"damcap_package_version": package_version(), "photos_folder": str(photos.resolve()), **record}
         write_json_atomic(stage / "linearize.json", record)
     scales = [r["scale"] for r in record["photos"]]
     typer.echo(f"wrote {len(files)} linear EXR(s) to {output} (reference exposure {record['reference_exposure']:.4g}, "

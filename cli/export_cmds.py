@@ -267,7 +267,7 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
     from damcap.common.atomic import atomic_path, write_json_atomic
     from damcap.common.capture_folder import RADIANCE_CHANNELS
     from damcap.common.exr import write_exr, write_png
-    from damcap.common.version import damcap_version
+    from damcap.common.version import package_version
     from damcap.common.colour import display_srgb8, exposure_scale_for
     from damcap.appearance.coverage import normal_histogram
     from damcap.appearance.dam_file import recorded_normal_histogram, recorded_up
@@ -321,7 +321,7 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
             video_ctx.__exit__(RuntimeError, RuntimeError("aborted"), None)
     unobserved = _unobserved_normals(model_paths, histograms, shown, f"of its pixels on {mesh_path.name}", "export.json 'unobserved_normals'")
     write_json_atomic(output / "export.json", {
-        "damcap_version": damcap_version(), "models": [str(p.resolve()) for p in model_paths],
+        "damcap_package_version": package_version(), "models": [str(p.resolve()) for p in model_paths],
         "mesh": str(mesh_path.resolve()), "labels": str(labels.resolve()) if labels else None,
         "options": asdict(opts), "export_options": asdict(export_opts), "exposure_scale": scale, "colorspace": metas[0].get("colorspace"),
         "world_from_cam": cams, "spatial": spatial["record"],

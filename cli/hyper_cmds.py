@@ -47,7 +47,7 @@ def train_hyper_cmd(
 
     from damcap.appearance.hyper.train import corpus_training_captures, train_hyper
     from damcap.common.atomic import write_json_atomic
-    from damcap.common.version import damcap_version
+    from damcap.common.version import package_version
     from damcap.synth.procedural import render_scenes
 
     opts.validate()
@@ -75,7 +75,7 @@ def train_hyper_cmd(
     if rank != 0:
         return
     training = {
-        "damcap_version": damcap_version(),
+        "damcap_package_version": package_version(),
         "command": "damcap " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
         "launcher": {"world_size": result.world_size, "torchrun": result.world_size > 1, "device": result.device},
         "corpus": str(dataset.resolve()) if dataset is not None else None, "train_captures": result.train_captures,

@@ -38,7 +38,7 @@ def segment(
     from damcap.appearance.segment.file import save_segmentation_folder
     from damcap.appearance.views import load_views
     from damcap.common.capture_folder import read_capture
-    from damcap.common.version import damcap_version
+    from damcap.common.version import package_version
 
     n = choice.fixed_materials()
     auto = n is None
@@ -66,7 +66,7 @@ def segment(
         model = segment_materials(train, base, progress=progress_bar(total, "segment"))
         curve = [{"materials": model.materials, "heldout_dssim": novel_view_dssim(model, test) if test else None, "seconds": model.seconds}]
     resolved = replace(base, materials=model.materials)
-    provenance = {"damcap_version": damcap_version(), "options": asdict(resolved), "capture": str(capture.resolve())}
+    provenance = {"damcap_package_version": package_version(), "options": asdict(resolved), "capture": str(capture.resolve())}
     # per-frame names by relative path where frames lie in several folders (images/0004, images2/0004)
     names = frame_output_names([f.file_path for f in cap.split("train")], "")
     with staged_folder(output, replace=True) as stage:  # everything moves into OUTPUT together, at the end

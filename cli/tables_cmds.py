@@ -92,7 +92,7 @@ def run_table1(corpora: list[Path], out: Path, predictor_path: Optional[Path], f
     from damcap.cli.app import make_bar, stage_progress
     from damcap.paper.tables import heldout_entries, plot_table1, summarise, table1_markdown, table1_rows
     from damcap.common.atomic import write_json_atomic, write_text_atomic
-    from damcap.common.version import damcap_version
+    from damcap.common.version import package_version
 
     for c in corpora:
         if not (c / "corpus.json").is_file():
@@ -113,7 +113,7 @@ def run_table1(corpora: list[Path], out: Path, predictor_path: Optional[Path], f
             if done:
                 typer.echo(f"resuming: {len(done)} capture(s) already in {json_path}", err=True)
     rows: list = []
-    header = {"damcap_version": damcap_version(), "command": _command(), "corpora": [str(c.resolve()) for c in corpora],
+    header = {"damcap_package_version": package_version(), "command": _command(), "corpora": [str(c.resolve()) for c in corpora],
               "options": record, "metric": "DSSIM (capture-format.md)"}
 
     total = len(heldout_entries(corpora))
@@ -144,7 +144,7 @@ def run_table2(capture: Path, out: Path, predictor_path: Optional[Path], materia
     from damcap.appearance.views import load_views
     from damcap.common.atomic import write_json_atomic, write_text_atomic
     from damcap.common.capture_folder import read_capture
-    from damcap.common.version import damcap_version
+    from damcap.common.version import package_version
 
     if materials != "auto":
         try:
@@ -167,7 +167,7 @@ def run_table2(capture: Path, out: Path, predictor_path: Optional[Path], materia
         per_view = {f"{task}: {m}": v[view] for task, methods in row.scores.items() for m, v in methods.items() if view in v}
         plot_sorted_dssim({f"{view} view": per_view}, out / f"table2_{view}.png", title=capture.name)
     command = _command()
-    write_json_atomic(out / "table2.json", {"damcap_version": damcap_version(), "command": command, "capture": str(capture.resolve()),
+    write_json_atomic(out / "table2.json", {"damcap_package_version": package_version(), "command": command, "capture": str(capture.resolve()),
                                             "options": _options_record(opts, predictor_path), "metric": "DSSIM (capture-format.md)",
                                             **row.as_json()})
     md = table2_markdown(row, command, figure.name)

@@ -74,9 +74,9 @@ __all__ = ["__version__", *_API]
 
 def __getattr__(name: str) -> Any:
     if name == "__version__":
-        from damcap.common.version import damcap_version
+        from damcap.common.version import package_version
 
-        value = damcap_version()
+        value = package_version()
     elif name in _API:
         value = getattr(importlib.import_module(_API[name]), name)
     else:

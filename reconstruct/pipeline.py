@@ -41,7 +41,7 @@ from damcap.common.atomic import atomic_path, write_json_atomic
 from damcap.common.capture_folder import FRAME_BYTES_PER_PIXEL, Capture, Frame, Intrinsics, write_transforms
 from damcap.common.errors import DamcapError
 from damcap.common.validate import COUNT, COUNT_OR_ZERO, FRACTION, MAX_IMAGE_SIDE, POSITIVE, SEED, check_ranges, in_range, require_memory, require_resolution
-from damcap.common.version import damcap_version
+from damcap.common.version import package_version
 
 from damcap.reconstruct.geometry import GeometryInputs, GeometryOptions, GeometryResult, build_geometry, parse_mode
 from damcap.reconstruct.normalize import normalization_transform, recentre_transform, similarity_scale, transform_points, transform_world_from_cam
@@ -823,7 +823,7 @@ def _reconstruct_into(photos_dir: Path, out: Path, opts: ReconstructOptions, nam
         self_check=chosen.check.to_json() if chosen.check is not None else None, geometry_check=geo.stats.get("auto_dense"))
     sphere = scene.sphere
     source = {
-        "tool": "damcap reconstruct", "damcap_version": damcap_version(), "photos": str(photos_dir.resolve()),
+        "tool": "damcap reconstruct", "damcap_package_version": package_version(), "photos": str(photos_dir.resolve()),
         "masks": str(Path(masks_dir).resolve()) if masks_dir is not None else None, "poses": poses,
         "options": asdict(opts), "norm_from_input_world": scene.norm_from_world.tolist(),
         "geometry": {"mode": geo.mode, "reason": geo.reason, "mesh": f"{WORK_FOLDER}/mesh.ply",

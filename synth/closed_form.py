@@ -24,7 +24,7 @@ import torch
 from damcap.common.capture_folder import Capture, Frame, FrameData, Intrinsics, write_capture
 from damcap.common.errors import DamcapError
 from damcap.common.validate import ELEVATION_DEG, MAX_IMAGE_SIDE, SEED, check_ranges, in_range, require_resolution
-from damcap.common.version import damcap_version
+from damcap.common.version import package_version
 from damcap.common.numerics import dot, safe_div, safe_normalize
 
 from damcap.common.cameras import focal_px_from_fov, orbit_world_from_cam, pixel_rays_world
@@ -520,7 +520,7 @@ def make_closed_form_capture(out: str | Path, opts: ClosedFormOptions) -> Captur
         train_filenames=train,
         test_filenames=[f.file_path for i, f in enumerate(frames) if i not in train_idx],
         materials=opts.materials,
-        extra={"damcap_source": {"generator": "closed-form", "damcap_version": damcap_version(), "options": asdict(opts),
+        extra={"damcap_source": {"generator": "closed-form", "damcap_package_version": package_version(), "options": asdict(opts),
                                  "materials": [asdict(m) for m in materials]}},
     )
     write_capture(capture, data, dtype=opts.dtype)

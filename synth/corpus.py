@@ -322,10 +322,10 @@ def _render_one(out: str, opts: SynthOptions, threads: int) -> tuple[str, float,
 
 
 def _write_corpus(out: Path, p: CorpusPreset, entries: list[CorpusEntry], data_dir: Path, started: str) -> None:
-    from damcap.common.version import damcap_version
+    from damcap.common.version import package_version
 
     write_json_atomic(out / "corpus.json", {
-        "damcap_version": damcap_version(), "preset": asdict(p), "data_dir": str(data_dir.resolve()), "started_utc": started,
+        "damcap_package_version": package_version(), "preset": asdict(p), "data_dir": str(data_dir.resolve()), "started_utc": started,
         "heldout": {"objects": [Path(o).stem for o in HELDOUT_OBJECTS], "env_maps": list(HELDOUT_ENV_MAPS),
                     "point_lights": [f"point-{k:02d}" for k in HELDOUT_POINT_LIGHTS],
                     "rule": "split = heldout when the object or the light is held out; both flags give the strictest subset"},

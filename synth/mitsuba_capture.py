@@ -737,7 +737,7 @@ def make_synthetic_capture(out: str | os.PathLike, opts: SynthOptions, *, progre
             else, or a rendered frame failing validation (then no transforms.json is written).
     """
     from damcap.common.optional import require
-    from damcap.common.version import damcap_version
+    from damcap.common.version import package_version
 
     from damcap.synth import mitsuba_render as synth_render
 
@@ -796,7 +796,7 @@ def make_synthetic_capture(out: str | os.PathLike, opts: SynthOptions, *, progre
         test_filenames=[f.file_path for k, f in enumerate(frames) if k not in set(train_idx)],
         materials=opts.materials,
         extra={"damcap_source": {
-            "generator": "synth", "options": options, "input_sha256": inputs, "damcap_version": damcap_version(),
+            "generator": "synth", "options": options, "input_sha256": inputs, "damcap_package_version": package_version(),
             "renderer": {"name": "mitsuba", "version": mi.__version__, "variant": variant, "integrator": "path",
                          "max_depth": opts.max_depth, "spp": opts.spp, "sampler": synth_render.SAMPLER, "pixel_filter": "box",
                          "pass_spp": pass_spp},

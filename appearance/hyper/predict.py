@@ -401,7 +401,7 @@ def predict_capture(capture, opts: PredictOptions = PredictOptions(), predictor_
     from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import Capture, read_capture
     from damcap.common.device import resolve_device
-    from damcap.common.version import damcap_version
+    from damcap.common.version import package_version
     from dataclasses import asdict
 
     opts.validate()
@@ -429,7 +429,7 @@ def predict_capture(capture, opts: PredictOptions = PredictOptions(), predictor_
         log(advice)
     # where the light orientation put the light: a diagnosis of a poor prediction (orientation.light_up_world)
     light_record = {} if light_fit is None else {"light_up_world": [float(x) for x in unit_direction(light_fit)[0]]}
-    record = {"damcap_version": damcap_version(), "capture": str(Path(cap.root).resolve()), "predictor": str(Path(pred_path).resolve()),
+    record = {"damcap_package_version": package_version(), "capture": str(Path(cap.root).resolve()), "predictor": str(Path(pred_path).resolve()),
               "predictor_command": meta.get("training", {}).get("command"), "view": frames[0].file_path,
               "input_views": [f.file_path for f in frames],
               "predict_seconds": predict_s, "options": asdict(opts), "refine_steps": opts.refine_steps,

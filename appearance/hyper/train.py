@@ -39,7 +39,7 @@ from damcap.common.validate import COUNT, COUNT_OR_ZERO, MAX_BATCH_PIXELS, MAX_C
 from damcap.appearance.dam import DamArchitecture, Encoding
 from damcap.appearance.hyper.orientation import Orientation
 from damcap.common.fingerprint import FINGERPRINT_KEY, fingerprint
-from damcap.common.version import damcap_version
+from damcap.common.version import package_version
 
 from damcap.appearance.fit import load_checkpoint, save_checkpoint, set_aside_stale
 from damcap.appearance.views import radiance_scale_of
@@ -460,7 +460,7 @@ def hyper_fingerprint(state_key: str, train: list[HyperCapture], val: list[Hyper
     """What a training run's result depends on: its options and capture names (``state_key``),
     every tensor of the loaded training and validation captures (bit for bit) and the damcap
     version. A ``.state`` checkpoint is resumed only by a run with the same fingerprint."""
-    parts: list[Any] = ["train-hyper", damcap_version(), state_key]
+    parts: list[Any] = ["train-hyper", package_version(), state_key]
     for c in [*train, *val]:
         parts += [c.name, float(c.radiance_scale), c.view_dir_world, c.normal_world, c.radiance_lin, *c.crops]
     return fingerprint(*parts)
@@ -621,7 +621,7 @@ def train_hyper(
         if rank == 0 and snapshot and opts.snapshot_every and done % opts.snapshot_every == 0:
             snapshot(done, net, init_record)
         if rank == 0 and ckpt and opts.checkpoint_every and done % opts.checkpoint_every == 0 and done < opts.steps:
-            save_checkpoint(ckpt, {FINGERPRINT_KEY: fp, "damcap_version": damcap_version(), "key": state_key, "step": done, "net": net.state_dict(), "optim": optim.state_dict(),
+            save_checkpoint(ckpt, {FINGERPRINT_KEY: fp, "damcap_package_version": package_version(), "key": state_key, "step": done, "net": net.state_dict(), "optim": optim.state_dict(),
                                "best_val": best_val, "best_step": best_step, "best_net": best_state,
                                "curve": json.dumps(curve), "elapsed": elapsed_before + time.perf_counter() - t0})
     seconds = elapsed_before + time.perf_counter() - t0

@@ -137,7 +137,7 @@ def test_a_changed_option_or_version_invalidates_the_checkpoint(small_samples, t
         r = fit_dam(small_samples, changed, checkpoint_path=ckpt, log=messages.append)
         assert r.resumed_from == 0 and len(messages) == 1 and "starting afresh" in messages[0], (changed, messages)
     interrupt_fit_at(small_samples, opts, ckpt, 40)
-    monkeypatch.setattr(fit_module, "damcap_version", lambda: "999.0")
+    monkeypatch.setattr(fit_module, "package_version", lambda: "999.0")
     messages = []
     assert fit_dam(small_samples, opts, checkpoint_path=ckpt, log=messages.append).resumed_from == 0
     assert "other inputs" in messages[0]

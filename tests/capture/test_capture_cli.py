@@ -64,7 +64,7 @@ def test_linearize_command(shared_data, tmp_path, capsys):
     assert code == 0, err
     assert sorted(p.name for p in (tmp_path / "lin").iterdir()) == ["IMG_5881.exr", "IMG_5890.exr", "linearize.json"]
     doc = json.loads((tmp_path / "lin" / "linearize.json").read_text())
-    assert doc["damcap_version"] and [p["exposure"]["iso"] for p in doc["photos"]]
+    assert doc["damcap_package_version"] and [p["exposure"]["iso"] for p in doc["photos"]]
     assert tree_digest(src) == before
     code, _, err = run(["linearize", src, "-o", src / "out"], capsys)
     assert_one_line_error(code, err, "would overwrite or write into the input")

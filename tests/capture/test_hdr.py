@@ -180,7 +180,7 @@ def test_exr_output_metadata_and_record(sim_bracket, tmp_path):
     assert [e["time_s"] for e in exposures] == pytest.approx(sim_bracket.exposure_times_s, rel=1e-6)
     assert exposures[0]["iso"] == 100 and exposures[0]["f_number"] == 8
     doc = json.loads(record.read_text())
-    assert doc["options"]["colorspace"] == "acescg" and len(doc["frames"]) == 5 and doc["damcap_version"]
+    assert doc["options"]["colorspace"] == "acescg" and len(doc["frames"]) == 5 and doc["damcap_package_version"]
     # ACEScg is a linear transform of Rec.709: the same map, other primaries
     rec = merge_bracket_files(sim_bracket.files).radiance_lin
     from damcap.capture.working_space import working_from_rec709

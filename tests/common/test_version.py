@@ -5,12 +5,12 @@ from __future__ import annotations
 import importlib.metadata
 
 from damcap.common import version as version_module
-from damcap.common.version import damcap_version
+from damcap.common.version import package_version
 
 
 def test_version_is_the_installed_distributions():
-    assert damcap_version() == importlib.metadata.version("damcap")
-    assert damcap_version()[0].isdigit()
+    assert package_version() == importlib.metadata.version("damcap")
+    assert package_version()[0].isdigit()
 
 
 def test_uninstalled_tree_gives_the_marker(monkeypatch):
@@ -18,4 +18,4 @@ def test_uninstalled_tree_gives_the_marker(monkeypatch):
         raise importlib.metadata.PackageNotFoundError(name)
 
     monkeypatch.setattr(version_module, "version", missing)
-    assert damcap_version() == "0+unknown"
+    assert package_version() == "0+unknown"

@@ -20,6 +20,7 @@ the fitted model stay float32; the adversarial cost's patches and discriminator 
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import math
 import os
@@ -32,7 +33,7 @@ import numpy as np
 import torch
 
 from damcap.common.atomic import atomic_path
-from damcap.common.device import resolve_device
+from damcap.common.device import fixed_threads, resolve_device
 from damcap.common.errors import DamcapError
 from damcap.common.validate import COUNT, COUNT_OR_ZERO, MAX_BATCH_PIXELS, MAX_DAM_DEPTH, MAX_DAM_WIDTH, SEED, check_ranges, in_range
 from damcap.common.fingerprint import FINGERPRINT_KEY, fingerprint
@@ -208,6 +209,9 @@ class FitResult:
     best_step: int = 0
     seconds: float = 0.0
     resumed_from: int = 0
+    threads: int = 0
+    """torch CPU threads the fit ran on (:func:`.device.fixed_threads`): the same samples, options
+    and thread count give the same model bit for bit"""
 
 
 def holdout_frames(n_frames: int, k: int) -> list[int]:
@@ -320,6 +324,21 @@ def compute_precision(device: torch.device, precision: Precision) -> ContextMana
     return contextlib.nullcontext()
 
 
+def _on_fixed_threads(fit: Callable[..., FitResult]) -> Callable[..., FitResult]:
+    """Run ``fit`` on the thread count in force when it is called, held fixed (no dynamic thread
+    adjustment by oneMKL or OpenMP, whatever the machine's load), and record it in the result."""
+
+    @functools.wraps(fit)
+    def run(*args: Any, **kwargs: Any) -> FitResult:
+        with fixed_threads() as threads:
+            result = fit(*args, **kwargs)
+        result.threads = threads
+        return result
+
+    return run
+
+
+@_on_fixed_threads
 def fit_dam(
     samples: PixelSamples,
     opts: FitOptions,
@@ -359,7 +378,8 @@ def fit_dam(
         (``e.__notes__``, :func:`interrupted_note`) says what was kept.
 
     Returns:
-        the fitted model (on CPU) and its training history.
+        the fitted model (on CPU), its training history and the CPU thread count it ran on (held
+        fixed during the fit, so that the machine's load cannot change it).
     """
     opts.validate()
     if len(samples) == 0:

@@ -104,7 +104,7 @@ def fit(
     save_dam(output, spatial.model, colorspace=cap.colorspace, made_by="fit", provenance={
         "damcap_package_version": package_version(), "options": asdict(opts), "capture": str(capture.resolve()),
         "split": split, "frames": [v.name for v in views], "pixels": len(samples), "best_step": result.best_step,
-        "train_l1": last.get("train_l1"), "holdout_l1": last.get("holdout_l1"), "seconds": result.seconds,
+        "train_l1": last.get("train_l1"), "holdout_l1": last.get("holdout_l1"), "seconds": result.seconds, "threads": result.threads,
         "history": result.history, "normal_refine": normals.record(), "spatial": spatial.record(),
     }, up_world=cap.up_world, normal_histogram=training_normal_histogram(samples))
     ckpt.unlink(missing_ok=True)  # only now that the model is saved

@@ -72,8 +72,13 @@ demo: venv
 	@echo "                     display/*.png sRGB, turntable.mp4 (H.264)"
 	@echo "  viewer.html        model.dam on the torus in the browser (WebGL)"
 
+# The suite on every core: pytest-xdist workers (CI has 2), each with torch on its share of the
+# cores (tests/conftest.py); the tests of one module (its module fixtures) and of one costly shared
+# set-up run on one worker (--dist loadgroup, groups set in tests/conftest.py; the tests marked slow
+# first, in that order). The 25 slowest tests are listed at the end. `make test TEST_JOBS=0` runs it in one process.
+TEST_JOBS ?= auto
 test: venv $(NS_READER)/.installed
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadgroup --no-loadscope-reorder --durations=25
 
 # The wheel as users get it: build, install into a scratch venv, run damcap from outside the tree
 wheel-check: venv

@@ -19,7 +19,40 @@ SAMPLE_CAPTURE = REPO / "samples" / "torus_env"
 #: tolerances per dtype, in one place
 TOL = {torch.float64: 1e-10, torch.float32: 1e-5, torch.float16: 2e-3}
 
-torch.set_num_threads(min(2, torch.get_num_threads()))
+#: torch's intra-op threads in a test process: at most 2, and under pytest-xdist (``make test``
+#: runs one worker per core) each worker's share of the cores, so that workers do not oversubscribe
+#: them: the tests' tensors are small, and an OpenMP thread that waits on a descheduled sibling
+#: costs more than it gains (measured on 2 loaded cores: test_table2_covers_all_three_tasks 52 s
+#: with 2 threads, 7 s with 1). Subprocesses the tests start inherit the share (OMP_NUM_THREADS).
+XDIST_WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
+TORCH_THREADS = max(1, min(2, torch.get_num_threads() // max(1, XDIST_WORKERS)))
+torch.set_num_threads(TORCH_THREADS)
+if XDIST_WORKERS:
+    os.environ.setdefault("OMP_NUM_THREADS", str(TORCH_THREADS))
+
+#: modules whose tests are independent cases sharing only session fixtures: under
+#: ``--dist loadgroup`` their tests are spread over the workers one by one. Every other module's
+#: tests run on one worker (its module fixtures, registrations and fits, are built once), except
+#: the tests marked ``slow``: each is a group of its own, and they are handed out first, so that
+#: no long test starts last while the other workers idle (make test passes --no-loadscope-reorder).
+SPREAD = ("tests/fuzz/",)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """xdist groups (see ``SPREAD``; tests that name a group keep theirs) and slow tests first."""
+    for item in items:
+        if item.get_closest_marker("xdist_group") is not None:
+            continue
+        try:
+            module = item.path.resolve().relative_to(REPO).as_posix()
+        except ValueError:
+            continue
+        if item.get_closest_marker("slow") is not None:
+            item.add_marker(pytest.mark.xdist_group(item.nodeid))
+        elif not module.startswith(SPREAD):
+            item.add_marker(pytest.mark.xdist_group(module))
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)  # stable: the order otherwise kept
 
 
 @pytest.fixture(scope="session")

@@ -6,6 +6,7 @@ import dataclasses
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from damcap.appearance.fit import FitOptions, fit_dam
@@ -22,6 +23,7 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1, 1)))
 
 
+@pytest.mark.slow
 def test_refinement_recovers_bumps_the_geometry_lacks():
     cams, intr, frames, _ = render_closed_form(ClosedFormOptions(shape="sphere", light="env", views=8, train_views=6, resolution=48,
                                                                  env_grid=12, seed=2))

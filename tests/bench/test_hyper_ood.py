@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 import torch
 
 from bench import hyper_ood
@@ -12,6 +13,7 @@ from damcap.appearance.hyper.file import save_predictor
 from damcap.appearance.hyper.model import HyperArchitecture, HyperNet
 
 
+@pytest.mark.slow
 def test_ood_study_writes_every_method_per_kind(tmp_path, is_dssim):
     paths = []
     for name, views in (("one", 1), ("set", 2)):

@@ -308,11 +308,30 @@ def _warm_imports():
 
 @pytest.fixture(scope="session")
 def base(tmp_path_factory) -> Path:
-    """Folder of tiny valid inputs, shared read-only by all cases (copy before damaging)."""
-    import torch
-    torch.set_num_threads(min(2, torch.get_num_threads()))
+    """Folder of tiny valid inputs, shared read-only by all cases (copy before damaging).
+
+    Under pytest-xdist the first worker to get here builds it in the run's common temporary folder
+    and the others wait for it (a file lock) and share it; each still imports the library for its
+    forked children."""
+    from filelock import FileLock
+
     _warm_imports()
-    root = tmp_path_factory.mktemp("fuzzbase")
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        root = tmp_path_factory.mktemp("fuzzbase")
+        _build_base(root)
+        return root
+    shared = tmp_path_factory.getbasetemp().parent
+    root, complete = shared / "fuzzbase", shared / "fuzzbase.complete"
+    with FileLock(str(shared / "fuzzbase.lock")):
+        if not complete.is_file():
+            shutil.rmtree(root, ignore_errors=True)
+            root.mkdir()
+            _build_base(root)
+            complete.touch()
+    return root
+
+
+def _build_base(root: Path) -> None:
     _main_ok(["closed-form", root / "cap", "--views", 4, "--train-views", 2, "--res", 16, "--env-grid", 4, "--supersample", 1, "--seed", 1])
     _main_ok(["fit", root / "cap", "-o", root / "m.dam", "--steps", 3, "--batch-size", 64, "--holdout-views", 0])
     _main_ok(["synth-photos", root / "photos", "--views", 4, "--size", 32])
@@ -331,7 +350,6 @@ def base(tmp_path_factory) -> Path:
     (corpus / "corpus.json").write_text(json.dumps({"captures": [
         {"path": "captures/a", "split": "train"}, {"path": "captures/b", "split": "train"}]}))
     _main_ok(["render", root / "m.dam", root / "cap", "-o", root / "rendered"])
-    return root
 
 
 @pytest.fixture()

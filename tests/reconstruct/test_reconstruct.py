@@ -132,6 +132,8 @@ def test_sfm_capture_normals_and_radiance_against_the_truth(sfm_capture, scene):
     assert ratios.std() / ratios.mean() < 0.06
 
 
+@pytest.mark.slow
+@pytest.mark.xdist_group("tests/reconstruct/test_reconstruct.py")  # with the module's other tests (its fixtures), handed out first
 def test_rerun_reuses_the_registration(sfm_capture, scene):
     before = json.loads((sfm_capture / "transforms.json").read_text())
     _, report = reconstruct_capture(scene["root"] / "images", sfm_capture, ReconstructOptions(**FAST),  # type: ignore[arg-type]
@@ -141,6 +143,7 @@ def test_rerun_reuses_the_registration(sfm_capture, scene):
     assert np.allclose(before["frames"][3]["transform_matrix"], after["frames"][3]["transform_matrix"])
 
 
+@pytest.mark.slow
 def test_wrong_masks_and_a_photo_of_another_object_are_named_and_left_out(scene, tmp_path):
     """One mask belongs to another view (shifted), a mirrored copy of a photo (with its mask) and a
     photo of another object are slipped into the folder: none is placed silently.
@@ -173,6 +176,7 @@ def test_wrong_masks_and_a_photo_of_another_object_are_named_and_left_out(scene,
     assert kept.registration["resumed"] == ["features", "matches", "mapping"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("motion, views, size", [("turntable", 24, 320), ("orbit", 16, 256)])
 def test_rendered_turntable_and_orbit_sets_register_correctly_by_default(motion, views, size, tmp_path):
     """An object in a static textured room, photographed while it turns before a (slightly
@@ -249,6 +253,7 @@ def test_known_poses_poisson_triangulates_with_the_poses_fixed(scene, tmp_path):
     assert np.median(_normal_errors_deg(cap, scene)) < 15.0
 
 
+@pytest.mark.slow
 def test_known_poses_dense_geometry_against_the_true_surface(scene, tmp_path):
     """``--geometry dense``: multi-view stereo of the photos (known cameras, masks) gives frames
     whose normals follow the true surface."""
@@ -366,6 +371,7 @@ def test_old_flags_fill_the_nested_options(monkeypatch, tmp_path):
     assert o.dense.depth_planes == DenseOptions().depth_planes and "train_views" in seen["explicit"]
 
 
+@pytest.mark.slow
 def test_auto_builds_the_dense_surface_too_and_keeps_the_one_the_photos_agree_with(scene, tmp_path):
     """``--geometry auto`` past the sphere test: the visual hull and the dense surface are both
     scored by photo consistency, the report says which was kept and why, and the rule's choice
@@ -385,3 +391,76 @@ def test_auto_builds_the_dense_surface_too_and_keeps_the_one_the_photos_agree_wi
     _, plain = reconstruct_capture(scene["root"] / "images", tmp_path / "hull",
                                    ReconstructOptions(auto_dense=False, **FAST), **common)  # type: ignore[arg-type]
     assert plain.geometry_mode == "visual-hull" and plain.geometry_check is None
+
+
+def test_an_object_the_photos_cut_keeps_its_right_cameras_and_warns_of_its_hull(tmp_path):
+    """A long box that most of 24 photos cut (known cameras, exact masks): before, the hull filled
+    its search cube and the self-check called all 24 right cameras inconsistent; now every photo
+    is kept, the hull stays near the box, and reconstruct prints a warning line that the hull
+    reaches the limits of what the photos judge (not only ``touches_box`` in transforms.json)."""
+    from damcap.common.capture_folder import Intrinsics
+    from damcap.common.cameras import focal_px_from_fov
+    from tests.reconstruct.test_geometry import TOOL_HALF, box_mesh
+
+    cams = orbit_cameras(24, 3.0, (25.0, 50.0), jitter_deg=3, seed=2)
+    f = focal_px_from_fov(30.0, 128)
+    write_photo_set(tmp_path / "set", box_mesh(TOOL_HALF), cams, Intrinsics(f, f, 64, 48, 128, 96), exposure_series(24, 0))
+    lines: list[str] = []
+    opts = ReconstructOptions(geometry=GeometryOptions(mode="visual-hull", voxels=64), capture_size=128, train_views=5,
+                              supersample=1)
+    cap, report = reconstruct_capture(tmp_path / "set" / "images", tmp_path / "cap", opts, masks_dir=tmp_path / "set" / "masks",
+                                      poses=str(tmp_path / "set" / "transforms.json"), log=lines.append)
+    assert report.dropped == {} and len(cap.frames) == 24
+    assert report.self_check["verdict"] == "consistent" and report.self_check["precision_skipped"]
+    warnings = [ln for ln in lines if ln.startswith("warning: the visual hull reaches the edge")]
+    assert len(warnings) == 1
+    stats = json.loads((tmp_path / "cap" / "transforms.json").read_text())["damcap_source"]["geometry"]["stats"]
+    assert stats["touches_box"]
+    # the hull, back in the cameras' frame, stays near the box (it filled [-2.7, 2.7]^3 before)
+    v = cap_vertices_in_input_frame(tmp_path / "cap")
+    assert np.all(v.max(0) < TOOL_HALF + [0.35, 0.25, 0.1]) and np.all(v.min(0) > -TOOL_HALF - [0.35, 0.25, 0.1])
+
+
+def cap_vertices_in_input_frame(capture_dir: Path) -> np.ndarray:
+    """The capture's mesh.ply vertices in the input cameras' frame (undoing ``norm_from_input_world``)."""
+    import open3d as o3d
+
+    src = json.loads((capture_dir / "transforms.json").read_text())["damcap_source"]
+    norm_from_world = np.array(src["norm_from_input_world"])
+    v = np.asarray(o3d.io.read_triangle_mesh(str(capture_dir / "reconstruction" / "mesh.ply")).vertices)
+    return (np.c_[v, np.ones(len(v))] @ np.linalg.inv(norm_from_world).T)[:, :3]
+
+
+def test_auto_prefers_the_dense_geometry_over_a_hull_that_reaches_its_bounds():
+    from damcap.common.shapes import sphere_mesh
+    from damcap.reconstruct.geometry import GeometryResult
+    from damcap.reconstruct.photo_consistency import Consistency, prefer_dense
+    from damcap.reconstruct.pipeline import dense_margin
+
+    mesh = sphere_mesh(np.zeros(3), 1.0, subdivisions=1)
+    closed = GeometryResult(mesh, "visual-hull", "", None, {"touches_box": False})
+    open_ = GeometryResult(mesh, "visual-hull", "", None, {"touches_box": True})
+    hull, dense = Consistency(0.60, 0.9, 8), Consistency(0.59, 0.9, 8)  # dense a little worse, within the margin
+    assert not prefer_dense(hull, dense, dense_margin(closed, 0.02))
+    assert prefer_dense(hull, dense, dense_margin(open_, 0.02))
+    assert not prefer_dense(hull, Consistency(0.55, 0.9, 8), dense_margin(open_, 0.02))  # worse by more: the hull stays
+
+
+def test_registration_advice_follows_the_masks_given():
+    """'auto' registers again with features inside the masks at exactly 95 % (38 of 40); the advice
+    for too few cameras never says 'give --masks' when masks were given; a whole-photos registration
+    kept after features inside the masks were tried says how that went instead of advising it."""
+    from damcap.reconstruct.colmap.database import WHOLE_PHOTOS_HINT, unregistered_reasons
+    from damcap.reconstruct.pipeline import CheckedCameras, _masked_tried, features_hint, wants_masked_features
+    from damcap.reconstruct.poses import Registration
+
+    assert wants_masked_features(38, 40, None) and not wants_masked_features(39, 40, None)
+    assert "--masks keeps" in features_hint(False, False)
+    assert "--masks " not in features_hint(True, False) and "--mask-features always" in features_hint(True, False)
+    assert features_hint(True, True) == ""
+    reasons = unregistered_reasons(["a.jpg", "b.jpg"], {"a.jpg"}, {"a.jpg": 900, "b.jpg": 900}, {"a.jpg": 99, "b.jpg": 99}, {}, 15,
+                                   masks_given=True)
+    reg = Registration(photos=[], source="sfm")
+    reg.unregistered = dict(reasons)
+    kept = _masked_tried(CheckedCameras(reg, [], None, None, "whole photos"), "features inside the masks gave no more photos that agree")
+    assert WHOLE_PHOTOS_HINT not in kept.reg.unregistered["b.jpg"] and "gave no more photos" in kept.reg.unregistered["b.jpg"]

@@ -49,6 +49,7 @@ def test_predictor_file_round_trip_and_bad_files(tmp_path, small_capture):
         load_predictor(tmp_path / "missing.safetensors")
 
 
+@pytest.mark.slow
 def test_every_shipped_predictor_loads_and_a_retired_name_says_which_commit_holds_it(tmp_path, monkeypatch, capsys):
     for name in SHIPPED:
         net, meta = load_predictor(predictor_path(name))

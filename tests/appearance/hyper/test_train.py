@@ -115,6 +115,7 @@ def test_longer_training_fits_the_training_captures(tiny_corpus):
     assert after < 0.5 * before, (before, after)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("orientation", ["world", "light"])
 def test_random_scenes_alone_lower_the_validation_loss(orientation):
     from functools import partial

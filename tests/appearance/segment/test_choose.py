@@ -15,6 +15,7 @@ def one_material(tmp_path_factory):
     return _torus_capture(tmp_path_factory, 1)[1:]
 
 
+@pytest.mark.slow
 def test_auto_picks_one_material_for_a_single_material_capture(one_material):
     train, test = one_material
     choice = choose_materials(train, test, SegmentOptions(**FAST), max_materials=2)
@@ -22,6 +23,7 @@ def test_auto_picks_one_material_for_a_single_material_capture(one_material):
     assert [c["materials"] for c in choice.curve] == [1, 2] and len(choice.curve[0]["restarts"]) == 2
 
 
+@pytest.mark.slow
 def test_auto_picks_two_materials_for_a_two_material_capture(two_materials):
     _, train, test = two_materials
     choice = choose_materials(train, test, SegmentOptions(**FAST), max_materials=3)

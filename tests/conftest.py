@@ -55,6 +55,14 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)  # stable: the order otherwise kept
 
 
+@pytest.fixture(autouse=True)
+def _torch_threads_kept():
+    """A test that sets torch's thread count (a study's ``main`` sets 2) leaves the worker's as it was."""
+    yield
+    if torch.get_num_threads() != TORCH_THREADS:
+        torch.set_num_threads(TORCH_THREADS)
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     """../shared/data (real third-party data). Missing data fails under CI=true, skips elsewhere."""

@@ -27,6 +27,16 @@ def closed_form_corpus(root: Path, materials: int = 1, resolution: int = 24) -> 
     return write_corpus(root, [(name, "env", materials, "env:closed-form")])
 
 
+@pytest.fixture(autouse=True)
+def _worker_thread_share(monkeypatch):
+    """A study's ``main`` sets torch's thread count for its measured runs (2); its smoke test runs
+    on the test process's share of the cores instead (tests/conftest.py: under pytest-xdist two
+    threads per worker oversubscribe the cores, and small tensors then wait on each other)."""
+    import torch
+
+    monkeypatch.setattr(torch, "set_num_threads", lambda n: None)
+
+
 @pytest.fixture()
 def corpus_writer():
     """:func:`write_corpus`."""

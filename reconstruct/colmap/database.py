@@ -28,9 +28,13 @@ def pair_inliers(db_path: Path, names: list[str]) -> dict[tuple[int, int], int]:
         db.close()
 
 
+#: what an unregistered photo's reason advises when masks were given but features came from the whole photos
+WHOLE_PHOTOS_HINT = "--mask-features always matches only the features inside the masks"
+
+
 def unregistered_reasons(names: list[str], registered: set[str], keypoints: dict[str, int],
                          best_inliers: dict[str, int], other_models: dict[str, int], min_num_inliers: int,
-                         features_masked: bool = False) -> dict[str, str]:
+                         features_masked: bool = False, masks_given: bool = False) -> dict[str, str]:
     """Why each photo outside the kept model has no camera, as one short sentence each.
 
     Args:
@@ -42,6 +46,8 @@ def unregistered_reasons(names: list[str], registered: set[str], keypoints: dict
         min_num_inliers: verified matches a pair needs.
         features_masked: features were restricted to the object by masks, so the matches cannot
             lie on the background.
+        masks_given: the user gave masks but the features came from the whole photos: the advice
+            is to match features inside them (``--mask-features always``), not to give them.
     """
     out = {}
     for n in names:
@@ -59,7 +65,7 @@ def unregistered_reasons(names: list[str], registered: set[str], keypoints: dict
                       "of them on points the model had triangulated; more overlap with the registered photos helps)")
         else:
             out[n] = (f"its pose could not be estimated (best pair {inl} verified matches, but they do not fit the registered "
-                      "cameras; if the object turned in front of the background, give --masks)")
+                      f"cameras; if the object turned in front of the background, {WHOLE_PHOTOS_HINT if masks_given else 'give --masks'})")
     return out
 
 

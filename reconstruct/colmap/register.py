@@ -82,7 +82,7 @@ class SfmOptions:
     """SIFT starts one octave up (doubles the image) only when the longer side, after
     ``max_image_size``, is below this; large photos skip that costly octave"""
     retry_upsampled_below: float = field(default=0.95, metadata=in_range(0, 1, cli_panel="advanced"))
-    """when the octave was skipped and fewer than this fraction of the photos register, features
+    """when the octave was skipped and no more than this fraction of the photos register, features
     are extracted again with it and the registration with more photos is kept (0 = never). The
     octave costs 2.7x the time on the 119 cape photos (296 s against 111 s, all registered either
     way) but decides sparse sets: every 2nd of the first 60 cape photos register 2 of 30 without
@@ -416,13 +416,13 @@ def octave_skipped(sizes: set[tuple[int, int]], opts: SfmOptions) -> bool:
 
 
 def wants_upsampled_retry(registered: int, photos: int, skipped: bool, retry_below: float) -> bool:
-    """Whether to register again with the upsampled first octave: it was skipped and fewer than
-    ``retry_below`` of the photos registered.
+    """Whether to register again with the upsampled first octave: it was skipped and no more than
+    ``retry_below`` of the photos registered (38 of 40 is 95 %: retried at 0.95).
 
-    >>> wants_upsampled_retry(2, 30, True, 0.95), wants_upsampled_retry(119, 119, True, 0.95)
-    (True, False)
+    >>> wants_upsampled_retry(2, 30, True, 0.95), wants_upsampled_retry(38, 40, True, 0.95), wants_upsampled_retry(119, 119, True, 0.95)
+    (True, True, False)
     """
-    return skipped and retry_below > 0 and registered < retry_below * photos
+    return skipped and retry_below > 0 and registered <= retry_below * photos + 1e-9
 
 
 #: masked features: the SIFT budget grows by at most this factor (see :func:`masked_options`)
@@ -463,13 +463,14 @@ def masked_options(opts: SfmOptions, object_fraction: float) -> SfmOptions:
 
 def register_photos(photo_dir: str | Path, names: list[str], work_dir: str | Path, opts: SfmOptions = SfmOptions(),
                     masks: dict[str, Path] | None = None, progress: StageProgress | None = None,
-                    content: dict[str, str] | None = None) -> tuple[Registration, SfmReport]:
+                    content: dict[str, str] | None = None, masks_given: bool = False) -> tuple[Registration, SfmReport]:
     """Register a photo set with COLMAP; resume what a previous run in ``work_dir`` finished.
 
     Large photos first skip SIFT's upsampled octave (fast); when too few of them register
     (:func:`wants_upsampled_retry`), features are extracted again with it, in
     ``work_dir/upsampled``, and the registration with more photos is kept. The report says
-    which (``features``, ``retry``).
+    which (``features``, ``retry``). ``masks_given``: the user has masks that ``masks`` does not
+    apply to the features (the advice for unregistered photos says how to use them).
 
     Raises:
         DamcapError: fewer than 2 photos, or no pass registered any.
@@ -480,7 +481,7 @@ def register_photos(photo_dir: str | Path, names: list[str], work_dir: str | Pat
     skipped = len(names) >= 2 and octave_skipped({image_size(photo_dir / nm) for nm in names}, opts)
     first_error: DamcapError | None = None
     try:
-        reg, rep = _register_once(photo_dir, names, work_dir, opts, masks, progress, content)
+        reg, rep = _register_once(photo_dir, names, work_dir, opts, masks, progress, content, masks_given)
         rep.features = reg.stats["features"] = "skipped first octave" if skipped else "upsampled first octave"
     except DamcapError as e:
         if not skipped or opts.retry_upsampled_below <= 0 or len(names) < 2:
@@ -490,7 +491,7 @@ def register_photos(photo_dir: str | Path, names: list[str], work_dir: str | Pat
         return reg, rep
     upsampled = replace(opts, upsample_below=opts.max_image_size + 1)
     try:
-        reg2, rep2 = _register_once(photo_dir, names, work_dir / "upsampled", upsampled, masks, progress, content)
+        reg2, rep2 = _register_once(photo_dir, names, work_dir / "upsampled", upsampled, masks, progress, content, masks_given)
     except DamcapError as e:
         if rep is None:
             raise first_error from None  # type: ignore[misc]
@@ -510,7 +511,8 @@ def register_photos(photo_dir: str | Path, names: list[str], work_dir: str | Pat
 
 
 def _register_once(photo_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions, masks: dict[str, Path] | None,
-                   progress: StageProgress | None, content: dict[str, str] | None) -> tuple[Registration, SfmReport]:
+                   progress: StageProgress | None, content: dict[str, str] | None,
+                   masks_given: bool = False) -> tuple[Registration, SfmReport]:
     """One registration pass with ``opts`` (resumed from what ``work_dir`` holds).
 
     Args:
@@ -591,12 +593,15 @@ def _register_once(photo_dir: Path, names: list[str], work_dir: Path, opts: SfmO
     seconds["mapping"] = time.perf_counter() - t0
     keypoints, best_inliers = database_summary(db_path, names)
     if not recs:
-        reasons = unregistered_reasons(names, set(), keypoints, best_inliers, {}, opts.min_num_inliers, bool(masks))
+        reasons = unregistered_reasons(names, set(), keypoints, best_inliers, {}, opts.min_num_inliers, bool(masks),
+                                       masks_given and not masks)
         worst = sorted(reasons.items())[:3]
         raise DamcapError(
             f"{photo_dir}: COLMAP could not register the photos (no initial pair among {n} photos; e.g. "
             + "; ".join(f"{k}: {v}" for k, v in worst)
-            + "). Photos need overlap and texture; try --masks, more photos, or --poses"
+            + "). Photos need overlap and texture; try "
+            + ("more photos or --poses" if masks else "--mask-features always, more photos, or --poses" if masks_given
+               else "--masks, more photos, or --poses")
         )
     ranked = sorted(recs.values(), key=lambda r: r.num_reg_images(), reverse=True)
     rec = ranked[0]
@@ -621,7 +626,7 @@ def _register_once(photo_dir: Path, names: list[str], work_dir: Path, opts: SfmO
     reg = registration_of_reconstruction(rec, names, "sfm", str(model_dir))
     registered = {p.name for p in reg.photos}
     reg.unregistered = unregistered_reasons(names, registered, keypoints, best_inliers, others, opts.min_num_inliers,
-                                           bool(masks))
+                                           bool(masks), masks_given and not masks)
     rep = SfmReport(photos=n, registered=len(registered), points=int(rec.num_points3D()),
                     mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()), pairs=n_pairs,
                     pairing=pairing, seconds={k: round(v, 2) for k, v in seconds.items()},

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from damcap.reconstruct.colmap.database import unregistered_reasons
+from damcap.reconstruct.colmap.database import WHOLE_PHOTOS_HINT, unregistered_reasons
 
 
 def test_unregistered_reasons_each_branch():
@@ -18,3 +18,13 @@ def test_unregistered_reasons_each_branch():
     masked = unregistered_reasons(names, {"a.jpg"}, keypoints={n: 900 for n in names}, best_inliers={n: 100 for n in names},
                                   other_models={}, min_num_inliers=15, features_masked=True)
     assert "all on the object" in masked["e.jpg"] and "--masks" not in masked["e.jpg"]  # no background to blame
+
+
+def test_the_advice_for_an_unregistered_photo_follows_the_masks_given():
+    """Without masks: give --masks. With masks whose features came from the whole photos: not
+    'give --masks' (they were given) but matching features inside them."""
+    names = ["a.jpg", "e.jpg"]
+    args = dict(keypoints={n: 900 for n in names}, best_inliers={n: 100 for n in names}, other_models={}, min_num_inliers=15)
+    assert "give --masks" in unregistered_reasons(names, {"a.jpg"}, **args)["e.jpg"]
+    given = unregistered_reasons(names, {"a.jpg"}, **args, masks_given=True)["e.jpg"]
+    assert "--masks" not in given.replace("--mask-features", "") and WHOLE_PHOTOS_HINT in given

@@ -97,6 +97,8 @@ def test_the_first_octave_is_skipped_only_for_large_photos():
 @pytest.mark.parametrize("registered, photos, skipped, below, want", [
     (2, 30, True, 0.95, True), (28, 30, True, 0.95, True), (29, 30, True, 0.95, False),
     (2, 30, False, 0.95, False), (2, 30, True, 0.0, False),
+    # the boundary: 38 of 40 is exactly 95 %, and a set at 95 % is retried (plain pycolmap registered all 40 of such a set)
+    (38, 40, True, 0.95, True), (39, 40, True, 0.95, False), (19, 20, True, 0.95, True), (40, 40, True, 1.0, True),
 ])
 def test_retry_rule(registered, photos, skipped, below, want):
     assert wants_upsampled_retry(registered, photos, skipped, below) is want
@@ -108,7 +110,7 @@ def _fake_pass(results):
 
     calls = []
 
-    def once(photo_dir, names, work_dir, opts, masks, progress, content):
+    def once(photo_dir, names, work_dir, opts, masks, progress, content, masks_given=False):
         upsampled = opts.upsample_below > opts.max_image_size
         calls.append((work_dir.name, upsampled))
         n = results[upsampled]
@@ -143,6 +145,21 @@ def test_sparse_sets_are_registered_again_with_the_upsampled_octave(tmp_path, mo
         assert calls[1] == ("upsampled", True) and rep.retry is not None
     if kept.endswith("(retry)"):
         assert rep.seconds["features"] == (1.0 if isinstance(first, Exception) else 2.0)  # both passes' time
+
+
+def test_a_set_at_exactly_95_percent_is_registered_again(tmp_path, monkeypatch):
+    """38 of 40 photos is 95 %: the upsampled retry runs (it did not when the rule was 'fewer than'),
+    and the registration with more photos is kept."""
+    from damcap.synth.photos import write_jpeg
+
+    names = [f"p{k:02d}.jpg" for k in range(40)]
+    (tmp_path / "photos").mkdir()
+    for nm in names:
+        write_jpeg(tmp_path / "photos" / nm, np.zeros((900, 900, 3), np.uint8), None)
+    once, calls = _fake_pass({False: 38, True: 40})
+    monkeypatch.setattr(register_module, "_register_once", once)
+    reg, rep = register_photos(tmp_path / "photos", names, tmp_path / "work", SfmOptions())
+    assert len(calls) == 2 and rep.registered == 40 and rep.features == "upsampled first octave (retry)"
 
 
 def test_when_no_pass_registers_the_first_error_is_raised(tmp_path, monkeypatch):

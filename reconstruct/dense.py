@@ -45,13 +45,12 @@ from damcap.reconstruct.geometry import (
     MASK_THRESHOLD,
     GeometryInputs,
     GeometryResult,
-    clean_surface,
+    _object_points,
     carve,
+    carve_hull_grid,
+    clean_surface,
     fuse_poisson,
-    grid_box,
-    hull_box,
     project_points,
-    voxel_centres,
 )
 
 FusionKind = Literal["poisson", "tsdf"]
@@ -667,17 +666,17 @@ class DepthMaps:
 
 
 def _object_bounds(inputs: GeometryInputs) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], tuple[float, float], float]:
-    """Points inside the object (a 48^3 carve of the hull box, or the sparse points), its box, the
-    depth quantiles to use and a depth margin (scene units)."""
+    """Points inside the object (a 48^3 carve of the hull's grid, :func:`~.geometry.carve_hull_grid`,
+    or the sparse points), its box, the depth quantiles to use and a depth margin (scene units)."""
     cams = np.asarray(inputs.world_from_cams, np.float64)
     if inputs.masks:
-        box = hull_box(inputs.masks, cams, inputs.intrinsics, tolerance=1)
-        if box is None:
+        # the hull's grid within what the photos judge (an object cut by the frame does not fill the search cube)
+        obj = _object_points(inputs)
+        grid = carve_hull_grid(inputs.masks, cams, inputs.intrinsics, 1, 48, obj if len(obj) else None)
+        if grid is None:
             raise DamcapError("dense geometry: no point is inside the silhouettes (check the masks and cameras)")
-        origin, size, dims = grid_box(box[0], box[1], 48)
-        pts = voxel_centres(origin, size, dims)
-        occ = carve(inputs.masks, cams, inputs.intrinsics, pts, tolerance=1)
-        return pts[occ > 0.2], box, (0.0, 1.0), 1.5 * size
+        pts = grid.centres()
+        return pts[grid.occupancy.reshape(-1) > 0.2], (grid.bounds.box_min, grid.bounds.box_max), (0.0, 1.0), 1.5 * grid.size
     pts = np.asarray(inputs.points_world, np.float64)
     if len(pts) < 20:
         raise DamcapError(f"dense geometry without masks needs at least 20 sparse points to bound the depths, got {len(pts)}")

@@ -48,6 +48,18 @@ MeshAlign = Literal["auto", "none", "icp"]
 MAX_VOXELS = 2048
 #: mask value above which a pixel is the object
 MASK_THRESHOLD = 0.5
+#: a mask reaches the photo's border when an object pixel lies within this fraction of the
+#: photo's size of an edge (:func:`mask_touches_border`)
+BORDER_BAND = 0.005
+#: the visual hull judges a voxel only where at least this many photos judge it ...
+MIN_VIEWS_JUDGING = 3
+#: ... and at least this fraction of them (:func:`min_views_judging`): where fewer photos hold a
+#: voxel, silhouettes that leave the frame cannot close the hull (a long object cut by the frame)
+SEEN_FRACTION = 0.25
+#: the sparse points bound the hull's grid when there are at least this many on the object ...
+MIN_BOX_POINTS = 20
+#: ... by their robust box grown by this fraction of its size on every side
+POINTS_MARGIN = 0.25
 
 
 @dataclass(frozen=True)
@@ -151,35 +163,106 @@ def sample_bilinear(image: np.ndarray, uv: np.ndarray, outside: float) -> np.nda
 # Visual hull
 # --------------------------------------------------------------------------------------------
 
-def mask_values_at(points_world: np.ndarray, mask: np.ndarray, world_from_cam: np.ndarray, intr: Intrinsics) -> np.ndarray:
-    """A photo's mask value at each point, as carving reads it: 1 (unknown) behind the camera and,
-    when the object touches the photo's border, outside the photo; 0 outside a photo that holds
-    the whole object.
+def mask_touches_border(mask: np.ndarray) -> bool:
+    """Whether the object reaches the photo's border: a mask pixel within ``BORDER_BAND`` of the
+    photo's size (at least 2 px) from an edge is the object. Then the object may go on past the
+    frame; a mask that stops a pixel or two short of the edge counts as reaching it.
+
+    >>> m = np.zeros((100, 100), np.float32); m[40:60, 40:97] = 1
+    >>> mask_touches_border(m), mask_touches_border(m[:, :98])
+    (False, True)
+    """
+    h, w = mask.shape
+    b = max(2, int(np.ceil(BORDER_BAND * max(h, w))))
+    on = mask > MASK_THRESHOLD
+    return bool(on[:b].any() or on[-b:].any() or on[:, :b].any() or on[:, -b:].any())
+
+
+def mask_values_and_judged(points_world: np.ndarray, mask: np.ndarray, world_from_cam: np.ndarray, intr: Intrinsics,
+                           border: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A photo's mask value at each point, as carving reads it, and whether the photo judges the point.
+
+    Inside the photo (in front of the camera): the bilinear mask value, judged. Outside the photo:
+    background (0, judged) when the object lies wholly inside the photo (:func:`mask_touches_border`
+    is False), else unknown (1, not judged: the object may go on past the frame). Behind the
+    camera: unknown.
 
     Args:
         points_world: (P, 3).
         mask: (h, w) float32 in [0, 1].
         world_from_cam: (4, 4) OpenGL camera-to-world.
         intr: the mask's pinhole camera.
+        border: :func:`mask_touches_border` of the mask, when known.
 
     Returns:
-        (P,) float32 in [0, 1].
+        (P,) float32 in [0, 1]; (P,) bool.
     """
     uv, front = project_points(points_world, world_from_cam, intr)
-    border = max(mask[0].max(), mask[-1].max(), mask[:, 0].max(), mask[:, -1].max())
-    vals = sample_bilinear(mask, uv, outside=1.0 if border > MASK_THRESHOLD else 0.0)
-    vals[~front] = 1.0
-    return vals
+    if border is None:
+        border = mask_touches_border(mask)
+    h, w = mask.shape
+    inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    vals = sample_bilinear(mask, uv, outside=1.0 if border else 0.0)
+    judged = inside if border else front
+    vals[~judged] = 1.0
+    return vals, judged
+
+
+def mask_values_at(points_world: np.ndarray, mask: np.ndarray, world_from_cam: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """A photo's mask value at each point, as carving reads it (:func:`mask_values_and_judged`):
+    (P,) float32 in [0, 1]."""
+    return mask_values_and_judged(points_world, mask, world_from_cam, intr)[0]
+
+
+def views_judging(points_world: np.ndarray, masks: list[np.ndarray], world_from_cams: np.ndarray,
+                  intrinsics: list[Intrinsics]) -> np.ndarray:
+    """How many photos judge each point (:func:`mask_values_and_judged`): (P,) int32."""
+    pts = np.asarray(points_world, np.float32)
+    count = np.zeros(len(pts), np.int32)
+    for mask, m, intr in zip(masks, world_from_cams, intrinsics):
+        uv, front = project_points(pts, m, intr)
+        if mask_touches_border(mask):
+            count += front & (uv[:, 0] >= 0) & (uv[:, 0] < intr.w) & (uv[:, 1] >= 0) & (uv[:, 1] < intr.h)
+        else:
+            count += front
+    return count
+
+
+def min_views_judging(n_cameras: int, tolerance: int = 0) -> int:
+    """Photos that must judge a voxel for the hull to keep it: at least ``MIN_VIEWS_JUDGING`` and
+    ``SEEN_FRACTION`` of the cameras, and two more than the views allowed to disagree; never more
+    than there are cameras.
+
+    >>> min_views_judging(40), min_views_judging(14), min_views_judging(4), min_views_judging(40, tolerance=9)
+    (10, 4, 3, 11)
+    """
+    return int(min(n_cameras, max(MIN_VIEWS_JUDGING, tolerance + 2, int(np.ceil(SEEN_FRACTION * n_cameras)))))
+
+
+def points_box(points_world: np.ndarray, margin: float = POINTS_MARGIN) -> tuple[np.ndarray, np.ndarray] | None:
+    """The sparse points' robust box (their 2nd and 98th percentiles per axis) grown by ``margin``
+    of its size on every side; None for fewer than ``MIN_BOX_POINTS`` points.
+
+    >>> lo, hi = points_box(np.linspace(0, 1, 101)[:, None].repeat(3, 1))
+    >>> np.round(lo, 3).tolist(), np.round(hi, 3).tolist()
+    ([-0.22, -0.22, -0.22], [1.22, 1.22, 1.22])
+    """
+    pts = np.asarray(points_world, np.float64)
+    if len(pts) < MIN_BOX_POINTS:
+        return None
+    lo, hi = np.quantile(pts, (0.02, 0.98), axis=0)
+    pad = margin * float((hi - lo).max())
+    return lo - pad, hi + pad
 
 
 def carve(masks: list[np.ndarray], world_from_cams: np.ndarray, intrinsics: list[Intrinsics], points_world: np.ndarray,
           tolerance: int = 0) -> np.ndarray:
     """Soft occupancy of points by silhouette carving.
 
-    A point's occupancy is the (tolerance+1)-th smallest mask value over the cameras. Outside
-    a photo counts as background when the object lies wholly inside that photo (its mask does
-    not touch the border), else as unknown (that camera cannot carve there); behind a camera is
-    unknown.
+    A point's occupancy is the (tolerance+1)-th smallest mask value over the cameras
+    (:func:`mask_values_and_judged`): a photo carves where the point lands on its background, and
+    outside it only when the object lies wholly inside it; behind a camera is unknown. A point no
+    photo judges stays at 1: the grid is bounded by :func:`hull_bounds`, not by this.
 
     Args:
         masks: N (h, w) float32 in [0, 1].
@@ -277,38 +360,164 @@ def clean_surface(verts: np.ndarray, tris: np.ndarray, smooth_iterations: int = 
     return Mesh(v.astype(np.float32), t, n.astype(np.float32), np.zeros(len(t), np.int32))
 
 
-def hull_box(masks: list[np.ndarray], world_from_cams: np.ndarray, intrinsics: list[Intrinsics], tolerance: int = 0,
-             search_radius: float | None = None, coarse: int = 48) -> tuple[np.ndarray, np.ndarray] | None:
+def unjudged_voxels(centres: np.ndarray, occupancy: np.ndarray, masks: list[np.ndarray], world_from_cams: np.ndarray,
+                    intrinsics: list[Intrinsics], min_views: int, box: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Voxels the silhouettes cannot judge: kept by the carve (occupancy > 0) but judged by fewer
+    than ``min_views`` photos (:func:`views_judging`) or outside ``box`` (the sparse points' box).
+    Carved voxels are judged.
+
+    Args:
+        centres: (V, 3) voxel centres.
+        occupancy: (V,) carved occupancy.
+        min_views: :func:`min_views_judging`.
+        box: (min (3,), max (3,)) or None.
+
+    Returns:
+        (V,) bool.
+    """
+    out = np.zeros(len(centres), bool)
+    alive = np.flatnonzero(occupancy > 0)
+    if len(alive) == 0:
+        return out
+    pts = centres[alive]
+    bad = views_judging(pts, masks, world_from_cams, intrinsics) < min_views
+    if box is not None:
+        bad |= ~np.all((pts >= box[0]) & (pts <= box[1]), axis=1)
+    out[alive[bad]] = True
+    return out
+
+
+def reaches_limits(occupied_zyx: np.ndarray, unjudged_zyx: np.ndarray) -> bool:
+    """Whether an occupied voxel lies on the grid's faces or beside (6-neighbours) a voxel the
+    silhouettes cannot judge: the hull ends there at its bounds, not at a silhouette."""
+    from scipy.ndimage import binary_dilation
+
+    occ = np.asarray(occupied_zyx, bool)
+    if not occ.any():
+        return False
+    faces = occ[[0, -1]].any() or occ[:, [0, -1]].any() or occ[:, :, [0, -1]].any()
+    return bool(faces or (binary_dilation(unjudged_zyx) & occ).any())
+
+
+@dataclass
+class HullBounds:
+    """Where the visual hull is carved: a box around the coarse hull, within what the cameras see."""
+
+    box_min: np.ndarray
+    box_max: np.ndarray
+    touches: bool
+    """the coarse hull reaches the limit of what the silhouettes judge (the search cube, the region
+    judged by ``min_views`` photos, the sparse points' box): the object leaves the photos there, or
+    the masks or cameras are wrong"""
+    min_views: int
+    """photos that must judge a voxel (:func:`min_views_judging`)"""
+    points_box: tuple[np.ndarray, np.ndarray] | None
+    """the sparse points' box that bounds the grid, or None"""
+
+
+def hull_bounds(masks: list[np.ndarray], world_from_cams: np.ndarray, intrinsics: list[Intrinsics], tolerance: int = 0,
+                search_radius: float | None = None, coarse: int = 48,
+                points_world: np.ndarray | None = None) -> HullBounds | None:
     """The box around the visual hull: a coarse carve (``coarse`` voxels a side) of a cube around
-    the origin, padded by a voxel or two.
+    the origin, without the voxels fewer than :func:`min_views_judging` photos judge and those
+    outside the sparse points' box (:func:`points_box`, when given), padded by a voxel or two.
 
     Args:
         masks, world_from_cams, intrinsics, tolerance: as :func:`carve`; cameras in the normalised
             frame (the object near the origin).
         search_radius: half-size of the cube (default: 0.9 x the nearest camera's distance).
         coarse: voxels along the cube's side.
+        points_world: (P, 3) sparse points on the object, or None.
 
     Returns:
-        (box_min (3,), box_max (3,)), or None when no point is inside the silhouettes.
+        the bounds, or None when no voxel the cameras judge is inside the silhouettes.
     """
     cams = np.asarray(world_from_cams, np.float64)
     r = search_radius or 0.9 * float(np.linalg.norm(cams[:, :3, 3], axis=1).min())
     origin, size, dims = grid_box(np.full(3, -r), np.full(3, r), coarse)
-    occ = carve(masks, cams, intrinsics, voxel_centres(origin, size, dims), tolerance).reshape(dims[::-1])
-    inside = np.argwhere(occ > 0.2)  # generous: the coarse grid only bounds the object
+    centres = voxel_centres(origin, size, dims)
+    occ = carve(masks, cams, intrinsics, centres, tolerance)
+    k = min_views_judging(len(cams), tolerance)
+    pbox = points_box(points_world) if points_world is not None else None
+    unjudged = unjudged_voxels(centres, occ, masks, cams, intrinsics, k, pbox)
+    occ[unjudged] = 0.0
+    occ = occ.reshape(dims[::-1])
+    kept = occ > 0.2  # generous: the coarse grid only bounds the object
+    inside = np.argwhere(kept)
     if len(inside) == 0:
         return None
     zyx_lo, zyx_hi = inside.min(0), inside.max(0)
-    return origin + (zyx_lo[::-1] - 1.5) * size, origin + (zyx_hi[::-1] + 2.5) * size
+    return HullBounds(origin + (zyx_lo[::-1] - 1.5) * size, origin + (zyx_hi[::-1] + 2.5) * size,
+                      reaches_limits(kept, unjudged.reshape(dims[::-1])), k, pbox)
+
+
+def hull_box(masks: list[np.ndarray], world_from_cams: np.ndarray, intrinsics: list[Intrinsics], tolerance: int = 0,
+             search_radius: float | None = None, coarse: int = 48,
+             points_world: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """(box_min (3,), box_max (3,)) of :func:`hull_bounds`, or None."""
+    b = hull_bounds(masks, world_from_cams, intrinsics, tolerance, search_radius, coarse, points_world)
+    return None if b is None else (b.box_min, b.box_max)
+
+
+@dataclass
+class HullGrid:
+    """A carved grid: occupancy of its voxels, without those the silhouettes cannot judge."""
+
+    origin: np.ndarray
+    """(3,) corner of voxel [0, 0, 0]"""
+    size: float
+    """voxel side"""
+    dims: tuple[int, int, int]
+    """(X, Y, Z) voxels"""
+    occupancy: np.ndarray
+    """(Z, Y, X) float32 carved occupancy, 0 where the silhouettes cannot judge"""
+    unjudged: np.ndarray
+    """(Z, Y, X) bool, :func:`unjudged_voxels`"""
+    bounds: HullBounds
+    touches: bool
+    """the hull reaches the limits of what the silhouettes judge (:func:`reaches_limits`, or its bounds do)"""
+
+    def centres(self) -> np.ndarray:
+        return voxel_centres(self.origin, self.size, self.dims)
+
+
+def carve_hull_grid(masks: list[np.ndarray], world_from_cams: np.ndarray, intrinsics: list[Intrinsics], tolerance: int = 0,
+                    voxels: int = 160, points_world: np.ndarray | None = None,
+                    search_radius: float | None = None) -> HullGrid | None:
+    """The visual hull's grid: :func:`hull_bounds`, then ``voxels`` along its longest side carved,
+    the voxels too few photos judge (or outside the sparse points' box) set to 0.
+
+    Returns:
+        the grid, or None when no voxel the photos judge is inside the silhouettes.
+    """
+    bounds = hull_bounds(masks, world_from_cams, intrinsics, tolerance, search_radius, points_world=points_world)
+    if bounds is None:
+        return None
+    origin, size, dims = grid_box(bounds.box_min, bounds.box_max, voxels)
+    centres = voxel_centres(origin, size, dims)
+    occ = carve(masks, world_from_cams, intrinsics, centres, tolerance)
+    unjudged = unjudged_voxels(centres, occ, masks, world_from_cams, intrinsics, bounds.min_views, bounds.points_box)
+    occ[unjudged] = 0.0
+    occ = occ.reshape(dims[::-1])
+    unjudged = unjudged.reshape(dims[::-1])
+    return HullGrid(origin, size, dims, occ, unjudged, bounds, bounds.touches or reaches_limits(occ > 0.5, unjudged))
+
+
+#: the line reconstruct prints for a visual hull that reaches the limits of what its cameras see
+UNBOUNDED_HULL = ("the visual hull reaches the edge of what the photos judge (the object leaves the frame in "
+                  "photos that would close it, or it is seen by too few of them there): its surface there is the "
+                  "edge of the region, not the object's")
 
 
 def visual_hull(inputs: GeometryInputs, voxels: int = 160, tolerance: int = 0, smooth_iterations: int = 10,
                 search_radius: float | None = None) -> tuple[Mesh, dict[str, Any]]:
-    """Visual hull mesh from masks and cameras: a coarse pass finds the object's box, a fine pass
-    carves it with ``voxels`` along its longest side.
+    """Visual hull mesh from masks and cameras: a coarse pass finds the object's box
+    (:func:`hull_bounds`: within the region enough photos judge and the sparse points' box), a
+    fine pass carves it with ``voxels`` along its longest side; voxels too few photos judge are
+    left out of it too.
 
     Args:
-        inputs: cameras and masks (required).
+        inputs: cameras and masks (required); its sparse points on the object bound the grid.
         voxels: fine grid resolution.
         tolerance: views allowed to disagree.
         smooth_iterations: Taubin iterations.
@@ -316,26 +525,28 @@ def visual_hull(inputs: GeometryInputs, voxels: int = 160, tolerance: int = 0, s
             the nearest camera's distance).
 
     Returns:
-        mesh, stats (box, voxel size).
+        mesh, stats (box, voxel size, ``touches_box``: the hull reaches the limits of what the
+        cameras judge, :data:`UNBOUNDED_HULL`).
     """
     from scipy.ndimage import gaussian_filter
 
     if not inputs.masks:
         raise DamcapError("the visual hull needs object masks (--masks DIR)")
-    cams = inputs.world_from_cams
-    box = hull_box(inputs.masks, cams, inputs.intrinsics, tolerance, search_radius)
-    if box is None:
+    pts = _object_points(inputs)
+    grid = carve_hull_grid(inputs.masks, inputs.world_from_cams, inputs.intrinsics, tolerance, voxels,
+                           pts if len(pts) else None, search_radius)
+    if grid is None:
         raise DamcapError("the visual hull is empty: no point is inside every silhouette; check that the masks "
                           "are white on the object and that they belong to these photos")
-    box_lo, box_hi = box
-    origin, size, dims = grid_box(box_lo, box_hi, voxels)
-    occ = carve(inputs.masks, cams, inputs.intrinsics, voxel_centres(origin, size, dims), tolerance).reshape(dims[::-1])
-    occ = gaussian_filter(occ, sigma=0.7, mode="constant")
+    bounds, origin, size, dims, touches = grid.bounds, grid.origin, grid.size, grid.dims, grid.touches
+    box_lo, box_hi = bounds.box_min, bounds.box_max
+    occ = gaussian_filter(grid.occupancy, sigma=0.7, mode="constant")
     mesh = isosurface_mesh(occ, origin + 0.5 * size, size)
     mesh = clean_surface(mesh.vertices, mesh.triangles, smooth_iterations)
-    touches = bool((occ[[0, -1]] > 0.5).any() or (occ[:, [0, -1]] > 0.5).any() or (occ[:, :, [0, -1]] > 0.5).any())
     return mesh, {"voxel_size": size, "grid": list(dims), "box_min": box_lo.tolist(), "box_max": box_hi.tolist(),
-                  "touches_box": touches, "triangles": int(len(mesh.triangles))}
+                  "touches_box": touches, "min_views_judging": bounds.min_views,
+                  "points_box": None if bounds.points_box is None else [bounds.points_box[0].tolist(), bounds.points_box[1].tolist()],
+                  "triangles": int(len(mesh.triangles))}
 
 
 # --------------------------------------------------------------------------------------------

@@ -43,7 +43,7 @@ from damcap.common.errors import DamcapError
 from damcap.common.validate import COUNT, COUNT_OR_ZERO, FRACTION, MAX_IMAGE_SIDE, POSITIVE, SEED, check_ranges, in_range, require_memory, require_resolution
 from damcap.common.version import package_version
 
-from damcap.reconstruct.geometry import GeometryInputs, GeometryOptions, GeometryResult, build_geometry, parse_mode
+from damcap.reconstruct.geometry import UNBOUNDED_HULL, GeometryInputs, GeometryOptions, GeometryResult, build_geometry, parse_mode
 from damcap.reconstruct.normalize import normalization_transform, recentre_transform, similarity_scale, transform_points, transform_world_from_cam
 from damcap.reconstruct.dense import DenseOptions, dense_geometry
 from damcap.reconstruct.photo_consistency import photo_consistency, prefer_dense
@@ -53,6 +53,7 @@ from damcap.reconstruct.photos import exposure_factors, list_photos, match_masks
 from damcap.reconstruct.poses import Registration, registration_without
 from damcap.reconstruct.known_poses import load_known_poses
 from damcap.common.mesh import Mesh, load_mesh
+from damcap.reconstruct.colmap.database import WHOLE_PHOTOS_HINT
 from damcap.reconstruct.colmap.register import SfmOptions, StageProgress, masked_options, register_photos, triangulate_known
 from damcap.reconstruct.selfcheck import SelfCheck, SelfCheckOptions, observation_stats, self_check
 from damcap.reconstruct.undistort import pinhole_for, resample_to_pinhole
@@ -88,7 +89,7 @@ class ReconstructOptions:
     photo (the static background of a camera moved around a fixed object helps; a background that
     stands still in the image is filtered anyway); 'always' keeps only features on the object (a
     turntable whose background does not turn with it); 'auto' registers the whole photos first and,
-    when the self-check flags photos or fewer than 95% register, again with features on the object,
+    when the self-check flags photos or no more than 95% register, again with features on the object,
     and keeps the registration with more photos that pass the self-check"""
     self_check: Literal["drop", "warn", "off"] = "drop"
     """what the self-check of the cameras does (reconstruct/selfcheck.py): 'drop' leaves out the
@@ -323,7 +324,8 @@ def _registration(photos_dir: Path, names: list[str], work: Path, opts: Reconstr
         reg, _ = register_photos(images.folder, images.names(names), work / "sfm-masked", sfm, images.masks(masks), progress,
                                  images.content)
     else:
-        reg, _ = register_photos(images.folder, images.names(names), work / "sfm", opts.sfm, None, progress, images.content)
+        reg, _ = register_photos(images.folder, images.names(names), work / "sfm", opts.sfm, None, progress, images.content,
+                                 masks_given=bool(masks))
     return images.to_photos(reg)
 
 
@@ -346,15 +348,28 @@ class TooFewCameras(DamcapError):
         self.registered, self.photos = registered, photos
 
 
-def _check_enough(reg: Registration, n_photos: int, opts: ReconstructOptions, photos_dir: Path) -> None:
+def features_hint(masks_given: bool, features_masked: bool) -> str:
+    """The advice on features for too few registered photos: give masks, use the masks given, or
+    nothing more (features are already on the object).
+
+    >>> features_hint(False, False), features_hint(True, False), features_hint(True, True)
+    ('; --masks keeps features on the object', '; --mask-features always keeps features on the object', '')
+    """
+    if features_masked:
+        return ""
+    return "; --mask-features always keeps features on the object" if masks_given else "; --masks keeps features on the object"
+
+
+def _check_enough(reg: Registration, n_photos: int, opts: ReconstructOptions, photos_dir: Path, masks_given: bool = False,
+                  features_masked: bool = False) -> None:
     need = max(opts.min_registered, int(np.ceil(opts.min_registered_fraction * n_photos)), 2)
     if len(reg.photos) < need:
         why = "; ".join(f"{k}: {v}" for k, v in list(sorted(reg.unregistered.items()))[:4])
         raise TooFewCameras(
             f"{photos_dir}: only {len(reg.photos)} of {n_photos} photos have cameras, at least {need} are needed "
             f"(--min-registered {opts.min_registered}, --min-registered-fraction {opts.min_registered_fraction}). "
-            f"Unregistered, e.g. {why}. Photos need overlap (about 60% between neighbours) and texture; "
-            "--masks keeps features on the object", len(reg.photos), n_photos)
+            f"Unregistered, e.g. {why}. Photos need overlap (about 60% between neighbours) and texture"
+            + features_hint(masks_given, features_masked), len(reg.photos), n_photos)
 
 
 @dataclass
@@ -462,7 +477,7 @@ def _cameras(photos_dir: Path, names: list[str], work: Path, opts: ReconstructOp
     t0 = time.perf_counter()
     reg = _registration(photos_dir, names, work, opts, masks, known, progress, object_fraction)
     seconds["registration"] = seconds.get("registration", 0.0) + time.perf_counter() - t0
-    _check_enough(reg, len(names), opts, photos_dir)
+    _check_enough(reg, len(names), opts, photos_dir, masks is not None, object_fraction is not None and bool(masks))
     if reg.stats.get("points_from") or reg.stats.get("points_without_track"):
         log(f"{len(reg.points_world)} points of the dataset's point cloud ({reg.stats.get('points_from', 'COLMAP points without a track')}) "
             "are the sparse points: no feature matching")
@@ -531,20 +546,21 @@ def _candidate(photos_dir: Path, names: list[str], work: Path, opts: Reconstruct
         # in the normalised frame (object radius ~1), as the geometry: the check does not depend on the scene's unit
         norm_from_world = normalization_transform(reg.world_from_cams, reg.points_world if len(reg.points_world) else None)
         check = self_check([p.name for p in reg.photos], transform_world_from_cam(norm_from_world, reg.world_from_cams), targets,
-                           mask_px, stats, opts.selfcheck, seed=opts.sfm.seed, progress=progress)
+                           mask_px, stats, opts.selfcheck, seed=opts.sfm.seed, progress=progress,
+                           points_world=transform_points(norm_from_world, reg.points_world) if len(reg.points_world) else None)
         seconds["self_check"] = seconds.get("self_check", 0.0) + time.perf_counter() - t0
     features = "known poses" if known is not None else ("inside the masks" if masked and masks else "whole photos")
     return CheckedCameras(reg, targets, mask_px, check, features)
 
 
 def wants_masked_features(registered: int, photos: int, check: SelfCheck | None) -> bool:
-    """Whether 'auto' registers again with features inside the masks: fewer than 95% of the photos
-    registered, or the self-check flagged any.
+    """Whether 'auto' registers again with features inside the masks: no more than 95% of the photos
+    registered (38 of 40 is 95 %), or the self-check flagged any.
 
-    >>> wants_masked_features(119, 119, None), wants_masked_features(4, 30, None)
-    (False, True)
+    >>> wants_masked_features(119, 119, None), wants_masked_features(4, 30, None), wants_masked_features(38, 40, None)
+    (False, True, True)
     """
-    return registered < 0.95 * photos or (check is not None and bool(check.flagged))
+    return registered <= 0.95 * photos + 1e-9 or (check is not None and bool(check.flagged))
 
 
 def both_failed(whole: DamcapError, masked: DamcapError) -> DamcapError:
@@ -601,11 +617,19 @@ def _choose_cameras(photos_dir: Path, names: list[str], work: Path, opts: Recons
         tried.append({"features": "inside the masks", "error": str(e)})
         if first is None:
             raise both_failed(error, e) from None  # type: ignore[arg-type]
-        return first, tried
+        return _masked_tried(first, "features inside the masks registered too few photos"), tried
     tried.append(second.brief())
     if first is None or second.agreeing() > first.agreeing():
         return second, tried
-    return first, tried
+    return _masked_tried(first, "features inside the masks gave no more photos that agree"), tried
+
+
+def _masked_tried(c: CheckedCameras, outcome: str) -> CheckedCameras:
+    """The whole-photos candidate kept after features inside the masks were tried: its unregistered
+    photos' advice to try them says how that went instead."""
+    tail = f"if the object turned in front of the background, {WHOLE_PHOTOS_HINT}"
+    c.reg.unregistered = {k: v.replace(tail, outcome) for k, v in c.reg.unregistered.items()}
+    return c
 
 
 def _apply_self_check(c: CheckedCameras, opts: ReconstructOptions, n_photos: int, photos_dir: Path,
@@ -621,7 +645,7 @@ def _apply_self_check(c: CheckedCameras, opts: ReconstructOptions, n_photos: int
     """
     if c.check is None:
         return c, {}
-    log(f"self-check ({c.features}): {c.check.summary()}")
+    log(f"self-check ({c.features}): {c.check.summary()}")  # it says when precision was not tested
     flagged = c.check.flagged
     for name, why in sorted(flagged.items()):
         log(f"self-check flags {name}: {why}")
@@ -635,7 +659,7 @@ def _apply_self_check(c: CheckedCameras, opts: ReconstructOptions, n_photos: int
     keep = [k for k, p in enumerate(c.reg.photos) if p.name not in flagged]
     reg = registration_without(c.reg, set(flagged))
     dropped = {n: f"self-check: {why}" for n, why in flagged.items()}
-    _check_enough(reg, n_photos, opts, photos_dir)
+    _check_enough(reg, n_photos, opts, photos_dir, c.mask_px is not None, c.features == "inside the masks")
     return CheckedCameras(reg, [c.targets[k] for k in keep], [c.mask_px[k] for k in keep] if c.mask_px is not None else None,
                           c.check, c.features), dropped
 
@@ -674,6 +698,8 @@ def _scene(reg: Registration, targets: list[Intrinsics], mask_px: list[np.ndarra
         if mode == "auto" and opts.auto_dense and geo.mode != "sphere":
             geo = _auto_dense(geo, GeometryInputs(cams, targets, mask_px, points, reg.points_seen_from,
                                                   _stereo_photos(reg, targets, photos_dir, log_response, progress)), opts, progress, log)
+    if geo.mode == "visual-hull" and geo.stats.get("touches_box"):
+        log(f"warning: {UNBOUNDED_HULL}; photos that hold the whole object close it, or use --geometry dense or mesh:FILE")
     recentre = recentre_transform(geo.mesh.vertices)
     norm_from_world = recentre @ norm_from_world
     cams = transform_world_from_cam(recentre, cams)
@@ -685,6 +711,14 @@ def _scene(reg: Registration, targets: list[Intrinsics], mask_px: list[np.ndarra
     progress("geometry", 1, 1)
     seconds["geometry"] = time.perf_counter() - t0
     return NormalisedScene(norm_from_world, cams, mesh, sphere, geo)
+
+
+def dense_margin(base: GeometryResult, margin: float) -> float:
+    """How much better than ``base`` the dense geometry's photo consistency must be to be kept:
+    ``margin``, or ``-margin`` for a visual hull that reaches the limits of what the photos judge
+    (``touches_box``: it is not the object there, so dense is kept unless it is worse by more
+    than ``margin``)."""
+    return -margin if base.mode == "visual-hull" and base.stats.get("touches_box") else margin
 
 
 def _auto_dense(base: GeometryResult, inputs: GeometryInputs, opts: ReconstructOptions, progress: StageProgress,
@@ -702,16 +736,19 @@ def _auto_dense(base: GeometryResult, inputs: GeometryInputs, opts: ReconstructO
     scores = {g.mode: photo_consistency(g.mesh, inputs.world_from_cams, inputs.intrinsics, inputs.images or [], inputs.masks)
               for g in (base, dense)}
     b, d = scores[base.mode], scores["dense"]
-    keep_dense = prefer_dense(b, d, opts.auto_dense_margin)
+    unbounded = base.mode == "visual-hull" and bool(base.stats.get("touches_box"))
+    keep_dense = prefer_dense(b, d, dense_margin(base, opts.auto_dense_margin))
     chosen = dense if keep_dense else base
     record = {"built": True, "seconds": time.perf_counter() - t0, "margin": opts.auto_dense_margin,
               "photo_consistency": {k: {"ncc": v.ncc, "compared_fraction": v.compared_fraction, "pairs": v.pairs}
-                                    for k, v in scores.items()}, "chosen": chosen.mode}
+                                    for k, v in scores.items()}, "chosen": chosen.mode, "hull_touches_box": unbounded}
     why = (f"photo consistency, the NCC of neighbouring photos warped through the surface over the object's pixels: "
            f"dense {d.score:.3f} (NCC {d.ncc:.3f} on {d.compared_fraction:.0%}), {base.mode} {b.score:.3f} "
            f"(NCC {b.ncc:.3f} on {b.compared_fraction:.0%})")
-    reason = (f"auto: dense multi-view stereo, since the photos agree with it better than with the {base.mode} ({why})"
-              if keep_dense else f"{base.reason}; the dense geometry was not kept ({why})")
+    if unbounded:
+        why += f"; the visual hull reaches the edge of what the photos judge, so dense is kept unless it is worse by {opts.auto_dense_margin:g}"
+    reason = (f"auto: dense multi-view stereo, since the photos agree with it {'about as well as or better' if unbounded else 'better'} "
+              f"than with the {base.mode} ({why})" if keep_dense else f"{base.reason}; the dense geometry was not kept ({why})")
     chosen.stats["auto_dense"] = record
     return GeometryResult(chosen.mesh, chosen.mode, reason, chosen.sphere, chosen.stats)
 

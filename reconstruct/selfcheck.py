@@ -30,7 +30,18 @@ from damcap.common.cameras import pixel_rays_world
 from damcap.common.capture_folder import Intrinsics
 from damcap.common.validate import FRACTION, POSITIVE, in_range
 
-from damcap.reconstruct.geometry import MASK_THRESHOLD, grid_box, hull_box, mask_values_at, project_points, sample_bilinear, voxel_centres
+from damcap.reconstruct.geometry import (
+    MASK_THRESHOLD,
+    GeometryInputs,
+    _object_points,
+    grid_box,
+    hull_bounds,
+    mask_values_and_judged,
+    project_points,
+    reaches_limits,
+    sample_bilinear,
+    voxel_centres,
+)
 
 
 Verdict = Literal["consistent", "photos flagged", "inconsistent", "not checked"]
@@ -87,6 +98,9 @@ class SelfCheck:
     consensus_voxels: int = 0
     """occupied voxels of the consensus hull (0 without masks)"""
     options: dict[str, Any] = field(default_factory=dict)
+    precision_skipped: str | None = None
+    """why no photo is flagged on silhouette precision (the consensus hull reaches the limits of
+    what the photos judge, so it is not the object there), or None when it is tested"""
 
     @property
     def flagged(self) -> dict[str, str]:
@@ -107,11 +121,14 @@ class SelfCheck:
         if rep is not None:
             parts.append(f"reprojection median {rep:.2f} px")
         parts.append(f"cameras span {self.view_span_deg:.0f} deg around the object")
+        if self.precision_skipped:
+            parts.append(f"silhouette precision not tested: {self.precision_skipped}")
         return "; ".join(parts)
 
     def to_json(self) -> dict[str, Any]:
         return {"verdict": self.verdict, "summary": self.summary(), "view_span_deg": round(self.view_span_deg, 3),
                 "consensus_voxels": self.consensus_voxels, "flagged": self.flagged, "options": self.options,
+                "precision_skipped": self.precision_skipped,
                 "photos": {p.name: {k: (round(v, 4) if isinstance(v, float) else v) for k, v in
                                     (("silhouette_precision", p.silhouette_precision), ("silhouette_recall", p.silhouette_recall),
                                      ("reprojection_px", p.reprojection_px), ("points", p.points),
@@ -284,8 +301,9 @@ def observation_stats(observations_px: np.ndarray | None, mask_photo: np.ndarray
     return float(obs[:, 2].mean()), len(obs), inside
 
 
-def photo_problem(check: PhotoCheck, opts: SelfCheckOptions) -> str | None:
-    """Why a photo disagrees with the others, or None.
+def photo_problem(check: PhotoCheck, opts: SelfCheckOptions, precision: bool = True) -> str | None:
+    """Why a photo disagrees with the others, or None; ``precision=False`` leaves the silhouette
+    precision untested (a consensus hull that reaches its bounds).
 
     >>> photo_problem(PhotoCheck("a.jpg", 0.95, 0.42, 0.5, 100, 80), SelfCheckOptions())
     "silhouette recall 0.420 < 0.95: rays through its mask miss the others' visual hull (camera or mask wrong)"
@@ -293,7 +311,7 @@ def photo_problem(check: PhotoCheck, opts: SelfCheckOptions) -> str | None:
     if check.silhouette_recall is not None and check.silhouette_recall < opts.min_silhouette_recall:
         return (f"silhouette recall {check.silhouette_recall:.3f} < {opts.min_silhouette_recall:g}: rays through its mask miss "
                 "the others' visual hull (camera or mask wrong)")
-    if check.silhouette_precision is not None and check.silhouette_precision < opts.min_silhouette_precision:
+    if precision and check.silhouette_precision is not None and check.silhouette_precision < opts.min_silhouette_precision:
         return (f"silhouette precision {check.silhouette_precision:.3f} < {opts.min_silhouette_precision:g}: the others' visual "
                 "hull falls outside its mask (camera or mask wrong)")
     if check.reprojection_px is not None and check.reprojection_px > opts.max_reprojection_px:
@@ -319,7 +337,7 @@ def verdict_of(flagged: int, photos: int) -> Verdict:
 def self_check(names: list[str], world_from_cams: np.ndarray, intrinsics: list[Intrinsics],
                masks: list[np.ndarray] | None, observations: list[tuple[float | None, int, int | None]],
                opts: SelfCheckOptions = SelfCheckOptions(), seed: int = 0,
-               progress: Callable[[str, int, int], None] | None = None) -> SelfCheck:
+               progress: Callable[[str, int, int], None] | None = None, points_world: np.ndarray | None = None) -> SelfCheck:
     """Check cameras against the photos' masks and sparse points (see the module docstring).
 
     Args:
@@ -332,6 +350,13 @@ def self_check(names: list[str], world_from_cams: np.ndarray, intrinsics: list[I
         opts: thresholds.
         seed: which mask pixels are sampled.
         progress: called as ("self-check", done, total).
+        points_world: (P, 3) sparse points in the same frame, or None: those on the object bound
+            the consensus hull's grid (:func:`~damcap.reconstruct.geometry.hull_bounds`).
+
+    Silhouette precision is not tested when the consensus hull reaches the limits of what the
+    photos judge (:func:`~damcap.reconstruct.geometry.reaches_limits`: an object that leaves the
+    frame in many photos): there the hull is not the object, and right cameras would fall below
+    the threshold; :attr:`SelfCheck.precision_skipped` says so.
 
     Returns:
         the check (the verdict counts flagged photos).
@@ -345,34 +370,48 @@ def self_check(names: list[str], world_from_cams: np.ndarray, intrinsics: list[I
         checks.append(PhotoCheck(names[k], reprojection_px=rep, points=pts, object_points=obj))
     focus = np.zeros(3)  # the normalised frame's origin: the point the cameras look at
     voxels_on = 0
+    precision_skipped: str | None = None
     if masks is not None and n >= 2:
         tol = consensus_tolerance(n - 1, opts.tolerance_fraction)
-        box = hull_box(masks, cams, intrinsics, tol)
-        grid = grid_box(*box, opts.voxels) if box is not None else None
-        if grid is None:
+        pts = None
+        if points_world is not None and len(points_world):
+            pts = _object_points(GeometryInputs(cams, list(intrinsics), masks, np.asarray(points_world, np.float64)))
+        bounds = hull_bounds(masks, cams, intrinsics, tol, points_world=pts if pts is not None and len(pts) else None)
+        if bounds is None:
             for c in checks:
                 c.silhouette_precision, c.silhouette_recall = 0.0, 0.0
         else:
-            origin, size, dims = grid
+            origin, size, dims = grid_box(bounds.box_min, bounds.box_max, opts.voxels)
             centres = voxel_centres(origin, size, dims).astype(np.float32)
-            per_photo = [mask_values_at(centres, m, w, i) for m, w, i in zip(masks, cams, intrinsics)]
+            per_photo, seen = [], np.zeros(len(centres), np.int32)
+            for m, w, i in zip(masks, cams, intrinsics):
+                v, s = mask_values_and_judged(centres, m, w, i)
+                per_photo.append(v)
+                seen += s
             vals, ids = smallest_views(per_photo, tol + 2)
             del per_photo
+            judged = seen >= bounds.min_views
+            if bounds.points_box is not None:
+                judged &= np.all((centres >= bounds.points_box[0]) & (centres <= bounds.points_box[1]), axis=1)
             rng = np.random.default_rng(seed)
-            hull_all = leave_one_out_occupancy(vals, ids, -1, tol) > 0.5
+            hull_all = (leave_one_out_occupancy(vals, ids, -1, tol) > 0.5) & judged
+            unjudged = (leave_one_out_occupancy(vals, ids, -1, tol) > 0) & ~judged
+            if reaches_limits(hull_all.reshape(dims[::-1]), unjudged.reshape(dims[::-1])):
+                precision_skipped = ("the others' visual hull reaches the limits of what the photos judge (the object "
+                                     "leaves the frame in many photos), so it is not the object there")
             voxels_on = int(hull_all.sum())
             if voxels_on:
                 focus = centres[hull_all].mean(0).astype(np.float64)
             for k in range(n):
                 progress("self-check", k, n)
-                occ = leave_one_out_occupancy(vals, ids, k, tol) > 0.5
+                occ = (leave_one_out_occupancy(vals, ids, k, tol) > 0.5) & judged
                 checks[k].silhouette_precision = silhouette_precision(centres[occ], masks[k], cams[k], intrinsics[k])
                 checks[k].silhouette_recall = silhouette_recall(masks[k], cams[k], intrinsics[k], occ.reshape(dims[::-1]),
                                                                 origin, size, opts.ray_samples, rng)
     progress("self-check", n, n)
     for c in checks:
-        c.problem = photo_problem(c, opts)
+        c.problem = photo_problem(c, opts, precision=precision_skipped is None)
     flagged = sum(1 for c in checks if c.problem)
     return SelfCheck(photos=checks, view_span_deg=view_span_deg(cams[:, :3, 3], focus), verdict=verdict_of(flagged, n),
-                     consensus_voxels=voxels_on,
-                     options={k: getattr(opts, k) for k in opts.__dataclass_fields__})
+                     consensus_voxels=voxels_on, options={k: getattr(opts, k) for k in opts.__dataclass_fields__},
+                     precision_skipped=precision_skipped)

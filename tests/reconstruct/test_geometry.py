@@ -15,10 +15,14 @@ from damcap.reconstruct.geometry import (
     build_geometry,
     carve,
     fit_sphere_points,
+    mask_touches_border,
+    mask_values_and_judged,
     mask_values_at,
     parse_mode,
+    points_box,
     poisson_mesh,
     project_points,
+    views_judging,
     visual_hull,
 )
 from damcap.common.mesh import Mesh
@@ -190,3 +194,102 @@ def test_carve_is_the_order_statistic_of_the_mask_values(sphere_scene, tolerance
 def test_dense_mode_is_built_above_this_module(sphere_scene):
     with pytest.raises(DamcapError, match="dense_geometry, not build_geometry"):
         build_geometry(sphere_scene, GeometryOptions(mode="dense"))
+
+
+# --------------------------------------------------------------------------------------------
+# An object the photos cut: a long box (a tool) that leaves the frame
+# --------------------------------------------------------------------------------------------
+
+TOOL_HALF = np.array([1.1, 0.12, 0.25])
+
+
+def box_mesh(half: np.ndarray) -> Mesh:
+    """A closed box centred on the origin, outward-facing."""
+    from damcap.common.mesh import vertex_normals_area_weighted
+
+    v = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64) * half
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    t = np.array([tri for a, b, c, d in quads for tri in ((a, b, c), (a, c, d))], np.int32)
+    n = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    inward = (n * v[t].mean(1)).sum(1) < 0
+    t[inward] = t[inward][:, ::-1]
+    return Mesh(v.astype(np.float32), t, vertex_normals_area_weighted(v, t).astype(np.float32), np.zeros(len(t), np.int32))
+
+
+def tool_scene(fov_deg: float) -> GeometryInputs:
+    """Exact masks of a 2.2 x 0.24 x 0.5 box from 40 cameras on two rings above it (elevations 25
+    and 50 deg, distance 3), 96 x 72 px with a ``fov_deg`` horizontal field of view: at 30 deg every
+    photo cuts the box, at 36 deg 3 photos (looking along it) hold it whole."""
+    from damcap.synth.photos import orbit_cameras
+
+    cams = orbit_cameras(40, 3.0, (25.0, 50.0), jitter_deg=3, seed=2)
+    w, h = 96, 72
+    f = focal_px_from_fov(fov_deg, w)
+    intr = [Intrinsics(f, f, w / 2, h / 2, w, h)] * len(cams)
+    return GeometryInputs(cams, intr, _masks(box_mesh(TOOL_HALF), cams, intr))
+
+
+@pytest.fixture(scope="module")
+def cut_tool() -> GeometryInputs:
+    return tool_scene(30.0)
+
+
+def test_the_tool_is_cut_by_every_photo(cut_tool):
+    assert all(mask_touches_border(m) for m in cut_tool.masks)
+
+
+def test_a_hull_cut_by_every_photo_stays_near_the_object_and_says_it_touches(cut_tool):
+    """Carving only where the photos judge: before, the hull filled its search cube ([-2.86, 2.86]
+    on every axis here); now it ends near the box's ends (x = +-1.1) where too few photos hold the
+    voxels, and says that it ends at its bounds there."""
+    mesh, stats = visual_hull(cut_tool, voxels=64, smooth_iterations=5)
+    lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
+    assert np.all(lo < -TOOL_HALF + 0.05) and np.all(hi > TOOL_HALF - 0.05)  # contains the object
+    assert hi[0] < 1.4 and lo[0] > -1.4  # not the cube
+    assert np.all(np.abs(lo[1:]) < 0.35) and np.all(np.abs(hi[1:]) < 0.35)
+    assert stats["touches_box"]
+
+
+def test_photos_that_hold_the_whole_object_close_the_hull():
+    mesh, stats = visual_hull(tool_scene(36.0), voxels=64, smooth_iterations=5)
+    assert np.all(np.abs(mesh.vertices[:, 0]) < TOOL_HALF[0] + 0.06)
+    assert not stats["touches_box"]
+
+
+def test_sparse_points_bound_the_hull(cut_tool):
+    """Points on the box's middle part bound the grid: their robust box plus its margin."""
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-1, 1, (400, 3)) * np.array([0.5, 0.12, 0.25])
+    cams, intr, masks = cut_tool.world_from_cams, cut_tool.intrinsics, cut_tool.masks
+    mesh, stats = visual_hull(GeometryInputs(cams, intr, masks, pts, np.zeros(len(pts), np.int64)), voxels=64,
+                              smooth_iterations=0)
+    lo_p, hi_p = points_box(pts)
+    assert np.all(mesh.vertices.min(0) > lo_p - 0.05) and np.all(mesh.vertices.max(0) < hi_p + 0.05)
+    assert stats["points_box"] is not None and stats["touches_box"]
+
+
+def test_a_mask_that_stops_short_of_the_border_still_reaches_it():
+    """A photo whose object mask stops 1 px short of the edge does not carve outside itself."""
+    m = np.zeros((72, 96), np.float32)
+    m[30:40, 1:50] = 1.0
+    assert mask_touches_border(m)
+    m[30:40, :5] = 0.0
+    assert not mask_touches_border(m)
+
+
+def test_outside_a_photo_is_unknown_when_the_object_leaves_it(sphere_scene):
+    """Outside a photo: background for a photo that holds the whole object, unknown (1) for one
+    the object leaves; behind the camera: unknown."""
+    cam, intr = sphere_scene.world_from_cams[0], sphere_scene.intrinsics[0]
+    far_off = 5.0 * cam[:3, 0]  # beside the origin, to the camera's right: in front, outside its photo
+    behind = 2.0 * cam[:3, 3]
+    pts = np.stack([far_off, behind]).astype(np.float32)
+    whole = sphere_scene.masks[0]
+    assert not mask_touches_border(whole)
+    vals, judged = mask_values_and_judged(pts, whole, cam, intr)
+    assert vals.tolist() == [0.0, 1.0] and judged.tolist() == [True, False]
+    cut = whole.copy()
+    cut[:, -1] = 1.0
+    vals, judged = mask_values_and_judged(pts, cut, cam, intr)
+    assert vals.tolist() == [1.0, 1.0] and judged.tolist() == [False, False]
+    assert views_judging(pts, [whole, cut], np.stack([cam, cam]), [intr, intr]).tolist() == [1, 0]

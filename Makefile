@@ -73,9 +73,9 @@ demo: venv
 	@echo "  viewer.html        model.dam on the torus in the browser (WebGL)"
 
 # The suite on every core: pytest-xdist workers (CI has 2), each with torch on its share of the
-# cores (tests/conftest.py); the tests of one module (its module fixtures) and of one costly shared
-# set-up run on one worker (--dist loadgroup, groups set in tests/conftest.py; the tests marked slow
-# first, in that order). The 25 slowest tests are listed at the end. `make test TEST_JOBS=0` runs it in one process.
+# cores (tests/conftest.py). --dist loadgroup --no-loadscope-reorder hands the tests out one at a
+# time, in collection order with the tests marked slow first (tests/conftest.py says why not by
+# group); the 25 slowest tests are listed at the end. `make test TEST_JOBS=0` runs it in one process.
 TEST_JOBS ?= auto
 test: venv $(NS_READER)/.installed
 	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadgroup --no-loadscope-reorder --durations=25

@@ -30,28 +30,13 @@ torch.set_num_threads(TORCH_THREADS)
 if XDIST_WORKERS:
     os.environ.setdefault("OMP_NUM_THREADS", str(TORCH_THREADS))
 
-#: modules whose tests are independent cases sharing only session fixtures: under
-#: ``--dist loadgroup`` their tests are spread over the workers one by one. Every other module's
-#: tests run on one worker (its module fixtures, registrations and fits, are built once), except
-#: the tests marked ``slow``: each is a group of its own, and they are handed out first, so that
-#: no long test starts last while the other workers idle (make test passes --no-loadscope-reorder).
-SPREAD = ("tests/fuzz/",)
-
-
-@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
-    """xdist groups (see ``SPREAD``; tests that name a group keep theirs) and slow tests first."""
-    for item in items:
-        if item.get_closest_marker("xdist_group") is not None:
-            continue
-        try:
-            module = item.path.resolve().relative_to(REPO).as_posix()
-        except ValueError:
-            continue
-        if item.get_closest_marker("slow") is not None:
-            item.add_marker(pytest.mark.xdist_group(item.nodeid))
-        elif not module.startswith(SPREAD):
-            item.add_marker(pytest.mark.xdist_group(module))
+    """The tests marked ``slow`` first: under pytest-xdist (make test) they are handed out before
+    the rest, so that no long test starts last while the other workers idle.
+
+    make test's ``--dist loadgroup`` hands out one test at a time: with pytest 9.2 and
+    pytest-xdist 3.8 an ``xdist_group`` is not applied (xdist renames ``item._nodeid``, which
+    pytest 9 no longer reads), so a module's fixtures may be built on each worker."""
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)  # stable: the order otherwise kept
 
 

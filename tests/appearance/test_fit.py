@@ -28,7 +28,6 @@ def sample_views(sample_capture):
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("tests/appearance/test_fit.py")  # with the module's other tests (its fixtures), handed out first
 def test_fit_beats_rm_plus_plus_by_a_margin(sample_views):
     train, test = sample_views
     result = fit_dam(samples_of(train), FitOptions(steps=1500))

@@ -49,7 +49,6 @@ def fitted():
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("tests/appearance/test_normal_fit.py")  # with the module's other tests (its fixtures), handed out first
 def test_auto_keeps_the_field_where_the_shading_has_relief_and_it_cuts_novel_view_error(fitted):
     train, test, model, opts = fitted[True]
     d = choose_normal_refine(model, train, replace(opts, normal_refine="auto"))

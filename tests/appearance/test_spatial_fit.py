@@ -44,7 +44,6 @@ def fitted():
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("tests/appearance/test_spatial_fit.py")  # with the module's other tests (its fixtures), handed out first
 def test_auto_keeps_the_albedo_of_a_textured_surface_and_it_cuts_novel_view_error(fitted):
     train, test, model, opts = fitted[True]
     d = choose_spatial(model, train, replace(opts, spatial="auto"))

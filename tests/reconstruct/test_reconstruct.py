@@ -133,7 +133,6 @@ def test_sfm_capture_normals_and_radiance_against_the_truth(sfm_capture, scene):
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("tests/reconstruct/test_reconstruct.py")  # with the module's other tests (its fixtures), handed out first
 def test_rerun_reuses_the_registration(sfm_capture, scene):
     before = json.loads((sfm_capture / "transforms.json").read_text())
     _, report = reconstruct_capture(scene["root"] / "images", sfm_capture, ReconstructOptions(**FAST),  # type: ignore[arg-type]

@@ -104,8 +104,10 @@ def export(
                     mesh, labels, target.path, orbit, opts.glb_min_triangles)
         return
     with staged_folder(output, replace=True) as stage:  # frames, PNGs, video and export.json move into OUTPUT at the end
-        _export_frames(dams, [meta for _, meta in loaded], models, mesh, labels, stage, orbit, opts)
-    typer.echo(f"wrote {orbit.views} frames to {output} (frames/*.exr linear, display/*.png sRGB{', turntable.mp4' if opts.video else ''})")
+        timing = _export_frames(dams, [meta for _, meta in loaded], models, mesh, labels, stage, orbit, opts)
+    video = "" if timing is None else (f", turntable.mp4: {timing.duration_s:g} s at {timing.fps} fps"
+                                       + (f", the orbit played {timing.turns} times" if timing.turns > 1 else ""))
+    typer.echo(f"wrote {orbit.views} frames to {output} (frames/*.exr linear, display/*.png sRGB{video})")
 
 
 def _export_matcap(dam, meta: dict, model_path: Path, output: Path, orbit: OrbitOptions) -> None:
@@ -261,7 +263,8 @@ def _surface_factors_on_shape(dams, model_paths, mesh_path, vertices):
     return kept, {"capture_from_render": (centre, radius), "record": record}
 
 
-def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, export_opts) -> None:
+def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, export_opts):
+    """Render the orbit into ``output``; returns the video's :class:`.video.TurntableTiming` (None without --video)."""
     from damcap.cli.app import make_bar
 
     from damcap.common.atomic import atomic_path, write_json_atomic
@@ -290,12 +293,14 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
     histograms = [recorded_normal_histogram(m) for m in metas]  # each model's training normals (None: not recorded)
     shown = [None if h is None else np.zeros(len(h)) for h in histograms]  # the normals the frames show of each model
     video_ctx = atomic_path(output / "turntable.mp4") if video else None
+    timing, held = None, []  # held: the frames of an orbit the video plays more than once
     try:
         if video_ctx is not None:
-            from damcap.export.video import H264Writer
+            from damcap.export.video import H264Writer, turntable_timing
 
+            timing = turntable_timing(views, fps)
             tmp_video = video_ctx.__enter__()
-            writer = H264Writer(tmp_video, fps)
+            writer = H264Writer(tmp_video, timing.fps)
         for k, (m, buf, rad) in enumerate(make_bar(views, "export", "frame", render_orbit(dams, shape, part, opts, spatial["capture_from_render"], up))):
             if scale is None:  # one exposure for the whole turntable, from the first frame
                 scale = exposure_scale_for(rad, buf.coverage > 0.5)
@@ -304,12 +309,17 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
             write_png(output / "display" / f"{k:04d}.png", png)
             if writer is not None:
                 writer.write(png)
+                if timing.turns > 1:
+                    held.append(png)
             cams.append(m.tolist())
             part_px = np.where((buf.coverage > 0.5) & (buf.triangle_id >= 0), part[np.maximum(buf.triangle_id, 0)], -1)
             for i, counts in enumerate(shown):
                 if counts is not None:
                     counts += normal_histogram(buf.normal_world[part_px == i], k=len(counts))
         if writer is not None:
+            for _ in range(timing.turns - 1):
+                for png in held:
+                    writer.write(png)
             writer.close()
             writer = None
             video_ctx.__exit__(None, None, None)
@@ -334,7 +344,11 @@ def _export_frames(dams, metas, model_paths, mesh_path, labels, output, opts, ex
         "intrinsics": dict(zip(("fl_x", "fl_y", "cx", "cy", "w", "h"), orbit_intrinsics(opts))),
         # per model: the share of its pixels in these frames whose normal its capture never showed it (None: not recorded)
         "unobserved_normals": unobserved,
+        # the MP4 (None without --video): the orbit played `turns` times at `fps`, its index (moov) before its frames
+        "video": None if timing is None else {"file": "turntable.mp4", "fps": timing.fps, "turns": timing.turns,
+                                              "duration_s": timing.duration_s, "faststart": True},
     })
+    return timing
 
 
 def _unobserved_normals(model_paths, histograms, shown, what: str, record: str) -> list[dict]:

@@ -60,7 +60,8 @@ class ExportOptions:
     video: bool = False
     """frames: also write an MP4 turntable"""
     fps: int = field(default=24, metadata=in_range(1, 1000))
-    """frames: video frame rate"""
+    """frames: the video's highest frame rate. An orbit of few views plays slower (views / 3 s, down
+    to 8 fps) and, below 24 views, whole orbits repeat, so that the video lasts at least 3 s"""
     glb_min_triangles: int = field(default=40_000, metadata=in_range(0, 10_000_000, cli_panel="advanced"))
     """glb: the mesh is subdivided (each triangle into four at its edges' midpoints) until it has at
     least this many triangles, so that the colours baked per vertex follow the DAM across each

@@ -37,7 +37,15 @@ def test_export_frames_png_video(model_file, bunny, tmp_path, capsys):
         stream = video.streams.video[0]
         assert stream.codec_context.name == "h264" and stream.codec_context.pix_fmt == "yuv420p"
         frames = [f.to_ndarray(format="rgb24") for f in video.decode(stream)]
-    assert len(frames) == 4 and np.abs(frames[2].astype(int) - png.astype(int)).mean() < 6  # lossy, close to the PNG
+    # 4 views at 8 fps is half a second: the orbit plays 6 times (3 s), its index before its frames (faststart)
+    assert len(frames) == 24 and np.abs(frames[2].astype(int) - png.astype(int)).mean() < 6  # lossy, close to the PNG
+    assert np.abs(frames[22].astype(int) - png.astype(int)).mean() < 6
+    assert meta["video"] == {"file": "turntable.mp4", "fps": 8, "turns": 6, "duration_s": 3.0, "faststart": True}
+    from damcap.export.video import mp4_top_level_boxes
+
+    boxes = mp4_top_level_boxes((out / "turntable.mp4").read_bytes())
+    assert boxes.index("moov") < boxes.index("mdat")
+    assert "turntable.mp4: 3 s at 8 fps, the orbit played 6 times" in capsys.readouterr().out
     assert tree_digest(bunny.parent) == before
     # export.json says how to reproduce a frame: the file's vertices, moved by render_from_mesh into
     # the unit sphere, project through the intrinsics and world_from_cam onto covered pixels

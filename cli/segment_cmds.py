@@ -35,7 +35,7 @@ def segment(
     from damcap.appearance.segment.choose import choose_materials
     from damcap.appearance.segment.score import novel_view_dssim
     from damcap.appearance.segment.train import segment_materials
-    from damcap.appearance.segment.file import save_segmentation_folder
+    from damcap.appearance.segment.file import legend_stem, save_segmentation_folder
     from damcap.appearance.views import load_views
     from damcap.common.capture_folder import read_capture
     from damcap.common.version import package_version
@@ -73,7 +73,8 @@ def segment(
         save_segmentation_folder(stage, model, train, names, colorspace=cap.colorspace, provenance=provenance, up_world=cap.up_world,
                                  summary={"auto": auto, "choice": asdict(choice), "reason": reason, "curve": curve,
                                           "history": model.history, "seconds": model.seconds})
-    typer.echo(f"wrote {model.materials} materials to {output} (material_*.dam, weights/*.exr, preview/*.png, segmenter.safetensors)")
+    typer.echo(f"wrote {model.materials} materials to {output} (material_*.dam, weights/*.exr, preview/*.png and their legend "
+               f"preview/{legend_stem(names)}.png and .json, segmenter.safetensors)")
 
 
 @command("segment-labels")

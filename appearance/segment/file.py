@@ -29,7 +29,7 @@ from damcap.appearance.coverage import normal_histogram
 from damcap.appearance.dam_file import load_dam, read_safetensors_metadata, save_dam
 from damcap.appearance.pixels import FOREGROUND_COVERAGE
 from damcap.appearance.segment.model import SegmentationModel, SegmentationNet
-from damcap.appearance.segment.preview import false_colour
+from damcap.appearance.segment.preview import false_colour, legend_entries, legend_image
 from damcap.appearance.views import ViewData
 
 SEGMENTER_FILE = "segmenter.safetensors"
@@ -67,8 +67,10 @@ def save_segmentation_folder(folder: str | os.PathLike, model: SegmentationModel
     """Write everything ``damcap segment`` writes into ``folder`` (normally a staging folder).
 
     The DAMs and segmenter (:func:`save_segmentation`), per training view ``weights/NAME.exr``
-    ((H, W, n) half, channels ``W.0..``) and ``preview/NAME.png``, and ``segment.json``:
-    ``provenance`` + ``summary`` + the material count, the frames and their output names.
+    ((H, W, n) half, channels ``W.0..``) and ``preview/NAME.png``, the previews' legend
+    ``preview/legend.png`` and ``preview/legend.json`` (per material its colour and DAM file;
+    ``legend_`` ... if a frame is named ``legend``), and ``segment.json``: ``provenance`` +
+    ``summary`` + the material count, the frames and their output names.
 
     Args:
         views: the training views, in the order of ``names`` (one output name each).
@@ -85,8 +87,23 @@ def save_segmentation_folder(folder: str | os.PathLike, model: SegmentationModel
     for v, name, w in zip(views, names, weights):
         write_exr(folder / WEIGHTS_FOLDER / f"{name}.exr", w, weight_channels(model.materials), dtype="half")
         write_png(folder / "preview" / f"{name}.png", false_colour(w, v.data.coverage))
+    legend = legend_stem(names)
+    write_png(folder / "preview" / f"{legend}.png", legend_image(model.materials))
+    write_json_atomic(folder / "preview" / f"{legend}.json", legend_entries(model.materials))
     write_json_atomic(folder / SUMMARY_FILE, {**provenance, **summary, "materials": model.materials,
                                               "frames": [v.name for v in views], "outputs": list(names)})
+
+
+def legend_stem(names: list[str]) -> str:
+    """The name of the previews' legend files: ``legend``, with ``_`` appended while a frame's preview has that name.
+
+    >>> legend_stem(["0001", "legend", "legend_"])
+    'legend__'
+    """
+    stem = "legend"
+    while stem in names:
+        stem += "_"
+    return stem
 
 
 def _weight_files(folder: Path, summary: dict[str, Any], where: Path) -> list[Path]:

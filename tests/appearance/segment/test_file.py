@@ -7,7 +7,7 @@ import json
 import numpy as np
 
 from damcap.cli.main import main
-from damcap.common.exr import read_exr
+from damcap.common.exr import read_exr, read_image_u8
 
 
 def test_segment_command_writes_everything(two_materials, tmp_path, capsys):
@@ -21,6 +21,10 @@ def test_segment_command_writes_everything(two_materials, tmp_path, capsys):
     fg = train[0].data.coverage > 0.5
     np.testing.assert_allclose(w[fg].sum(-1), 1.0, atol=2e-3)
     assert (out / "preview" / f"{train[0].name}.png").is_file()
+    legend = json.loads((out / "preview" / "legend.json").read_text())
+    assert legend == {"0": {"rgb": [230, 76, 64], "dam": "material_0.dam"}, "1": {"rgb": [64, 153, 242], "dam": "material_1.dam"}}
+    assert read_image_u8(out / "preview" / "legend.png").shape == (68, 300, 3)
+    assert "preview/*.png and their legend preview/legend.png and .json" in capsys.readouterr().out
     meta = json.loads((out / "segment.json").read_text())
     assert meta["materials"] == 2 and meta["options"]["seed"] == 0
     # each DAM records the normals of the training pixels assigned to it: together, every foreground pixel once

@@ -158,7 +158,8 @@ def _export_glb(dams, metas, model_paths, mesh_path: Path, labels, path: Path, o
     from damcap.appearance.dam_file import recorded_normal_histogram, recorded_up
     from damcap.common.atomic import atomic_path
     from damcap.common.cameras import orbit_world_from_cam
-    from damcap.export.gltf import glb_bytes, gltf_from_world, split_parts, subdivide_midpoint, vertex_radiance
+    from damcap.common.fingerprint import file_digest
+    from damcap.export.gltf import VIEW_DEPENDENCE_NOTE, glb_bytes, gltf_from_world, split_parts, subdivide_midpoint, vertex_radiance
     from damcap.export.turntable import orbit_up, shape_and_parts
 
     orbit.validate()
@@ -179,10 +180,15 @@ def _export_glb(dams, metas, model_paths, mesh_path: Path, labels, path: Path, o
                                      f"of its vertices on {mesh_path.name}", "the GLB's extras 'unobserved_normals'")
     values = np.concatenate([c.ravel() for c in colours])
     clipped = float((values > 1.0).mean()) if values.size else 0.0
+    # the file travels: its inputs by base name and content hash, never this machine's paths
     extras = {"damcap": {
         "what": "linear radiance of the DAM(s) seen from the camera 'baked_view', times exposure_scale, clipped to [0, 1], per vertex",
-        "models": [str(m.resolve()) for m in model_paths], "mesh": str(mesh_path.resolve()), "exposure_scale": scale,
-        "clipped_fraction": clipped, "up_world": up.tolist(), "up_source": up_source, "unobserved_normals": unobserved,
+        "view_dependence": VIEW_DEPENDENCE_NOTE,
+        "models": [{"file": m.name, "sha256": file_digest(m)} for m in model_paths],
+        "mesh": {"file": mesh_path.name, "sha256": file_digest(mesh_path)},
+        "labels": None if labels is None else {"file": Path(labels).name, "sha256": file_digest(labels)},
+        "exposure_scale": scale, "clipped_fraction": clipped, "up_world": up.tolist(), "up_source": up_source,
+        "unobserved_normals": [{**u, "model": Path(m).name} for u, m in zip(unobserved, model_paths)],
         "triangles": {"mesh": given, "baked": len(shape.triangles), "subdivided_to_at_least": min_triangles},
         "view": {"elevation_deg": orbit.elevation_deg, "azimuth_deg": orbit.azimuth0_deg, "distance": orbit.distance,
                  "fov_deg": orbit.fov_deg},
@@ -194,6 +200,7 @@ def _export_glb(dams, metas, model_paths, mesh_path: Path, labels, path: Path, o
                + ", radiance baked for elevation "
                f"{orbit.elevation_deg:g} deg, azimuth {orbit.azimuth0_deg:g} deg; exposure x{scale:.4g}, "
                f"{clipped:.1%} of the colour values clipped at 1)")
+    typer.echo(f"note: {VIEW_DEPENDENCE_NOTE}")
 
 
 def _export_threejs(dam, meta: dict, model_path: Path, path: Path, orbit: OrbitOptions) -> None:

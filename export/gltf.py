@@ -46,6 +46,12 @@ class PartMesh:
     """(T, 3) uint32, indices into this part's vertices"""
 
 
+VIEW_DEPENDENCE_NOTE = ("the vertex colours are one view's radiance, baked for the file's camera ('baked_view'); the "
+                        "view-dependent appearance (highlights that move as the view turns) is not in the file: "
+                        "--format threejs or damcap view evaluate the DAM per view")
+"""what a GLB's colours are and are not (stored in its extras and said when it is written)"""
+
+
 def split_parts(mesh: Mesh, triangle_part: np.ndarray, parts: int) -> list[PartMesh]:
     """The mesh cut into ``parts`` vertex lists by each triangle's part (empty parts stay empty).
 

@@ -172,3 +172,43 @@ def test_glb_needs_a_mesh_and_one_model_per_part(model_file, bunny, tmp_path, ca
     err = capsys.readouterr().err
     assert "labels.npy: label 1" in err and "1 model(s) were given" in err and "Traceback" not in err, err
     assert not (tmp_path / "a.glb").exists() and not (tmp_path / "b.glb").exists()
+
+
+def _strings(node):
+    """Every string in a JSON document (keys and values)."""
+    if isinstance(node, str):
+        yield node
+    elif isinstance(node, dict):
+        for k, v in node.items():
+            yield k
+            yield from _strings(v)
+    elif isinstance(node, list):
+        for v in node:
+            yield from _strings(v)
+
+
+def test_glb_carries_no_paths_of_the_machine_and_says_it_is_one_view(model_file, bunny, tmp_path, capsys):
+    import hashlib
+    import re
+
+    from damcap.export.gltf import VIEW_DEPENDENCE_NOTE
+
+    labels = tmp_path / "labels.npy"
+    from damcap.common.mesh import file_vertex_order, load_mesh
+
+    np.save(labels, np.zeros(file_vertex_order(bunny, load_mesh(bunny).vertices)[1], np.int64))
+    out = tmp_path / "bunny.glb"
+    assert main(["export", str(model_file), "--format", "glb", "--mesh", str(bunny), "--labels", str(labels),
+                 "--glb-min-triangles", "0", "--resolution", "64", "-o", str(out)]) == 0
+    glb = out.read_bytes()
+    doc, _ = read_glb(glb)
+    absolute = [s for s in _strings(doc) if s.startswith(("/", "\\")) or re.match(r"[A-Za-z]:[\\/]", s)]
+    assert absolute == []
+    for folder in {model_file.parent, bunny.parent, tmp_path}:
+        assert str(folder).encode() not in glb  # not in the JSON chunk, nor anywhere else in the file
+    extras = doc["asset"]["extras"]["damcap"]
+    assert extras["models"] == [{"file": "torus.dam", "sha256": hashlib.sha256(model_file.read_bytes()).hexdigest()}]
+    assert extras["mesh"] == {"file": "stanford-bunny.obj", "sha256": hashlib.sha256(bunny.read_bytes()).hexdigest()}
+    assert extras["labels"]["file"] == "labels.npy" and extras["unobserved_normals"][0]["model"] == "torus.dam"
+    assert extras["view_dependence"] == VIEW_DEPENDENCE_NOTE and "one view's radiance" in VIEW_DEPENDENCE_NOTE
+    assert f"note: {VIEW_DEPENDENCE_NOTE}" in capsys.readouterr().out

@@ -530,9 +530,11 @@ class DerivedCommand:
                 kwargs[pname] = build_options(classes[pname], values)
             if self.wants_given:
                 kwargs[GIVEN] = frozenset(given)
-            from damcap.cli.paths import NOTHING_KEPT, on_interrupt
+            from damcap.cli.paths import NOTHING_KEPT, command_locks, on_interrupt
 
-            with on_interrupt(lambda: NOTHING_KEPT):  # Ctrl-C / SIGTERM reach cli.main as Interrupted (typer would exit 0)
+            # the outputs that check_paths locks stay locked for the command's life, released however it ends;
+            # Ctrl-C / SIGTERM reach cli.main as Interrupted (typer would exit 0)
+            with command_locks(), on_interrupt(lambda: NOTHING_KEPT):
                 return self.fn(**kwargs)
 
         run.__name__ = self.fn.__name__

@@ -16,6 +16,15 @@ folder) to :func:`check_paths`, before it writes anything. The check refuses, wi
   the command's own earlier output is replaced as a whole, so no stale frame survives); an empty
   output path; a symbolic-link loop.
 
+One writer per output: inside a command (:func:`command_locks`, entered for a command's whole
+life by the command runner in :mod:`damcap.cli.options`), :func:`check_paths` also locks each
+output with ``fcntl.flock`` on a hidden file beside it (``m.dam`` -> ``.m.dam.lock``; a folder
+``out`` -> ``.out.lock``), which covers the output and whatever it keeps inside or beside it (a
+checkpoint, a work folder). A second run aimed at the same output is refused in one line naming
+the first run's process id, before anything is touched. The lock ends with the command (success,
+error, Ctrl-C, SIGTERM: the lock file is removed); a killed run's lock is released by the kernel,
+and the file it leaves is taken over by the next run.
+
 Folder outputs that a command writes from scratch are staged (:func:`staged_folder`): files are
 written into a hidden folder beside the output and moved into place (fsynced) only when the
 command succeeds; an error or Ctrl-C removes the staged files. Single files are staged by
@@ -29,10 +38,14 @@ Exit codes (``damcap.cli.main``): 0 success; 2 a user mistake or an operating-sy
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import errno
+import fcntl
 import os
 import shutil
 import tempfile
+import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Callable, Iterable, Iterator, Literal, Optional, Sequence
@@ -130,14 +143,16 @@ def _probe_writable(folder: Path, out: Path) -> None:
 
 
 def check_paths(inputs: Iterable[Optional[os.PathLike | str]], outputs: Iterable[Optional[Output]]) -> None:
-    """Refuse, before any output is touched, outputs that collide with inputs or cannot be written.
+    """Refuse, before any output is touched, outputs that collide with inputs or cannot be written;
+    inside :func:`command_locks`, lock every output for the rest of the command.
 
     Args:
         inputs: every path the command reads (None entries are skipped).
         outputs: every path it writes (None entries are skipped).
 
     Raises:
-        DamcapError: one line naming the output (see the module docstring).
+        DamcapError: one line naming the output (see the module docstring), among them an output
+            that another damcap run is writing.
     """
     ins = [Path(i) for i in inputs if i is not None]
     outs = [o for o in outputs if o is not None]
@@ -154,6 +169,10 @@ def check_paths(inputs: Iterable[Optional[os.PathLike | str]], outputs: Iterable
             if o.kind == "folder" and _inside(ri, r):
                 raise DamcapError(f"{o.path}: output would overwrite or write into the input {i} (it lies inside the output folder); "
                                   f"choose another output folder or move the input")
+    # locked before the checks that look at the outputs' contents: a run that is writing them is
+    # named as such, not as a folder of someone else's files
+    not_locked = [(o, reason) for o in outs if (reason := _lock_output(o.path, _resolve(o.path))) is not None]
+    for o in outs:
         if o.kind == "file" and o.path.is_dir():
             raise DamcapError(f"{o.path}: is a folder, but a file is written here; give a file path")
         if o.kind == "folder" and o.path.exists() and not o.path.is_dir():
@@ -167,6 +186,120 @@ def check_paths(inputs: Iterable[Optional[os.PathLike | str]], outputs: Iterable
         if o.kind == "folder" and o.replaces is not None and o.path.is_dir() and any(o.path.iterdir()) and not o.replaces(o.path):
             raise DamcapError(f"{o.path}: exists, is not empty and was not written by this command; choose a new or empty "
                               f"folder (damcap never merges into or deletes other files)")
+    for o, reason in not_locked:
+        warnings.warn(f"{o.path}: could not be locked ({reason}); another damcap run writing it at the same time would not be stopped")
+
+
+# --------------------------------------------------------------------------------------------
+# One writer per output
+# --------------------------------------------------------------------------------------------
+
+
+def lock_path(out: os.PathLike | str) -> Path:
+    """The lock file of an output: ``.NAME.lock`` beside it, by its resolved path (a symbolic link
+    or a relative spelling of the same output shares one lock)."""
+    r = _resolve(_given(out))
+    return r.with_name(f".{r.name}.lock")
+
+
+@dataclass
+class _HeldLock:
+    path: Path
+    fd: int
+    made: list[Path]
+    """folders created for the lock file (deepest first): removed again if still empty"""
+
+    def release(self) -> None:
+        with contextlib.suppress(OSError):  # removed while still held: a run waiting on this file retries on the new one
+            os.unlink(self.path)
+        os.close(self.fd)
+        _remove_empty(self.made)
+
+
+_LOCKS: contextvars.ContextVar[Optional[dict[Path, _HeldLock]]] = contextvars.ContextVar("damcap_output_locks", default=None)
+"""the locks of the running command, by lock file; None outside a command"""
+
+
+@contextlib.contextmanager
+def command_locks() -> Iterator[None]:
+    """The life of one command: outputs that :func:`check_paths` locks inside it stay locked
+    until it ends, however it ends (return, error, Ctrl-C, SIGTERM). Nested, it is the outer
+    command's. Outside it :func:`check_paths` locks nothing (library use)."""
+    if _LOCKS.get() is not None:
+        yield
+        return
+    held: dict[Path, _HeldLock] = {}
+    token = _LOCKS.set(held)
+    try:
+        yield
+    finally:
+        _LOCKS.reset(token)
+        for lock in reversed(list(held.values())):
+            lock.release()
+
+
+def _holder_pid(fd: int) -> Optional[int]:
+    """The process id a lock holder wrote into its lock file (it writes it right after locking)."""
+    for _ in range(20):
+        text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+        if text.isdigit():
+            return int(text)
+        time.sleep(0.005)
+    return None
+
+
+def _lock_output(out: Path, resolved: Path) -> Optional[str]:
+    """Lock ``out`` for the running command (nothing outside :func:`command_locks`).
+
+    Returns:
+        None when locked (or when no command runs), else why the lock file could not be made (the
+        checks that follow name a real problem with the path; otherwise a warning says so).
+
+    Raises:
+        DamcapError: another process holds the lock.
+    """
+    held = _LOCKS.get()
+    if held is None or resolved.name in ("", ".", ".."):
+        return None
+    path = resolved.with_name(f".{resolved.name}.lock")
+    if path in held:  # checked again by the same command
+        return None
+    made = [p for p in path.parents if not p.exists()]
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        for _ in range(100):
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                pid = _holder_pid(fd)
+                os.close(fd)
+                _remove_empty(made)
+                raise DamcapError(f"{out} is being written by another damcap run ({'pid ' + str(pid) if pid else 'pid unknown'}); "
+                                  f"wait for it or choose another -o") from None
+            except BaseException:
+                os.close(fd)
+                raise
+            try:  # the holder we waited on may have removed the file it locked: lock the file the path names now
+                same = os.path.samestat(os.fstat(fd), os.stat(path))
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)
+        else:
+            raise OSError(errno.EAGAIN, "the lock file kept being replaced", str(path))
+        try:
+            os.ftruncate(fd, 0)  # a killed run's process id is replaced by ours
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError:
+            os.close(fd)
+            raise
+        held[path] = _HeldLock(path, fd, made)
+    except OSError as e:
+        _remove_empty(made)
+        return e.strerror or str(e)
+    return None
 
 
 def frame_output_names(file_paths: Sequence[str], suffix: Optional[str] = None) -> list[str]:

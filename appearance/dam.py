@@ -58,9 +58,10 @@ class DamArchitecture:
     mirrored view. ``width`` counts both halves; the structural zeros are not stored"""
 
     def __post_init__(self) -> None:
-        # bounded before anything (layer_shapes, the weight vector) is built from them
-        bounded_int(self.width, 1, MAX_DAM_WIDTH, "DAM width")
-        bounded_int(self.depth, 1, MAX_DAM_DEPTH, "DAM depth")
+        # bounded before anything (layer_shapes, the weight vector) is built from them; a whole
+        # float (32.0) is kept as the int it stands for, so that slices and shapes take it
+        object.__setattr__(self, "width", bounded_int(self.width, 1, MAX_DAM_WIDTH, "DAM width"))
+        object.__setattr__(self, "depth", bounded_int(self.depth, 1, MAX_DAM_DEPTH, "DAM depth"))
         if not isinstance(self.bias, bool) or not isinstance(self.separable, bool):
             raise DamcapError(f"DAM bias and separable must be true or false, got bias={self.bias!r}, separable={self.separable!r}")
         if self.encoding not in ENCODING_DIMS:

@@ -22,6 +22,7 @@ nothing in how the model renders, so it does not raise the format version.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -113,6 +114,32 @@ def format_version_of(model: DeepAppearanceMap) -> int:
     return 3 if model.normal_field is not None else 2 if model.spatial is not None else 1
 
 
+def integer_fields(cls: type) -> tuple[str, ...]:
+    """The fields of an architecture dataclass annotated ``int``.
+
+    >>> integer_fields(DamArchitecture)
+    ('width', 'depth')
+    """
+    return tuple(f.name for f in dataclasses.fields(cls) if f.type in (int, "int"))
+
+
+def require_integers(values: dict[str, Any], names: tuple[str, ...], path: Path, key: str) -> None:
+    """Refuse a metadata value that is not a JSON integer: 32.0 or true is no layer width.
+
+    Args:
+        values: a metadata object (``architecture``).
+        names: its integer keys (absent ones are skipped: a default or another check applies).
+        path: the file, for the message.
+        key: the object's key in the metadata (``"architecture"``).
+
+    Raises:
+        DamcapError: one line naming the file, the key and the value.
+    """
+    for name in names:
+        if name in values and (type(values[name]) is not int):
+            raise DamcapError(f"{path}: metadata '{key}.{name}' must be an integer, got {values[name]!r:.40}")
+
+
 def load_dam(path: str | os.PathLike) -> tuple[DeepAppearanceMap, dict[str, Any]]:
     """Read a ``.dam`` file; refuses anything else with a clear error.
 
@@ -121,7 +148,8 @@ def load_dam(path: str | os.PathLike) -> tuple[DeepAppearanceMap, dict[str, Any]
 
     Raises:
         DamcapError: missing file, not a safetensors file (random bytes, a pickle, truncated),
-            missing or invalid metadata, a newer format version, weights that do not match the
+            missing or invalid metadata (an integer of the architecture given as 32.0 or true
+            among them), a newer format version, weights that do not match the
             architecture, non-finite weights, weights whose output overflows float32, a colour
             space damcap does not know.
     """
@@ -151,6 +179,7 @@ def load_dam(path: str | os.PathLike) -> tuple[DeepAppearanceMap, dict[str, Any]
         raise DamcapError(f"{path}: colorspace {colorspace!r} is not one damcap knows; use one of {', '.join(COLORSPACES)}")
     if not isinstance(arch_json, dict):
         raise DamcapError(f"{path}: damcap metadata 'architecture' must be an object, got {type(arch_json).__name__}")
+    require_integers(arch_json, integer_fields(DamArchitecture), path, "architecture")
     try:
         arch = DamArchitecture(**arch_json)
     except TypeError as e:

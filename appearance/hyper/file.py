@@ -98,12 +98,14 @@ def load_predictor(path: str | os.PathLike) -> tuple[HyperNet, dict[str, Any]]:
 
     Raises:
         DamcapError: missing file, not safetensors (random bytes, a pickle, truncated), not a
-            predictor, a newer format version, tensors that do not match the stated architecture,
+            predictor, a newer format version, an integer of the architecture given as 256.0 or
+            true, tensors that do not match the stated architecture,
             non-finite tensors.
     """
     import torch
 
-    from damcap.appearance.dam_file import read_damcap_safetensors
+    from damcap.appearance.dam import DamArchitecture
+    from damcap.appearance.dam_file import integer_fields, read_damcap_safetensors, require_integers
     from damcap.appearance.hyper.model import HyperArchitecture, HyperNet
 
     path = Path(path)
@@ -119,6 +121,14 @@ def load_predictor(path: str | os.PathLike) -> tuple[HyperNet, dict[str, Any]]:
     version = meta.get("format_version")
     if not isinstance(version, int) or version > PREDICTOR_FORMAT_VERSION:
         raise DamcapError(f"{path}: predictor format version {version!r} is newer than this damcap reads ({PREDICTOR_FORMAT_VERSION}); upgrade damcap")
+    arch_json = meta.get("architecture")
+    if isinstance(arch_json, dict):  # integers stay integers: from_json's int() would take 256.7 or true
+        require_integers(arch_json, integer_fields(HyperArchitecture), path, "architecture")
+        channels = arch_json.get("channels")
+        if isinstance(channels, list):
+            require_integers(dict(enumerate(channels)), tuple(range(len(channels))), path, "architecture.channels")
+        if isinstance(arch_json.get("dam"), dict):
+            require_integers(arch_json["dam"], integer_fields(DamArchitecture), path, "architecture.dam")
     try:
         arch = HyperArchitecture.from_json(meta["architecture"])
     except (KeyError, TypeError, ValueError, OverflowError) as e:

@@ -9,6 +9,7 @@ import time
 
 import pytest
 import torch
+from safetensors.torch import load_file, save_file
 from safetensors.torch import save as st_save
 
 from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
@@ -87,8 +88,7 @@ class TestHostileMetadata:
         return path
 
     @pytest.mark.parametrize("field, value, bound", [("width", 10 ** 12, r"\[1, 4096\]"), ("depth", 10 ** 12, r"\[1, 64\]"),
-                                                      ("width", 0, r"\[1, 4096\]"), ("depth", -3, r"\[1, 64\]"),
-                                                      ("width", 2.5, r"\[1, 4096\]"), ("depth", "4", r"\[1, 64\]")])
+                                                      ("width", 0, r"\[1, 4096\]"), ("depth", -3, r"\[1, 64\]")])
     def test_huge_or_bad_architecture_is_refused_quickly_naming_the_bound(self, tmp_path, field, value, bound):
         path = self._write(tmp_path / "hostile.dam", {**DamArchitecture().to_json(), field: value})
         assert path.stat().st_size < 20_000
@@ -96,6 +96,39 @@ class TestHostileMetadata:
         with pytest.raises(DamcapError, match=rf"hostile\.dam: invalid architecture: DAM {field} must be an integer in {bound}"):
             load_dam(path)
         assert time.perf_counter() - t0 < 2.0
+
+    @pytest.mark.parametrize("field, value, shown", [("width", 8.0, "8.0"), ("depth", 2.0, "2.0"), ("width", True, "True"),
+                                                      ("depth", False, "False"), ("width", 2.5, "2.5"), ("depth", "4", "'4'"),
+                                                      ("width", None, "None"), ("depth", [2], r"\[2\]")])
+    def test_an_integer_of_the_architecture_must_be_a_json_integer(self, tmp_path, field, value, shown):
+        """32.0 is no layer width: a whole float once reached the GLSL exporter's slices as a float."""
+        path = tmp_path / "m.dam"
+        save_dam(path, DeepAppearanceMap(DamArchitecture(width=8, depth=2)), colorspace="lin_rec709", made_by="test")
+        _, meta = load_dam(path)
+        tensors = load_file(path)
+        meta["architecture"][field] = value
+        save_file(tensors, tmp_path / "hostile.dam", metadata={"damcap": json.dumps(meta)})
+        with pytest.raises(DamcapError, match=rf"^\S*hostile\.dam: metadata 'architecture\.{field}' must be an integer, got {shown}$"):
+            load_dam(tmp_path / "hostile.dam")
+
+    def test_export_glsl_of_a_whole_float_width_is_one_line(self, tmp_path, capsys):
+        from damcap.cli.main import main
+
+        path = tmp_path / "m.dam"
+        save_dam(path, DeepAppearanceMap(DamArchitecture(width=8, depth=2)), colorspace="lin_rec709", made_by="test")
+        _, meta = load_dam(path)
+        meta["architecture"]["width"] = 8.0
+        save_file(load_file(path), tmp_path / "w.dam", metadata={"damcap": json.dumps(meta)})
+        code = main(["export", str(tmp_path / "w.dam"), "--format", "glsl", "-o", str(tmp_path / "out")])
+        out, err = capsys.readouterr()
+        assert code == 2 and "Traceback" not in err and err.count("\n") == 1, err
+        assert err == f"error: {tmp_path / 'w.dam'}: metadata 'architecture.width' must be an integer, got 8.0\n"
+        assert not (tmp_path / "out").exists()
+
+    def test_a_whole_float_given_in_python_is_kept_as_an_int(self):
+        arch = DamArchitecture(width=8.0, depth=2.0)
+        assert type(arch.width) is int and type(arch.depth) is int and arch == DamArchitecture(width=8, depth=2)
+        assert DeepAppearanceMap(arch).get_flat_weights().shape == (DamArchitecture(width=8, depth=2).num_weights,)
 
     @pytest.mark.parametrize("scale", [1e39, -1e39, float("inf"), float("nan"), 0.0, -1.0, 1e-50, "x", None])
     def test_radiance_scale_must_be_finite_and_positive_in_float32(self, tmp_path, scale):

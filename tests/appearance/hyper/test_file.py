@@ -49,6 +49,29 @@ def test_predictor_file_round_trip_and_bad_files(tmp_path, small_capture):
         load_predictor(tmp_path / "missing.safetensors")
 
 
+@pytest.mark.parametrize("edit, key, shown", [
+    (lambda a: a.update(input_size=32.0), "architecture.input_size", "32.0"),
+    (lambda a: a.update(input_views=True), "architecture.input_views", "True"),
+    (lambda a: a.update(input_size="32"), "architecture.input_size", "'32'"),
+    (lambda a: a["channels"].__setitem__(1, 8.0), "architecture.channels.1", "8.0"),
+    (lambda a: a["dam"].update(width=32.0), "architecture.dam.width", "32.0"),
+    (lambda a: a["dam"].update(depth=False), "architecture.dam.depth", "False"),
+])
+def test_an_integer_of_the_predictor_architecture_must_be_a_json_integer(tmp_path, edit, key, shown):
+    """from_json's int() would take 32.7 as 32 and true as 1: the reader refuses them first."""
+    from safetensors.torch import load_file, save_file
+
+    path = tmp_path / "p.safetensors"
+    save_predictor(path, HyperNet(HyperArchitecture(input_size=32, channels=(4, 8))), {"command": "test"})
+    load_predictor(path)  # as written: valid
+    arch = HyperArchitecture(input_size=32, channels=(4, 8)).to_json()
+    edit(arch)
+    bad = tmp_path / "bad.safetensors"
+    save_file(load_file(path), bad, metadata={"damcap": json.dumps({"format_version": 1, "kind": "dam-predictor", "architecture": arch})})
+    with pytest.raises(DamcapError, match=rf"^\S*bad\.safetensors: metadata '{key}' must be an integer, got {shown}$"):
+        load_predictor(bad)
+
+
 @pytest.mark.slow
 def test_every_shipped_predictor_loads_and_a_retired_name_says_which_commit_holds_it(tmp_path, monkeypatch, capsys):
     for name in SHIPPED:

@@ -1,11 +1,16 @@
 """COLMAP's database and masks: pycolmap import, feature masks, verified-match and keypoint counts,
-why a photo stayed unregistered."""
+why a photo stayed unregistered, the pair lists COLMAP matches."""
 
 from __future__ import annotations
 
+import json
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
+
+from damcap.common.atomic import write_json_atomic
 
 
 
@@ -146,5 +151,112 @@ def read_descriptors(db_path: Path, names: list[str]) -> list[np.ndarray]:
             data = getattr(d, "data", d)
             out.append(np.asarray(data) if data is not None else np.zeros((0, 128), np.uint8))
         return out
+    finally:
+        db.close()
+
+
+# ---- pair lists -------------------------------------------------------------------------
+# COLMAP's pair list (``ImportedPairingOptions.match_list_path``) is "name1 name2" a line: each
+# line is trimmed, cut at spaces, a line starting with '#' is a comment, and a name that is not
+# in the database is skipped with an error in the log. A photo named "Photo 0001.jpg" would be
+# read as "Photo" and silently never matched. So photo names never go into a pair list: while
+# COLMAP matches, each image in the database carries an alias made of its image id.
+
+
+def pair_list_aliases(names_by_id: dict[int, str]) -> dict[int, str]:
+    """An alias per image id that COLMAP's pair list reads back intact, equal to no photo's name.
+
+    The aliases are a prefix and the image id; the prefix grows until no photo name starts with
+    it, so an alias never equals a name (the database keeps names unique while they are renamed).
+
+    >>> pair_list_aliases({1: "Photo 0001.jpg", 2: "img.jpg"})
+    {1: 'pair-1', 2: 'pair-2'}
+    >>> pair_list_aliases({1: "pair-2", 2: "x"})
+    {1: '_pair-1', 2: '_pair-2'}
+    """
+    prefix = "pair-"
+    while any(name.startswith(prefix) for name in names_by_id.values()):
+        prefix = "_" + prefix
+    return {i: f"{prefix}{i}" for i in names_by_id}
+
+
+def pair_list_text(pairs: list[tuple[str, str]]) -> str:
+    """COLMAP's pair list for ``pairs`` of database image names, one "name1 name2" a line.
+
+    Raises:
+        ValueError: a name COLMAP would not read back as written (empty, with whitespace, or
+            starting with '#').
+
+    >>> pair_list_text([("pair-1", "pair-2")])
+    'pair-1 pair-2\\n'
+    """
+    for pair in pairs:
+        for name in pair:
+            if not name or name.startswith("#") or any(c.isspace() for c in name):
+                raise ValueError(f"COLMAP's pair list cannot hold the image name {name!r}: "
+                                 "expected no whitespace and no leading '#'")
+    return "".join(f"{a} {b}\n" for a, b in pairs)
+
+
+def _aliases_path(db_path: Path) -> Path:
+    return db_path.with_name(db_path.name + ".aliases.json")
+
+
+def restore_image_names(db_path: Path) -> None:
+    """Give the database's images back the photo names :func:`images_named_for_pair_lists` replaced
+    (also after a run killed while matching); nothing to do when no alias record exists."""
+    record = _aliases_path(db_path)
+    if not record.exists():
+        return
+    if db_path.exists():
+        name_of_alias = json.loads(record.read_text(encoding="utf-8"))
+        pycolmap = import_pycolmap()
+        db = pycolmap.Database.open(str(db_path))
+        try:
+            for im in db.read_all_images():
+                if im.name in name_of_alias:
+                    im.name = name_of_alias[im.name]
+                    db.update_image(im)
+        finally:
+            db.close()
+    record.unlink()
+
+
+@contextmanager
+def images_named_for_pair_lists(db_path: Path) -> Iterator[dict[str, str]]:
+    """Within the block, every image in the database is named by its :func:`pair_list_aliases`
+    alias; the photo names come back on leaving it (:func:`restore_image_names`).
+
+    Yields:
+        photo name -> alias, the names to write in a pair list (:func:`pair_list_text`).
+    """
+    pycolmap = import_pycolmap()
+    restore_image_names(db_path)
+    try:
+        db = pycolmap.Database.open(str(db_path))
+        try:
+            images = db.read_all_images()
+            aliases = pair_list_aliases({im.image_id: im.name for im in images})
+            # the record is written before any image is renamed: a run killed in between is restored
+            write_json_atomic(_aliases_path(db_path), {aliases[im.image_id]: im.name for im in images})
+            alias_of_name = {im.name: aliases[im.image_id] for im in images}
+            for im in images:
+                im.name = aliases[im.image_id]
+                db.update_image(im)
+        finally:
+            db.close()
+        yield alias_of_name
+    finally:
+        restore_image_names(db_path)
+
+
+def unmatched_pairs(db_path: Path, pairs: list[tuple[str, str]]) -> list[tuple[str, str]]:
+    """The pairs of photo names that have no match record in the database (COLMAP writes one, empty
+    or not, for every pair it matched)."""
+    pycolmap = import_pycolmap()
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        ids = {im.name: im.image_id for im in db.read_all_images()}
+        return [(a, b) for a, b in pairs if a not in ids or b not in ids or not db.exists_matches(ids[a], ids[b])]
     finally:
         db.close()

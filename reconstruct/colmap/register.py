@@ -45,7 +45,9 @@ from damcap.common.validate import COUNT, MAX_IMAGE_SIDE, SEED, in_range
 from damcap.reconstruct.poses import Registration
 from damcap.reconstruct.colmap.model import image_observations, registration_of_reconstruction
 from damcap.reconstruct.undistort import colmap_camera
-from damcap.reconstruct.colmap.database import database_summary, pair_inliers, read_descriptors, import_pycolmap, unregistered_reasons, write_colmap_masks
+from damcap.reconstruct.colmap.database import (database_summary, images_named_for_pair_lists, import_pycolmap, pair_inliers,
+                                                pair_list_text, read_descriptors, restore_image_names, unmatched_pairs,
+                                                unregistered_reasons, write_colmap_masks)
 from damcap.reconstruct.colmap.pairs import exhaustive_pairs, retrieval_pairs, ring_pairs, transitive_pairs, vlad_similarity
 from damcap.reconstruct.colmap.principal_point import adjust_principal_point, photos_support_offset
 
@@ -232,6 +234,7 @@ def _features_and_matches(photo_dir: Path, names: list[str], work_dir: Path, opt
     n = len(names)
     db_path = work_dir / "database.db"
     fp_features, fp_matches, pairing = _fingerprints(photo_dir, names, opts, masks, content)
+    restore_image_names(db_path)  # a run killed while matching left the images under their pair-list aliases
     # ---- features ----------------------------------------------------------------------
     st = stages.status("features", fp_features)
     if st == "new":
@@ -304,14 +307,20 @@ def _features_and_matches(photo_dir: Path, names: list[str], work_dir: Path, opt
         verify.ransac.random_seed = opts.seed
 
         def match_pairs(stage: str, todo: list[tuple[int, int]]) -> None:
-            for k in range(0, len(todo), MATCH_CHUNK):
-                progress(stage, k, len(todo))
-                lst = work_dir / "pairs.txt"
-                lst.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in todo[k:k + MATCH_CHUNK]), encoding="utf-8")
-                po = pycolmap.ImportedPairingOptions()
-                po.match_list_path = str(lst)
-                pycolmap.match_image_pairs(str(db_path), matching_options=match, pairing_options=po,
-                                           verification_options=verify, device=pycolmap.Device.cpu)
+            with images_named_for_pair_lists(db_path) as alias:  # photo names may hold spaces; aliases do not
+                for k in range(0, len(todo), MATCH_CHUNK):
+                    progress(stage, k, len(todo))
+                    lst = work_dir / "pairs.txt"
+                    chunk = [(alias[names[i]], alias[names[j]]) for i, j in todo[k:k + MATCH_CHUNK]]
+                    lst.write_text(pair_list_text(chunk), encoding="utf-8")
+                    po = pycolmap.ImportedPairingOptions()
+                    po.match_list_path = str(lst)
+                    pycolmap.match_image_pairs(str(db_path), matching_options=match, pairing_options=po,
+                                               verification_options=verify, device=pycolmap.Device.cpu)
+            missed = unmatched_pairs(db_path, [(names[i], names[j]) for i, j in todo])
+            if missed:
+                raise DamcapError(f"{db_path}: COLMAP matched {len(todo) - len(missed)} of the {len(todo)} photo pairs it was given; "
+                                  f"not e.g. {missed[0][0]!r} with {missed[0][1]!r} (see COLMAP's log above)")
             progress(stage, len(todo), len(todo))
 
         match_pairs("matching", pairs)

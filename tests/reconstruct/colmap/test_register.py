@@ -219,3 +219,63 @@ def test_the_contrast_probe_s_photos_are_not_extracted_twice(tmp_path, monkeypat
         for name in names:
             np.testing.assert_array_equal(plain[name][0], probed[name][0])
             np.testing.assert_array_equal(plain[name][1], probed[name][1])
+
+
+def _odd_named_copy(src, names, dst):
+    """The photos copied under names with spaces, a '#', a leading dash and non-ASCII letters."""
+    import shutil
+
+    odd = {1: "ß café #1.jpg", 2: "-dash.jpg", 3: "naïve_ü.jpg"}
+    dst.mkdir()
+    out = []
+    for k, name in enumerate(names):
+        new = odd.get(k, f"Photo {k:04d}.jpg")
+        shutil.copy(src / name, dst / new)
+        out.append(new)
+    return out
+
+
+@pytest.fixture(scope="module")
+def arc_photos(tmp_path_factory):
+    """10 photos 12 degrees apart on an arc, 192 px: the smallest set here that registers whole."""
+    from damcap.common.shapes import bumpy_blob
+    from damcap.synth.photos import default_intrinsics, exposure_series, orbit_cameras, write_photo_set
+
+    root = tmp_path_factory.mktemp("arc")
+    n = 10
+    cams = orbit_cameras(30, 3.2, (25.0,), jitter_deg=4, seed=1)[:n]
+    names = write_photo_set(root / "set", bumpy_blob(subdivisions=5), cams, default_intrinsics(192), exposure_series(n, 1),
+                            light_dir_world=np.array([0.0, 1.0, 0.0]), seed=1)
+    return root / "set" / "images", names
+
+
+@pytest.mark.parametrize("pairing", ["exhaustive", "sequential"])
+def test_photo_names_are_opaque(tmp_path, arc_photos, pairing):
+    """Photos named with spaces, '#', a leading dash or non-ASCII letters register as their plain-named
+    copies do (once, 'Photo 0000.jpg' reached COLMAP's pair list as 'Photo' and nothing matched)."""
+    photos, names = arc_photos
+    odd = _odd_named_copy(photos, names, tmp_path / "odd")
+    opts = SfmOptions(pairing=pairing, sequential_overlap=3)
+    plain_reg, plain = register_photos(photos, names, tmp_path / "plain", opts)
+    reg, rep = register_photos(tmp_path / "odd", odd, tmp_path / "work", opts)
+    assert plain.registered == len(names) == 10
+    assert rep.registered == plain.registered and rep.unregistered == {} and rep.pairs == plain.pairs
+    assert sorted(p.name for p in reg.photos) == sorted(odd)
+    assert not (tmp_path / "work" / "database.db.aliases.json").exists()  # the database holds the photo names again
+    # resumed from the database: the names it holds are the photos' names
+    again, rep_again = register_photos(tmp_path / "odd", odd, tmp_path / "work", replace(opts, principal_point="centre"))
+    assert rep_again.resumed == ["features", "matches"] and rep_again.registered == 10
+
+
+def test_pairs_colmap_did_not_match_fail_loudly(tmp_path, arc_photos, monkeypatch):
+    """Were photo names written into COLMAP's pair list as they are (the old way), the pairs with a
+    space in a name would go unmatched; that stops the run with a sentence, not 'unregistered'."""
+    import contextlib
+
+    photos, names = arc_photos
+    odd = _odd_named_copy(photos, names, tmp_path / "odd")
+    monkeypatch.setattr(register_module, "images_named_for_pair_lists",
+                        lambda db_path: contextlib.nullcontext({n: n for n in odd}))
+    monkeypatch.setattr(register_module, "pair_list_text", lambda pairs: "".join(f"{a} {b}\n" for a, b in pairs))
+    with pytest.raises(DamcapError, match=r"COLMAP matched 1 of the 45 photo pairs it was given; not e.g. 'Photo 0000.jpg' with"):
+        register_photos(tmp_path / "odd", odd, tmp_path / "work", SfmOptions(pairing="exhaustive"))

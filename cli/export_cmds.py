@@ -440,7 +440,8 @@ def export_capture_cmd(
 
     The capture for other tools: a nerfstudio dataset (PNG frames, masks, transforms.json with
     train/val/test lists, the surface as points.ply) or a COLMAP text model of the undistorted
-    capture (sparse/0 + images/, what 3D Gaussian splatting tools start from).
+    capture (sparse/0 + images/, what 3D Gaussian splatting tools start from) with the
+    registration's points and their tracks (surface samples without tracks where it has none).
     """
     from damcap.common.capture_folder import read_capture
     from damcap.export.capture_export import export_capture
@@ -452,5 +453,10 @@ def export_capture_cmd(
     bar = progress_bar(len(cap.frames), "export-capture")
     with staged_folder(output, replace=True) as stage:
         summary = export_capture(cap, stage, opts, progress=lambda k, n: bar(k, n, {}))
-    typer.echo(f"wrote {summary['frames']} frames and {summary['points']} surface points to {output} as a {opts.format} "
+    if summary["points_source"] == "registration":
+        points = (f"{summary['points']} sparse points with their tracks (from {summary['model']}; mean track length "
+                  f"{summary['mean_track_length']:.2f}, mean reprojection error {summary['mean_reprojection_error_px']:.2f} px)")
+    else:
+        points = f"{summary['points']} surface points" + ("" if opts.format == "nerfstudio" else " without tracks (the capture keeps no sparse points with tracks)")
+    typer.echo(f"wrote {summary['frames']} frames and {points} to {output} as a {opts.format} "
                f"{'dataset' if opts.format == 'nerfstudio' else 'model'} (one display exposure for all frames: x{summary['exposure_scale']:.4g})")

@@ -115,14 +115,18 @@ def test_nerfstudios_own_dataparser_loads_the_export(capture, tmp_path):
 
 
 def test_colmap_model_reads_back_with_pycolmap_and_projects_onto_the_masks(capture, tmp_path):
-    """pycolmap reads the model: one PINHOLE camera per intrinsics, the capture's camera centres,
-    and every surface point projects onto the object's mask through COLMAP's own camera model."""
+    """pycolmap reads the model of a closed-form capture (no registration): one PINHOLE camera per
+    intrinsics, the capture's camera centres, and every surface point projects onto the object's
+    mask through COLMAP's own camera model."""
     import pycolmap
 
     out = tmp_path / "colmap"
-    export_capture(capture, out, CaptureExportOptions(format="colmap", points=300))
+    summary = export_capture(capture, out, CaptureExportOptions(format="colmap", points=300))
     rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
     assert len(rec.images) == 6 and len(rec.points3D) == 300 and len(rec.cameras) == 1
+    # a closed-form capture has no registration: surface samples without tracks, and the record says so
+    assert summary["points_source"] == "surface samples" and all(p.track.length() == 0 for p in rec.points3D.values())
+    assert json.loads((out / "damcap_export.json").read_text())["points_source"] == "surface samples"
     cam = next(iter(rec.cameras.values()))
     assert cam.model.name == "PINHOLE"
     pts = np.array([p.xyz for p in rec.points3D.values()])
@@ -267,3 +271,157 @@ def test_the_datasets_point_cloud_seeds_the_geometry(capture, tmp_path, capsys, 
         ca, cb = read_frame(capture, a).coverage > 0.5, read_frame(again, b).coverage > 0.5
         ious.append((ca & cb).sum() / (ca | cb).sum())
     assert min(ious) > 0.85, ious
+
+
+@pytest.fixture(scope="module")
+def registered_capture(tmp_path_factory):
+    """A capture ``damcap reconstruct`` made through COLMAP registration of 20 rendered 256 px
+    photos (a SIMPLE_RADIAL registration camera, frames resampled to 96 px pinhole cameras; ~6 s)."""
+    from damcap.cli.main import main
+    from damcap.common.shapes import bumpy_blob
+    from damcap.synth.photos import default_intrinsics, exposure_series, orbit_cameras, write_photo_set
+
+    root = tmp_path_factory.mktemp("registered")
+    light = np.array([0.4, 0.8, 0.45]) / np.linalg.norm([0.4, 0.8, 0.45])
+    write_photo_set(root / "photos", bumpy_blob(subdivisions=5), orbit_cameras(20, 3.2, (25.0,), jitter_deg=4, seed=0),
+                    default_intrinsics(256), exposure_series(20, 0), light_dir_world=light, seed=0)
+    assert main(["reconstruct", str(root / "photos" / "images"), "-o", str(root / "capture"), "--masks", str(root / "photos" / "masks"),
+                 "--capture-size", "96", "--geometry", "visual-hull", "--voxels", "64", "--train-views", "5"]) == 0
+    return read_capture(root / "capture")
+
+
+def _tracks_are_consistent(rec) -> None:
+    """Every track element names an image whose 2D point refers back to the track's point, and
+    every 2D point with a 3D point is in that point's track."""
+    for pid, p in rec.points3D.items():
+        for el in p.track.elements:
+            assert rec.image(el.image_id).points2D[el.point2D_idx].point3D_id == pid
+    for img in rec.images.values():
+        for idx, p2 in enumerate(img.points2D):
+            if p2.has_point3D():
+                assert any(e.image_id == img.image_id and e.point2D_idx == idx for e in rec.points3D[p2.point3D_id].track.elements)
+
+
+def test_colmap_export_of_a_registered_capture_keeps_the_registrations_points_and_tracks(registered_capture, tmp_path, capsys):
+    """The registration's own points with their tracks, observations moved into the 96 px pinhole
+    frames: tracks of 2 or more, errors (observation to projection through the exported camera) of
+    a fraction of a pixel, the same points as the registration's model (none lost: every photo
+    became a frame), read back by pycolmap; the output line and damcap_export.json say so."""
+    import pycolmap
+
+    from damcap.cli.main import main
+
+    out = tmp_path / "colmap"
+    assert main(["export-capture", str(registered_capture.root), "--format", "colmap", "-o", str(out)]) == 0
+    line = capsys.readouterr().out
+    assert "sparse points with their tracks (from reconstruction/sfm/model" in line
+    registration = pycolmap.Reconstruction(str(registered_capture.root / "reconstruction" / "sfm" / "model"))
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    assert len(rec.images) == 20 and rec.num_points3D() >= 0.98 * registration.num_points3D() > 100
+    lengths = np.array([p.track.length() for p in rec.points3D.values()])
+    errors = np.array([p.error for p in rec.points3D.values()])
+    assert lengths.min() >= 2 and lengths.mean() > 3
+    assert np.isfinite(errors).all() and errors.min() >= 0 and errors.mean() < 0.3 and errors.max() < 2.0
+    _tracks_are_consistent(rec)
+    record = json.loads((out / "damcap_export.json").read_text())
+    assert record["points_source"] == "registration" and record["model"] == "reconstruction/sfm/model"
+    assert record["points"] == rec.num_points3D() and record["options"]["format"] == "colmap"
+    # the registration camera's scale: the mean error in the 256 px photos is the export's / (96 / 256), within a factor 2
+    ratio = registration.compute_mean_reprojection_error() * 96 / 256 / rec.compute_mean_reprojection_error()
+    assert 0.5 < ratio < 2.0
+
+
+def test_undistortion_is_what_makes_the_observations_agree(registered_capture, monkeypatch):
+    """The registration camera's radial distortion is undone: mapping its observations as if it
+    were a pinhole leaves errors clearly larger than the export's."""
+    import pycolmap
+
+    from damcap.export import capture_export
+
+    rec = pycolmap.Reconstruction(str(registered_capture.root / "reconstruction" / "sfm" / "model"))
+    assert next(iter(rec.cameras.values())).params[-1] != 0  # SIMPLE_RADIAL's k
+    norm = np.asarray(registered_capture.extra["damcap_source"]["norm_from_input_world"])
+
+    def mean_error(tracked) -> float:
+        errs = []
+        for x, ks, xy in zip(tracked.xyz_world, tracked.frame_index, tracked.xy_px):
+            for k, uv in zip(ks, xy):
+                f = registered_capture.frames[k]
+                cam = cam_from_world_opencv(f.world_from_cam)
+                errs.append(np.linalg.norm(capture_export.pinhole_px((cam[:3, :3] @ x + cam[:3, 3])[None], f.intrinsics)[0] - uv))
+        return float(np.nanmean(errs))
+
+    good = mean_error(capture_export.tracked_points(rec, registered_capture, norm, "m"))
+    for cam in rec.cameras.values():
+        p = np.array(cam.params)
+        p[-1] = 0.0
+        cam.params = p
+    bad = mean_error(capture_export.tracked_points(rec, registered_capture, norm, "m"))
+    assert bad > 1.5 * good  # 0.19 px against 0.10 px: the object fills the middle of the photos, where k matters least
+
+
+def test_observations_of_photos_the_capture_dropped_are_dropped(registered_capture, tmp_path):
+    """A capture without 3 of the registration's photos: no track names them, points seen only
+    by them (fewer than 2 observations left) are gone, the rest still read back consistently."""
+    import dataclasses
+
+    import pycolmap
+
+    kept = registered_capture.frames[3:]
+    names = {f.file_path for f in kept}
+    capture = dataclasses.replace(registered_capture, frames=kept, train_filenames=[n for n in registered_capture.train_filenames if n in names],
+                                  test_filenames=[n for n in registered_capture.test_filenames if n in names])
+    full = export_capture(registered_capture, tmp_path / "full", CaptureExportOptions(format="colmap"))
+    summary = export_capture(capture, tmp_path / "part", CaptureExportOptions(format="colmap"))
+    rec = pycolmap.Reconstruction(str(tmp_path / "part" / "sparse" / "0"))
+    assert summary["points_source"] == "registration" and len(rec.images) == 17
+    assert {img.name for img in rec.images.values()} == {f.file_path.split("/")[-1].rsplit(".", 1)[0] + ".png" for f in kept}
+    assert min(p.track.length() for p in rec.points3D.values()) >= 2
+    observations = sum(p.track.length() for p in rec.points3D.values())
+    full_rec = pycolmap.Reconstruction(str(tmp_path / "full" / "sparse" / "0"))
+    assert observations < sum(p.track.length() for p in full_rec.points3D.values())
+    assert summary["points"] <= full["points"]
+    _tracks_are_consistent(rec)
+
+
+def test_a_capture_whose_model_is_another_registration_falls_back_to_surface_samples(registered_capture, tmp_path):
+    """A model whose cameras are not the capture's (here: the capture's similarity moved by 0.01)
+    is not used: the export writes surface samples without tracks and says so."""
+    import dataclasses
+
+    import pycolmap
+
+    source = dict(registered_capture.extra["damcap_source"])
+    norm = np.array(source["norm_from_input_world"])
+    norm[:3, 3] += 0.01
+    source["norm_from_input_world"] = norm.tolist()
+    capture = dataclasses.replace(registered_capture, extra={**registered_capture.extra, "damcap_source": source})
+    summary = export_capture(capture, tmp_path / "c", CaptureExportOptions(format="colmap", points=200))
+    rec = pycolmap.Reconstruction(str(tmp_path / "c" / "sparse" / "0"))
+    assert summary["points_source"] == "surface samples" and rec.num_points3D() == 200
+    assert all(p.track.length() == 0 for p in rec.points3D.values())
+
+
+def test_points_triangulated_at_known_poses_are_exported_with_their_tracks(registered_capture, tmp_path, capsys):
+    """A capture reconstructed at known poses (the registered capture as a nerfstudio dataset
+    without masks, so its sphere is fitted to triangulated points) exports the points COLMAP
+    triangulated there, with tracks and sub-pixel errors."""
+    import pycolmap
+
+    from damcap.cli.main import main
+
+    ns = tmp_path / "ns"
+    export_capture(registered_capture, ns, CaptureExportOptions(points=0))
+    doc = json.loads((ns / "transforms.json").read_text())
+    for f in doc["frames"]:
+        del f["mask_path"]
+    (ns / "transforms.json").write_text(json.dumps(doc))
+    assert main(["reconstruct", str(ns), "-o", str(tmp_path / "known"), "--geometry", "sphere", "--capture-size", "64"]) == 0
+    capsys.readouterr()
+    assert main(["export-capture", str(tmp_path / "known"), "--format", "colmap", "-o", str(tmp_path / "colmap")]) == 0
+    assert "sparse points with their tracks (from reconstruction/sfm/triangulated" in capsys.readouterr().out
+    rec = pycolmap.Reconstruction(str(tmp_path / "colmap" / "sparse" / "0"))
+    errors = np.array([p.error for p in rec.points3D.values()])
+    assert rec.num_points3D() > 50 and min(p.track.length() for p in rec.points3D.values()) >= 2
+    assert np.isfinite(errors).all() and errors.mean() < 0.3 and errors.max() < 2.0
+    _tracks_are_consistent(rec)

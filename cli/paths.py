@@ -224,8 +224,9 @@ _LOCKS: contextvars.ContextVar[Optional[dict[Path, _HeldLock]]] = contextvars.Co
 def command_locks() -> Iterator[None]:
     """The life of one command: outputs that :func:`check_paths` locks inside it stay locked
     until it ends, however it ends (return, error, Ctrl-C, SIGTERM). Nested, it is the outer
-    command's. Outside it :func:`check_paths` locks nothing (library use)."""
-    if _LOCKS.get() is not None:
+    command's. Outside it :func:`check_paths` locks nothing (library use). Under torchrun the
+    job is one run of many processes: its rank 0 holds the locks, the other ranks take none."""
+    if _LOCKS.get() is not None or _secondary_rank():
         yield
         return
     held: dict[Path, _HeldLock] = {}
@@ -236,6 +237,11 @@ def command_locks() -> Iterator[None]:
         _LOCKS.reset(token)
         for lock in reversed(list(held.values())):
             lock.release()
+
+
+def _secondary_rank() -> bool:
+    """A process of a torchrun job other than its rank 0 (``WORLD_SIZE`` > 1, ``RANK`` != 0)."""
+    return os.environ.get("WORLD_SIZE", "1").strip() not in ("", "0", "1") and os.environ.get("RANK", "0").strip() != "0"
 
 
 def _holder_pid(fd: int) -> Optional[int]:

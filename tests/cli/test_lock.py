@@ -134,6 +134,20 @@ class TestAnotherProcess:
         assert out.is_file() and not lock_path(out).exists()
 
 
+    def test_a_torchrun_job_locks_once_through_its_rank_0(self, tmp_path, monkeypatch):
+        """The ranks of one torchrun job are one run: rank 0 locks, the others take no lock (they
+        would otherwise refuse each other; tests/appearance/hyper/test_train.py runs two ranks)."""
+        out = tmp_path / "p.safetensors"
+        monkeypatch.setenv("WORLD_SIZE", "2")
+        monkeypatch.setenv("RANK", "0")
+        with command_locks():
+            check_paths([], [file_out(out)])
+            assert lock_path(out).is_file()
+        monkeypatch.setenv("RANK", "1")
+        with command_locks():
+            check_paths([], [file_out(out)])
+            assert not lock_path(out).exists()
+
 class TestRelease:
     def test_released_after_an_error(self, tmp_path, capsys):
         inp = _inputs(tmp_path)

@@ -148,7 +148,7 @@ def print_command_help(cmd, ctx) -> None:
     nested groups' panels, :data:`~damcap.cli.options.ADVANCED_PANEL` last), each one flag column and one help column, and how many advanced options
     ``--help-all`` adds. Nothing is cut: the flag column is as wide as the longest flag."""
     from rich import box
-    from rich.console import Console, Group
+    from rich.console import Console
     from rich.padding import Padding
     from rich.panel import Panel
     from rich.table import Table

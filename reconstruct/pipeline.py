@@ -40,7 +40,7 @@ import numpy as np
 from damcap.common.atomic import atomic_path, write_json_atomic
 from damcap.common.capture_folder import FRAME_BYTES_PER_PIXEL, Capture, Frame, Intrinsics, write_transforms
 from damcap.common.errors import DamcapError
-from damcap.common.validate import COUNT, COUNT_OR_ZERO, FRACTION, MAX_IMAGE_SIDE, POSITIVE, SEED, check_ranges, in_range, require_memory, require_resolution
+from damcap.common.validate import COUNT, COUNT_OR_ZERO, FRACTION, MAX_IMAGE_SIDE, check_ranges, in_range, require_memory, require_resolution
 from damcap.common.version import package_version
 
 from damcap.reconstruct.geometry import UNBOUNDED_HULL, GeometryInputs, GeometryOptions, GeometryResult, build_geometry, parse_mode

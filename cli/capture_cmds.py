@@ -60,9 +60,10 @@ def linearize(
     from damcap.common.version import package_version
 
     opts.validate()
-    check_paths([photos], [folder_out(output)])
+    check_paths([photos], [folder_out(output, replaces=holds("linearize.json"))])
     files = list_photos(photos)
-    with staged_folder(output) as stage:  # the EXRs move into OUTPUT together, at the end
+    # the EXRs and linearize.json replace OUTPUT (an earlier linearize output) together, at the end
+    with staged_folder(output, replace=True) as stage:
         record = linearize_files(files, stage, opts, progress=stage_progress())  # its warnings: one line each (cli.main)
         record = {"damcap_package_version": package_version(), "photos_folder": str(photos.resolve()), **record}
         write_json_atomic(stage / "linearize.json", record)

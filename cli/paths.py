@@ -42,6 +42,7 @@ import contextvars
 import errno
 import fcntl
 import os
+import re
 import shutil
 import tempfile
 import time
@@ -188,6 +189,11 @@ def check_paths(inputs: Iterable[Optional[os.PathLike | str]], outputs: Iterable
                               f"folder (damcap never merges into or deletes other files)")
     for o, reason in not_locked:
         warnings.warn(f"{o.path}: could not be locked ({reason}); another damcap run writing it at the same time would not be stopped")
+    held = _LOCKS.get()
+    for o in outs:  # only an output this run has locked: what a live run is writing is never touched
+        r = _resolve(o.path)
+        if held is not None and r.name not in ("", ".", "..") and r.with_name(f".{r.name}.lock") in held:
+            remove_leftovers(o)
 
 
 # --------------------------------------------------------------------------------------------
@@ -344,6 +350,96 @@ def frame_output_names(file_paths: Sequence[str], suffix: Optional[str] = None) 
 
 
 # --------------------------------------------------------------------------------------------
+# Leftovers of killed runs
+# --------------------------------------------------------------------------------------------
+
+_RANDOM = r"[a-z0-9_]{8}"
+"""the random part of a name made by :mod:`tempfile` (``mkstemp``, ``mkdtemp``)"""
+_ATOMIC_TMP = re.compile(rf"^\.(?P<stem>.+)\.{_RANDOM}\.tmp(?P<suffix>\.[^.]*)?$")
+"""a file :func:`damcap.common.atomic.atomic_path` stages: ``.m.k3j_x0ab.tmp.dam`` for ``m.dam``"""
+_STAGED_FOLDER = re.compile(rf"^\.(?P<name>.+)\.(staging|replaced)-{_RANDOM}$")
+"""a folder :func:`staged_folder` stages or sets aside: ``.out.staging-k3j_x0ab`` for ``out``"""
+#: how deep inside a folder output leftovers are looked for (``out/images/.0000.k3j_x0ab.tmp.exr``)
+LEFTOVER_DEPTH = 3
+
+
+def leftovers(out: Output) -> list[Path]:
+    """What killed runs writing ``out`` left behind: the staged files and folders of
+    :func:`damcap.common.atomic.atomic_path` and :func:`staged_folder` (never the output itself).
+
+    Beside ``out``: its staging and set-aside folders, a staged file of ``out`` or of a sidecar
+    named after it (``m.dam.ckpt``), a ``keep_name`` folder holding only ``out``'s name. Inside a
+    folder output (down to :data:`LEFTOVER_DEPTH` levels): any staged file or staging folder.
+    The names carry :mod:`tempfile`'s 8 random characters, so a user's file is not mistaken for one.
+    """
+    path = Path(out.path)
+    found: list[Path] = []
+    parent = path.parent
+    try:
+        beside_out = list(os.scandir(parent)) if parent.is_dir() else []
+    except OSError:
+        beside_out = []
+    keep_name = re.compile(rf"^\.{re.escape(path.stem)}\.{_RANDOM}$")
+    for entry in beside_out:
+        name = entry.name
+        if (m := _STAGED_FOLDER.match(name)) and m["name"] == path.name and entry.is_dir(follow_symlinks=False):
+            found.append(Path(entry.path))
+        elif (m := _ATOMIC_TMP.match(name)) and entry.is_file(follow_symlinks=False):
+            target = m["stem"] + (m["suffix"] or "")
+            if target == path.name or target.startswith(path.name + "."):
+                found.append(Path(entry.path))
+        elif out.kind == "file" and keep_name.match(name) and entry.is_dir(follow_symlinks=False):
+            with contextlib.suppress(OSError):
+                if {p.name for p in Path(entry.path).iterdir()} <= {path.name}:
+                    found.append(Path(entry.path))
+    if out.kind == "folder" and path.is_dir() and not path.is_symlink():
+        found += _leftovers_inside(path, LEFTOVER_DEPTH)
+    return sorted(found)
+
+
+def _leftovers_inside(folder: Path, depth: int) -> list[Path]:
+    found = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return found
+    for entry in entries:
+        if entry.is_dir(follow_symlinks=False):
+            if _STAGED_FOLDER.match(entry.name):
+                found.append(Path(entry.path))
+            elif depth > 1:
+                found += _leftovers_inside(Path(entry.path), depth - 1)
+        elif _ATOMIC_TMP.match(entry.name) and entry.is_file(follow_symlinks=False):
+            found.append(Path(entry.path))
+    return found
+
+
+def remove_leftovers(out: Output) -> list[Path]:
+    """Remove :func:`leftovers` of ``out`` (call it only while holding ``out``'s lock); one
+    warning line names what went. Returns what was removed."""
+    gone = []
+    for p in leftovers(out):
+        try:
+            kept = p / out.path.name
+            if p.name.startswith(f".{out.path.name}.replaced-") and not out.path.exists() and kept.exists():
+                os.rename(kept, out.path)  # killed between setting the earlier output aside and moving the new one in
+                warnings.warn(f"{out.path}: put back the earlier output that an interrupted run had set aside")
+                p.rmdir()
+                continue
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            else:
+                p.unlink()
+            gone.append(p)
+        except OSError:
+            continue
+    if gone:
+        shown = ", ".join(str(p.relative_to(out.path.parent)) for p in gone[:3]) + (f" and {len(gone) - 3} more" if len(gone) > 3 else "")
+        warnings.warn(f"{out.path}: removed what an interrupted earlier run left ({shown})")
+    return gone
+
+
+# --------------------------------------------------------------------------------------------
 # Staging: folders move into place at the end
 # --------------------------------------------------------------------------------------------
 
@@ -362,6 +458,7 @@ def staged_folder(out: Path, replace: bool = False) -> Iterator[Path]:
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
+        os.chmod(stage, 0o777 & ~_umask())  # mkdtemp makes 0700; the output folder gets the usual permissions
     except OSError as e:  # the error names the folder the user gave, not a staging name
         _remove_empty(made)
         raise OSError(e.errno, e.strerror or str(e), str(out)) from None
@@ -373,6 +470,8 @@ def staged_folder(out: Path, replace: bool = False) -> Iterator[Path]:
             name = None if e.filename is None else Path(os.fsdecode(e.filename))
             if name is not None and (name == stage or stage in name.parents):
                 raise OSError(e.errno, e.strerror or str(e), str(out / name.relative_to(stage))) from None
+            if name is None:  # a write that names no file (torch.save, a library's own writer): the output it was for
+                raise OSError(e.errno, e.strerror or str(e), str(out)) from None
             raise
         except DamcapError as e:
             if str(stage) in str(e):  # the line names the output, not the hidden staging folder
@@ -419,6 +518,17 @@ def staged_folder(out: Path, replace: bool = False) -> Iterator[Path]:
             shutil.rmtree(stage, ignore_errors=True)
         if not done:
             _remove_empty(made)
+
+
+def _umask() -> int:
+    """The process's umask, read without changing it where Linux says it (``/proc/self/status``)."""
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def _remove_empty(folders: Iterable[Path]) -> None:

@@ -13,7 +13,7 @@ from damcap.common.data_dir import DATA_ENV, shared_data_dir
 from damcap.common.errors import DamcapError
 
 from damcap.cli.app import command, progress_bar
-from damcap.cli.paths import check_paths, file_out, folder_out, never, on_interrupt
+from damcap.cli.paths import check_paths, file_out, folder_out, on_interrupt, staged_folder
 from damcap.cli.options import parse_choice
 
 if TYPE_CHECKING:
@@ -36,9 +36,22 @@ def closed_form(
     """
     from damcap.synth.closed_form import make_closed_form_capture
 
-    check_paths([], [folder_out(out, replaces=never)])
-    cap = make_closed_form_capture(out, opts)
+    check_paths([], [folder_out(out, replaces=_closed_form_capture)])
+    with staged_folder(out, replace=True) as stage:  # the capture appears (or replaces the earlier one) whole, at the end
+        cap = make_closed_form_capture(stage, opts)
     typer.echo(f"wrote {len(cap.frames)} frames to {out}")
+
+
+def _closed_form_capture(folder: Path) -> bool:
+    """Whether ``folder`` is an earlier ``closed-form`` output (its transforms.json says so)."""
+    from damcap.common.validate import load_json_file
+
+    try:
+        doc = load_json_file(folder / "transforms.json", "transforms.json")
+    except (DamcapError, OSError):
+        return False
+    source = doc.get("damcap_source") if isinstance(doc, dict) else None
+    return isinstance(source, dict) and source.get("generator") == "closed-form"
 
 
 @command(opts="damcap.synth.mitsuba_capture:SynthOptions")

@@ -20,8 +20,9 @@ Steps (each reports progress):
 7. train/test split; ``transforms.json`` written last with ``damcap_source`` (resolved options,
    version, registration and geometry reports).
 
-Outputs are atomic per file, and ``transforms.json`` (what makes the folder a capture) is removed
-at the start of a rerun and written only at the end; a run that fails removes the folder it made,
+Outputs are atomic per file; the frames and ``transforms.json`` (what makes the folder a capture)
+are written into the work folder and replace an earlier run's capture only at the end, so an
+interrupted or failed rerun leaves the earlier capture as it was; a run that fails removes the folder it made,
 unless it holds a COLMAP registration a rerun resumes from. Work files (COLMAP database and model, the
 mesh, the report) live in ``CAPTURE/reconstruction/``.
 """
@@ -37,7 +38,7 @@ from typing import Any, Callable, Literal, get_args
 
 import numpy as np
 
-from damcap.common.atomic import atomic_path, write_json_atomic
+from damcap.common.atomic import atomic_path, fsync_path, write_json_atomic
 from damcap.common.capture_folder import FRAME_BYTES_PER_PIXEL, Capture, Frame, Intrinsics, write_transforms
 from damcap.common.errors import DamcapError
 from damcap.common.validate import COUNT, COUNT_OR_ZERO, FRACTION, MAX_IMAGE_SIDE, check_ranges, in_range, require_memory, require_resolution
@@ -243,8 +244,7 @@ def _prepare_output(out: Path, inputs: list[Path]) -> None:
         raise DamcapError(f"{out}: exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not (out / WORK_FOLDER).is_dir():
         raise DamcapError(f"{out}: folder exists, is not empty and was not made by damcap reconstruct; choose a new folder")
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "transforms.json").unlink(missing_ok=True)  # the folder is not a capture until the end
+    out.mkdir(parents=True, exist_ok=True)  # an earlier capture here stays whole until this run's frames replace it (_commit_frames)
 
 
 def _save_mesh(path: Path, mesh: Mesh) -> None:
@@ -753,13 +753,52 @@ def _auto_dense(base: GeometryResult, inputs: GeometryInputs, opts: ReconstructO
     return GeometryResult(chosen.mesh, chosen.mode, reason, chosen.sphere, chosen.stats)
 
 
-def _remove_stale_frames(out: Path, frames: list[Frame]) -> None:
-    """Frames of an earlier run that this run did not write again are deleted."""
-    keep = {f.file_path for f in frames} | {f.geometry_path for f in frames}
-    for sub in ("images", "geometry"):
-        for f in (out / sub).glob("*.exr"):
-            if f"{sub}/{f.name}" not in keep:
-                f.unlink()
+FRAMES_STAGED = "frames.next"
+"""the work folder's subfolder where a run writes its frames and transforms.json (a rerun's too)"""
+FRAMES_REPLACED = "frames.previous"
+"""the work folder's subfolder where an earlier capture's frames wait, for an instant, while the new ones move in"""
+CAPTURE_PARTS = ("images", "geometry")
+"""the capture's folders that a run replaces whole (with transforms.json)"""
+
+
+def _staged_frames(work: Path, out: Path, log: Callable[[str], None]) -> Path:
+    """An empty folder for this run's frames; what a killed run left there goes (an earlier capture
+    that a run killed mid-replacement had set aside is put back first)."""
+    previous = work / FRAMES_REPLACED
+    if previous.is_dir():
+        if not (out / "transforms.json").exists() and (previous / "transforms.json").exists():
+            for part in (*CAPTURE_PARTS, "transforms.json"):
+                if (previous / part).exists():  # set aside, so what stands in its place is the new run's
+                    if (out / part).is_dir():
+                        shutil.rmtree(out / part)
+                    os.replace(previous / part, out / part)
+            log(f"restored: the earlier capture in {out}, which an interrupted run was replacing")
+        shutil.rmtree(previous)
+    staged = work / FRAMES_STAGED
+    if staged.exists():
+        shutil.rmtree(staged)
+        log(f"removed: the frames an interrupted run left in {staged}")
+    staged.mkdir()
+    return staged
+
+
+def _commit_frames(out: Path, staged: Path, capture: Capture) -> None:
+    """Replace the capture in ``out`` (if any) by the complete one in ``staged``: the earlier
+    capture stays usable until this moment; its transforms.json goes first, the new one comes last."""
+    write_transforms(replace(capture, root=staged))
+    previous = staged.parent / FRAMES_REPLACED
+    previous.mkdir()
+    if (out / "transforms.json").exists():
+        os.rename(out / "transforms.json", previous / "transforms.json")
+    for part in CAPTURE_PARTS:
+        if (out / part).exists():
+            os.rename(out / part, previous / part)
+        if (staged / part).exists():
+            os.rename(staged / part, out / part)
+    os.rename(staged / "transforms.json", out / "transforms.json")
+    fsync_path(out)
+    shutil.rmtree(previous)
+    shutil.rmtree(staged)
 
 
 def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, opts: ReconstructOptions = ReconstructOptions(),
@@ -821,6 +860,22 @@ def _reconstruct_into(photos_dir: Path, out: Path, opts: ReconstructOptions, nam
     """Steps 2 to 7 into the prepared output folder (:func:`reconstruct_capture`)."""
     work = out / WORK_FOLDER
     work.mkdir(exist_ok=True)
+    staged = _staged_frames(work, out, log)
+    try:
+        return _reconstruct_staged(photos_dir, out, staged, opts, names, masks, object_fraction, masks_dir, poses, known, log_response,
+                                   tone_curve, progress, log, seconds, t_all)
+    finally:
+        if staged.exists():  # a failed or interrupted run: the earlier capture, if any, is as it was
+            shutil.rmtree(staged, ignore_errors=True)
+
+
+def _reconstruct_staged(photos_dir: Path, out: Path, staged: Path, opts: ReconstructOptions, names: list[str],
+                        masks: dict[str, Path] | None, object_fraction: float | None, masks_dir: str | os.PathLike | None,
+                        poses: str | None, known: Registration | None, log_response: np.ndarray | None, tone_curve: str,
+                        progress: StageProgress, log: Callable[[str], None], seconds: dict[str, float],
+                        t_all: float) -> tuple[Capture, ReconstructReport]:
+    """:func:`_reconstruct_into` with the frames written into ``staged`` and moved into ``out`` at the end."""
+    work = out / WORK_FOLDER
     chosen, candidates = _choose_cameras(photos_dir, names, work, opts, masks, object_fraction, known, progress, log, seconds)
     chosen, left_out = _apply_self_check(chosen, opts, len(names), photos_dir, log)
     reg, targets, mask_px = chosen.reg, chosen.targets, chosen.mask_px
@@ -836,7 +891,7 @@ def _reconstruct_into(photos_dir: Path, out: Path, opts: ReconstructOptions, nam
     photos = [FramePhoto(p.name, photos_dir / p.name, p.camera, tgt, float(factors[k]), exposures[k].to_json() or None,
                          mask_px[k] if (mask_px is not None and opts.mask_coverage) else None)
               for k, (p, tgt) in enumerate(zip(reg.photos, targets))]
-    frames, dropped = write_frames(out, photos, scene.world_from_cams, scene.mesh, scene.sphere, reference,
+    frames, dropped = write_frames(staged, photos, scene.world_from_cams, scene.mesh, scene.sphere, reference,
                                    opts.supersample, opts.dtype, progress, log, log_response, opts.clipped)
     dropped = {**left_out, **dropped}
     seconds["frames"] = time.perf_counter() - t0
@@ -848,7 +903,6 @@ def _reconstruct_into(photos_dir: Path, out: Path, opts: ReconstructOptions, nam
 
     # split, stale files, transforms.json
     train_idx, test_idx = split_indices(len(frames), opts.train_views, opts.split, opts.split_start % len(frames))
-    _remove_stale_frames(out, frames)
     seconds["total"] = time.perf_counter() - t_all
     report = ReconstructReport(
         photos=len(names), registered=len(reg.photos) + len(left_out), unregistered=dict(reg.unregistered), frames=len(frames),
@@ -873,7 +927,7 @@ def _reconstruct_into(photos_dir: Path, out: Path, opts: ReconstructOptions, nam
     capture = Capture(root=out, frames=frames, train_filenames=report.train, test_filenames=report.test,
                       colorspace="lin_rec709", extra={"damcap_source": source})
     write_json_atomic(work / "report.json", _jsonable(asdict(report)))
-    write_transforms(capture)
+    _commit_frames(out, staged, capture)
     return capture, report
 
 

@@ -70,3 +70,40 @@ def test_linearize_command(shared_data, tmp_path, capsys):
     assert_one_line_error(code, err, "would overwrite or write into the input")
     code, _, err = run(["linearize", tmp_path / "nothing", "-o", tmp_path / "x"], capsys)
     assert_one_line_error(code, err, "not a folder of photos")
+
+
+def test_linearize_replaces_its_earlier_output_whole(shared_data, tmp_path, capsys):
+    """A rerun into its own earlier output replaces it (no EXR of the earlier photos stays); a
+    failed rerun leaves the earlier output as it was; a folder of other files is refused."""
+    import damcap.capture.linearize as linearize
+
+    src = tmp_path / "photos"
+    src.mkdir()
+    for name in ("IMG_5881.JPG", "IMG_5890.JPG"):
+        shutil.copy(shared_data / "real" / "mold_gold_cape" / "images" / name, src / name)
+    out = tmp_path / "lin"
+    code, _, err = run(["linearize", src, "-o", out, "--ignore-exposure"], capsys)
+    assert code == 0, err
+    first = tree_digest(out)
+    (src / "IMG_5890.JPG").rename(tmp_path / "IMG_5890.JPG")
+    real = linearize._linearize_into
+
+    def failing(*args, **kwargs):
+        real(*args, **kwargs)
+        raise OSError(28, "No space left on device")
+    linearize._linearize_into = failing
+    try:
+        code, _, err = run(["linearize", src, "-o", out, "--ignore-exposure"], capsys)
+    finally:
+        linearize._linearize_into = real
+    assert code == 2 and "No space left on device" in err and tree_digest(out) == first
+    code, _, err = run(["linearize", src, "-o", out, "--ignore-exposure"], capsys)
+    assert code == 0, err
+    assert sorted(p.name for p in out.iterdir()) == ["IMG_5881.exr", "linearize.json"]
+    assert [p["file"] for p in json.loads((out / "linearize.json").read_text())["photos"]] == ["IMG_5881.JPG"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["IMG_5890.JPG", "lin", "photos"]
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    code, _, err = run(["linearize", src, "-o", other, "--ignore-exposure"], capsys)
+    assert_one_line_error(code, err, str(other), "was not written by this command")

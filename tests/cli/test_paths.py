@@ -13,7 +13,7 @@ import urllib.request
 from pathlib import Path
 
 import pytest
-from damcap.cli.paths import (Interrupted, Terminated, check_paths, file_out, folder_out, frame_output_names,
+from damcap.cli.paths import (Interrupted, Terminated, check_paths, command_locks, file_out, folder_out, frame_output_names, holds,
                               on_interrupt, os_error_line, staged_folder)
 from damcap.common.errors import DamcapError
 
@@ -267,6 +267,65 @@ class TestStaging:
                 (stage / "x.txt").write_text("x")
                 raise RuntimeError("boom")
         assert list(tmp_path.iterdir()) == []
+
+    def test_a_staged_folder_gets_the_users_umask(self, tmp_path):
+        old = os.umask(0o027)
+        try:
+            with staged_folder(tmp_path / "out") as stage:
+                (stage / "x.txt").write_text("x")
+        finally:
+            os.umask(old)
+        assert (tmp_path / "out").stat().st_mode & 0o777 == 0o750
+
+    def test_replace_swaps_the_earlier_output_whole(self, tmp_path):
+        (tmp_path / "out").mkdir()
+        (tmp_path / "out" / "stale.txt").write_text("old")
+        with staged_folder(tmp_path / "out", replace=True) as stage:
+            (stage / "x.txt").write_text("new")
+            assert (tmp_path / "out" / "stale.txt").exists()  # the earlier output stays until the end
+        assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["x.txt"]
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+    def test_leftovers_of_killed_runs_are_removed_by_the_next_run(self, tmp_path):
+        """What kill -9 leaves (staging folders, atomic writers' temporary files) goes when the next
+        run locks the same output, with one warning line; other files and other outputs' stay."""
+        leftovers = [".out.staging-ab12cd_3", ".out.replaced-zz99yy00", ".m.q1w2e3r4.tmp.dam", ".m.dam.a1b2c3d4.tmp.ckpt",
+                     "out/images/.0000.k3j_x0ab.tmp.exr"]
+        kept = ["out/images/0000.exr", "out/.0001.exr", ".other.ab12cd_3.tmp.dam", ".out2.staging-ab12cd_3", "m.dam",
+                ".m.tmp.dam", ".mx.q1w2e3r4.tmp.dam", "out/.notes.tmp.txt"]
+        for name in leftovers + kept:
+            p = tmp_path / name
+            p.parent.mkdir(parents=True, exist_ok=True)
+            if "staging" in name or "replaced" in name:
+                p.mkdir()
+                (p / "a.exr").write_text("x")
+            else:
+                p.write_text("x")
+        (tmp_path / "out" / "render.json").write_text("{}")
+        with pytest.warns(UserWarning) as w:
+            with command_locks():
+                check_paths([], [folder_out(tmp_path / "out", replaces=holds("render.json")), file_out(tmp_path / "m.dam")])
+        assert [n for n in leftovers if (tmp_path / n).exists()] == []
+        assert [n for n in kept if not (tmp_path / n).exists()] == []
+        lines = [str(m.message) for m in w]
+        assert len(lines) == 2 and all("removed what an interrupted earlier run left" in line for line in lines)
+        # outside a command (no lock held) nothing is removed
+        (tmp_path / ".m.q1w2e3r4.tmp.dam").write_text("x")
+        check_paths([], [file_out(tmp_path / "m.dam")])
+        assert (tmp_path / ".m.q1w2e3r4.tmp.dam").exists()
+
+    def test_an_earlier_output_set_aside_by_a_killed_run_is_put_back(self, tmp_path):
+        aside = tmp_path / ".out.replaced-ab12cd34" / "out"
+        aside.mkdir(parents=True)
+        (aside / "render.json").write_text("{}")
+        (tmp_path / ".out.staging-ef56gh78").mkdir()
+        with pytest.warns(UserWarning) as w:
+            with command_locks():
+                check_paths([], [folder_out(tmp_path / "out", replaces=holds("render.json"))])
+        assert [str(m.message).split(": ", 1)[1] for m in w] == [
+            "put back the earlier output that an interrupted run had set aside",
+            "removed what an interrupted earlier run left (.out.staging-ef56gh78)"]
+        assert (tmp_path / "out" / "render.json").is_file() and sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
     def test_check_paths_accepts_disjoint_paths(self, tmp_path):
         (tmp_path / "in").mkdir()

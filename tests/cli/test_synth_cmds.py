@@ -114,3 +114,41 @@ def test_synth_set_shard_dry_run_lists_its_share_and_writes_nothing(tmp_path, ca
         assert f"shard {i}/3: 240 captures" in stdout and "run the same command without --shard: it writes corpus.json" in stdout
         counts.append(int(stdout.split("not rendered ")[1].split(";")[0]))
     assert counts == [240, 240, 240] and not (tmp_path / "corpus").exists()
+
+
+CLOSED_FORM = ["--views", "4", "--train-views", "2", "--res", "8", "--env-grid", "4", "--supersample", "1"]
+
+
+def test_closed_form_is_staged_and_replaces_only_its_own_earlier_output(tmp_path, capsys, monkeypatch):
+    """Interrupted or failed: nothing at OUT and the line says so truly; a rerun then writes it; a
+    rerun over its own earlier output replaces it whole; a folder of other files is refused."""
+    import damcap.synth.closed_form as closed_form
+
+    out = tmp_path / "cap"
+    real = closed_form.write_capture
+    for failure, code_expected in ((KeyboardInterrupt(), 130), (OSError(28, "No space left on device"), 2)):
+        def failing(capture, *args, **kwargs):
+            (capture.root / "images").mkdir(parents=True)
+            (capture.root / "images" / "0000.exr").write_bytes(b"half a frame")
+            raise failure
+        monkeypatch.setattr(closed_form, "write_capture", failing)
+        code, _, err = run(["closed-form", out, *CLOSED_FORM], capsys)
+        assert code == code_expected and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+        assert sorted(p.name for p in tmp_path.iterdir()) == [], "a partial capture or a staging folder was left"
+        if code == 130:
+            assert err.startswith("interrupted: no output was completed (staged files were removed)"), err
+        else:
+            assert err.strip() == f"error: {out}: No space left on device; free disk space or write to another disk", err
+    monkeypatch.setattr(closed_form, "write_capture", real)
+    code, stdout, err = run(["closed-form", out, *CLOSED_FORM], capsys)
+    assert code == 0 and "wrote 4 frames" in stdout, err
+    (out / "images" / "9999.exr").write_bytes(b"stale")
+    code, _, err = run(["closed-form", out, *CLOSED_FORM, "--seed", "3"], capsys)
+    assert code == 0, err
+    assert not (out / "images" / "9999.exr").exists() and read_capture(out).extra["damcap_source"]["options"]["seed"] == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cap"]
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    code, _, err = run(["closed-form", other, *CLOSED_FORM], capsys)
+    assert_one_line_error(code, err, str(other), "was not written by this command")

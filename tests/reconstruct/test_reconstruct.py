@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -225,6 +226,75 @@ def test_known_poses_and_user_mesh_give_exact_normals(scene, tmp_path):
     both = (d.coverage > 0.99) & (b.coverage > 0.99)
     cos = np.einsum("ij,ij->i", d.normal_world[both].astype(np.float64) @ rot.T, b.normal_world[both])
     assert np.median(np.degrees(np.arccos(np.clip(cos, -1, 1)))) < 0.5
+
+
+def _capture_digest(out: Path) -> dict[str, bytes]:
+    """The capture's own files (the work folder aside) and their bytes."""
+    return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*"))
+            if p.is_file() and "reconstruction" not in p.relative_to(out).parts}
+
+
+def test_a_rerun_replaces_the_earlier_capture_only_when_complete(scene, tmp_path, monkeypatch):
+    """A failed or interrupted rerun leaves the earlier capture whole and usable; a killed run's staged
+    frames are removed by the next run; a rerun leaves no stale frame of the earlier one."""
+    import open3d as o3d
+
+    import damcap.reconstruct.pipeline as pipeline
+
+    mesh_path = tmp_path / "blob.ply"
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(scene["mesh"].vertices.astype(np.float64)),
+                                  o3d.utility.Vector3iVector(scene["mesh"].triangles))
+    o3d.io.write_triangle_mesh(str(mesh_path), m)
+    out = tmp_path / "capture"
+    opts = ReconstructOptions(geometry=GeometryOptions(mode=f"mesh:{mesh_path}", mesh_align="none", voxels=64), split="spread",
+                              **{**FAST_EXCEPT_GEOMETRY, "capture_size": 48, "supersample": 1})  # type: ignore[arg-type]
+    run = dict(masks_dir=scene["root"] / "masks", poses=str(scene["root"] / "transforms.json"))
+    reconstruct_capture(scene["root"] / "images", out, opts, **run)
+    before = _capture_digest(out)
+    assert "transforms.json" in before and len(before) == 1 + 2 * N_PHOTOS
+    real = pipeline.write_frames
+    for failure in (DamcapError("the disk filled"), KeyboardInterrupt()):
+        def failing(*args, **kwargs):
+            real(*args, **kwargs)  # every new frame written, then the run fails before it completes
+            raise failure
+        monkeypatch.setattr(pipeline, "write_frames", failing)
+        with pytest.raises(type(failure)):
+            reconstruct_capture(scene["root"] / "images", out, replace(opts, supersample=2), **run)
+        assert _capture_digest(out) == before and inspect_capture(out).problems == []
+        assert not (out / "reconstruction" / "frames.next").exists()
+    monkeypatch.setattr(pipeline, "write_frames", real)
+    # what a killed run leaves: staged frames, and a stale frame in the capture itself
+    (out / "reconstruction" / "frames.next" / "images").mkdir(parents=True)
+    (out / "reconstruction" / "frames.next" / "images" / "IMG_0000.exr").write_bytes(b"half")
+    (out / "images" / "IMG_9999.exr").write_bytes(before["images/IMG_0000.exr"])
+    lines: list[str] = []
+    reconstruct_capture(scene["root"] / "images", out, replace(opts, supersample=2), log=lines.append, **run)
+    after = _capture_digest(out)
+    assert sorted(after) == sorted(before) and after != before and inspect_capture(out).problems == []
+    assert any(line.startswith("removed: the frames an interrupted run left") for line in lines)
+    assert sorted(p.name for p in (out / "reconstruction").iterdir() if p.name.startswith("frames.")) == []
+
+
+def test_a_run_killed_while_replacing_the_capture_puts_the_earlier_one_back(tmp_path):
+    """Killed between setting the earlier capture aside and moving the new one in: the next run
+    restores the earlier capture before it starts."""
+    from damcap.reconstruct.pipeline import FRAMES_REPLACED, _staged_frames
+
+    out = tmp_path / "capture"
+    previous = out / "reconstruction" / FRAMES_REPLACED
+    (previous / "images").mkdir(parents=True)
+    (previous / "images" / "a.exr").write_bytes(b"a")
+    (previous / "transforms.json").write_text("{}")
+    (out / "geometry").mkdir()  # the earlier capture's, not yet set aside
+    (out / "geometry" / "a.exr").write_bytes(b"g")
+    (out / "images").mkdir()  # the new run's, already moved in
+    (out / "images" / "b.exr").write_bytes(b"b")
+    lines: list[str] = []
+    staged = _staged_frames(out / "reconstruction", out, lines.append)
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*.exr")) == ["geometry/a.exr", "images/a.exr"]
+    assert (out / "images" / "a.exr").read_bytes() == b"a" and (out / "transforms.json").read_text() == "{}"
+    assert staged.is_dir() and not any(staged.iterdir()) and not previous.exists()
+    assert lines and lines[0].startswith("restored: the earlier capture")
 
 
 def _normal_errors_deg(cap, scene) -> np.ndarray:

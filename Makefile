@@ -6,7 +6,7 @@ PIP := $(PY) -m pip
 STAMP := $(VENV)/.installed
 APT_PACKAGES := libusb-1.0-0 libllvm19 libgomp1 chromium libjs-three
 
-.PHONY: demo test wheel-check bench export-truth tables system venv clean
+.PHONY: demo test wheel-check bench export-truth tables system venv blender clean
 
 # System packages the stack needs (open3d: libusb; mitsuba llvm_ad_rgb: libLLVM 19; the viewer's
 # browser test: chromium; the glTF and three.js exports' browser tests: three.js r111 with its GLTFLoader).
@@ -35,6 +35,19 @@ $(NS_READER)/.installed: tests/nerfstudio-reader.txt $(STAMP)
 	@touch $@
 
 venv: system $(STAMP)
+
+# Blender 5.0.1 as a Python module, in its own venv (tests/blender.txt says why): the export test
+# renders `damcap export --format blender`'s materials with Cycles. PyPI's bpy is CPython 3.11 only.
+BLENDER_VENV := .venv-blender
+BLENDER_PYTHON ?= python3.11
+$(BLENDER_VENV)/.installed: tests/blender.txt
+	@test -x $(BLENDER_VENV)/bin/python || $(BLENDER_PYTHON) -m venv $(BLENDER_VENV) \
+	  || { echo "error: could not make $(BLENDER_VENV) with $(BLENDER_PYTHON) (PyPI's bpy needs CPython 3.11; set BLENDER_PYTHON=...)"; exit 1; }
+	$(BLENDER_VENV)/bin/python -m pip install -q --upgrade pip
+	$(BLENDER_VENV)/bin/python -m pip install -q -r tests/blender.txt
+	@touch $@
+
+blender: $(BLENDER_VENV)/.installed
 
 DAMCAP := $(VENV)/bin/damcap
 PHOTOS := samples/photos_studio
@@ -77,7 +90,7 @@ demo: venv
 # time, in collection order with the tests marked slow first (tests/conftest.py says why not by
 # group); the 25 slowest tests are listed at the end. `make test TEST_JOBS=0` runs it in one process.
 TEST_JOBS ?= auto
-test: venv $(NS_READER)/.installed
+test: venv $(NS_READER)/.installed $(BLENDER_VENV)/.installed
 	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadgroup --no-loadscope-reorder --durations=25
 
 # The wheel as users get it: build, install into a scratch venv, run damcap from outside the tree
@@ -105,4 +118,4 @@ tables: venv
 	$(VENV)/bin/damcap tables --table2 $(CAPE) --out bench/tables
 
 clean:
-	rm -rf $(VENV) $(DEMO_OUT)
+	rm -rf $(VENV) $(BLENDER_VENV) $(DEMO_OUT)

@@ -48,7 +48,8 @@ def export(
     --format frames: an orbit of linear EXR + sRGB PNG frames (and an MP4 with --video); glb: the
     mesh with the radiance of one view baked per vertex; threejs: a three.js ShaderMaterial that
     evaluates the DAM; matcap: the DAM on a sphere for matcap shaders; onnx / glsl: the DAM as an
-    ONNX model or a fragment-shader function.
+    ONNX model or a fragment-shader function; blender: an OSL shader per model and a script that
+    makes Blender materials of them (and the mesh with them, with --mesh).
     """
     from damcap.appearance.dam_file import load_dam
 
@@ -63,6 +64,8 @@ def export(
         target = file_out(output if output.suffix == ".glb" else output / "model.glb")  # type: ignore[assignment]
     elif opts.format == "threejs":
         target = file_out(output if output.suffix in (".js", ".mjs") else output / "dam_material.js")  # type: ignore[assignment]
+    elif opts.format == "blender":
+        target = folder_out(output, replaces=holds("damcap_materials.py"))  # type: ignore[assignment]
     else:
         target = folder_out(output, replaces=holds("export.json"))  # type: ignore[assignment]
     check_paths([*models, mesh, labels], [target])
@@ -96,6 +99,10 @@ def export(
         if len(dams) != 1:
             raise DamcapError("--format threejs takes one model (one material per file; export each part's model)")
         _export_threejs(dams[0].dam_alone() if dams[0].has_surface_factors else dams[0], loaded[0][1], models[0], target.path, orbit)
+        return
+    if opts.format == "blender":
+        _export_blender([d.dam_alone() if d.has_surface_factors else d for d in dams], [meta for _, meta in loaded], models,
+                        mesh, labels, output, orbit)
         return
     if mesh is None:
         raise DamcapError(f"--format {opts.format} needs --mesh SHAPE.obj|ply")
@@ -216,6 +223,24 @@ def _export_threejs(dam, meta: dict, model_path: Path, path: Path, orbit: OrbitO
     scale = _first_view_exposure([dam], shape, np.zeros(len(shape.triangles), np.int64), orbit, up)
     write_text_atomic(path, threejs_module(dam, scale, gltf_from_world(up)[:3, :3].T, note=f"Model: {model_path.name}."))
     typer.echo(f"wrote {path} (import {{ damcapMaterial }} from it; exposure x{scale:.4g} on a sphere seen from the orbit's first view)")
+
+
+def _export_blender(dams, metas, model_paths, mesh_path, labels, output: Path, orbit: OrbitOptions) -> None:
+    from damcap.appearance.dam_file import recorded_up
+    from damcap.export.blender import SCRIPT_NAME, export_blender
+    from damcap.export.turntable import orbit_up
+
+    orbit.validate()
+    up, up_source, up_note = orbit_up(orbit.up, [recorded_up(m) for m in metas])
+    if up_note:
+        typer.echo(f"note: {up_note}", err=True)
+    with staged_folder(output, replace=True) as stage:
+        done = export_blender(dams, model_paths, up, stage, orbit, mesh_path, labels)
+    shaders = ", ".join(f"{n}.osl" for n in done["names"])
+    mesh = "" if done["mesh"] is None else f", the mesh {done['mesh']} ({done['triangles']} triangles, slot k = model k)"
+    typer.echo(f"wrote {output}: {shaders}, {SCRIPT_NAME}{mesh}; up {np.round(up, 4).tolist()} ({up_source}) turned onto "
+               f"Blender's +Z. In Blender run {output / SCRIPT_NAME} (Text editor > Run Script, or blender --python); "
+               "the materials render in Cycles on the CPU (Open Shading Language)")
 
 
 def _export_onnx(dam, path: Path) -> None:

@@ -51,12 +51,14 @@ class OrbitOptions:
 class ExportOptions:
     """What ``damcap export`` writes (the orbit's cameras are :class:`OrbitOptions`)."""
 
-    format: Literal["frames", "onnx", "glsl", "matcap", "glb", "threejs"] = "frames"
+    format: Literal["frames", "onnx", "glsl", "matcap", "glb", "threejs", "blender"] = "frames"
     """what to write. 'frames' (linear EXR + sRGB PNG per orbit view), 'onnx' (the DAM as an ONNX
     model), 'glsl' (the DAM as a fragment-shader function), 'matcap' (the DAM on a sphere seen from the
     orbit's first view, orthographic: EXR + PNG for any matcap shader), 'glb' (binary glTF: the
     mesh with the radiance of the orbit's first view baked per vertex, unlit, that view as its
-    camera) or 'threejs' (an ES module making a three.js ShaderMaterial that evaluates the DAM)"""
+    camera), 'threejs' (an ES module making a three.js ShaderMaterial that evaluates the DAM) or
+    'blender' (an OSL shader per model and a script making Blender materials of them, with --mesh
+    the mesh too)"""
     video: bool = False
     """frames: also write an MP4 turntable"""
     fps: int = field(default=24, metadata=in_range(1, 1000))

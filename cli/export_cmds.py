@@ -238,7 +238,7 @@ def _export_blender(dams, metas, model_paths, mesh_path, labels, output: Path, o
         done = export_blender(dams, model_paths, up, stage, orbit, mesh_path, labels)
     shaders = ", ".join(f"{n}.osl" for n in done["names"])
     mesh = "" if done["mesh"] is None else f", the mesh {done['mesh']} ({done['triangles']} triangles, slot k = model k)"
-    typer.echo(f"wrote {output}: {shaders}, {SCRIPT_NAME}{mesh}; up {np.round(up, 4).tolist()} ({up_source}) turned onto "
+    typer.echo(f"wrote {output}: {shaders}, {SCRIPT_NAME}{mesh}; up {(np.round(up, 4) + 0.0).tolist()} ({up_source}) turned onto "
                f"Blender's +Z. In Blender run {output / SCRIPT_NAME} (Text editor > Run Script, or blender --python); "
                "the materials render in Cycles on the CPU (Open Shading Language)")
 

@@ -252,7 +252,7 @@ def export_blender(dams: list[DeepAppearanceMap], model_paths: list[Path], up_wo
         ball = Mesh(np.asarray(sphere.vertices, np.float32), tri,
                     vertex_normals_area_weighted(np.asarray(sphere.vertices, np.float32), tri).astype(np.float32))
         exposures = [first_view_exposure([d], ball, np.zeros(len(tri), np.int64), orbit, up_world) for d in dams]
-    up_text = np.round(np.asarray(up_world, np.float64), 4).tolist()
+    up_text = (np.round(np.asarray(up_world, np.float64), 4) + 0.0).tolist()  # no -0.0
     materials = []
     for d, path, name, exposure in zip(dams, model_paths, names, exposures):
         note = f"Model {Path(path).name}, up {up_text}."

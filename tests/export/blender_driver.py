@@ -1,8 +1,9 @@
 """Runs inside Blender's Python (the bpy module of .venv-blender), started by test_blender.py.
 
 Usage: python blender_driver.py JOBS.json. Each job: reset the scene, run an export's
-damcap_materials.py, then render with Cycles (CPU, OSL, 1 sample, box filter of width 0.01 px, no
-denoiser: each pixel is its centre ray's radiance) either a sphere of radius 1 at the origin (an
+damcap_materials.py, then render with Cycles (CPU, OSL, no denoiser; by default 1 sample and a box
+filter of width 0.01 px: each pixel is its centre ray's radiance; a job may set "samples" and
+"filter_width") either a sphere of radius 1 at the origin (an
 exact sphere: a one-point point cloud) carrying one of the materials, or the mesh the script
 added. bpy is imported inside the functions (pytest collects this file). Writes per job the linear RGBA pixels (top row first) as .npy and a JSON report of the
 camera, the render time and the materials and objects the script made.
@@ -82,10 +83,10 @@ def run(job: dict) -> dict:
                 if n.type == "GROUP":
                     n.inputs["exposure"].default_value = job["exposure"]
     cam = camera(job["camera"])
-    scene.cycles.samples = 1
+    scene.cycles.samples = job.get("samples", 1)
     scene.cycles.use_denoising = False
     scene.cycles.pixel_filter_type = "BOX"
-    scene.cycles.filter_width = 0.01
+    scene.cycles.filter_width = job.get("filter_width", 0.01)
     scene.cycles.max_bounces = 0
     scene.render.resolution_x = scene.render.resolution_y = job["resolution"]
     scene.render.resolution_percentage = 100

@@ -76,18 +76,29 @@ def setup_scene(scene) -> None:
     scene.view_settings.view_transform = "Standard"
 
 
+def owned(collection, name: str, *args):
+    """The datablock ``name`` in ``collection`` (``bpy.data.texts``, ``.node_groups``, ``.materials``)
+    that an earlier run of this script made (tagged ``damcap`` = name), to be refilled; else a new
+    one, tagged (Blender adds a suffix to its name when the file already has one of that name: a
+    datablock of the user's is never overwritten)."""
+    old = next((b for b in collection if b.get("damcap") == name), None)
+    if old is not None:
+        return old
+    block = collection.new(name, *args)
+    block["damcap"] = name
+    return block
+
+
 def dam_node_group(name: str, osl_text: str, shader_text_name: str, exposure: float):
     """The node group ``damcap <name>``: Script node (the DAM's linear radiance) -> Emission, its
-    strength the group's ``exposure`` input. Recreated when it exists."""
+    strength the group's ``exposure`` input."""
     import bpy
 
-    text = bpy.data.texts.get(shader_text_name) or bpy.data.texts.new(shader_text_name)
+    text = owned(bpy.data.texts, shader_text_name)
     text.from_string(osl_text)
-    group_name = f"damcap {name}"
-    old = bpy.data.node_groups.get(group_name)
-    if old is not None:
-        bpy.data.node_groups.remove(old)
-    group = bpy.data.node_groups.new(group_name, "ShaderNodeTree")
+    group = owned(bpy.data.node_groups, f"damcap {name}", "ShaderNodeTree")
+    group.nodes.clear()
+    group.interface.clear()
     sock = group.interface.new_socket("exposure", in_out="INPUT", socket_type="NodeSocketFloat")
     sock.default_value, sock.min_value = exposure, 0.0
     group.interface.new_socket("Shader", in_out="OUTPUT", socket_type="NodeSocketShader")
@@ -101,7 +112,7 @@ def dam_node_group(name: str, osl_text: str, shader_text_name: str, exposure: fl
 
         cycles.osl.update_script_node(script, lambda kind, msg: print(f"damcap: {msg}"))
     if "radiance" not in script.outputs:
-        raise RuntimeError(f"damcap: the OSL shader {shader_text_name} did not compile (Blender's console says why)")
+        raise RuntimeError(f"damcap: the OSL shader {text.name} did not compile (Blender's console says why)")
     emission = nodes.new("ShaderNodeEmission")
     links.new(script.outputs["radiance"], emission.inputs["Color"])
     links.new(inp.outputs["exposure"], emission.inputs["Strength"])
@@ -111,10 +122,10 @@ def dam_node_group(name: str, osl_text: str, shader_text_name: str, exposure: fl
 
 
 def dam_material(name: str, group):
-    """The material ``name``: the node group into the material output (recreated when it exists)."""
+    """The material ``name``: the node group into the material output, its ``exposure`` the group's default."""
     import bpy
 
-    mat = bpy.data.materials.get(name) or bpy.data.materials.new(name)
+    mat = owned(bpy.data.materials, name)
     if mat.node_tree is None:  # Blender before 5.0 makes materials without nodes
         mat.use_nodes = True
     tree = mat.node_tree
@@ -167,7 +178,7 @@ def main() -> None:
             group = dam_node_group(m["name"], f.read(), m["osl"], m["exposure"])
         made.append(dam_material(m["name"], group))
     print(f"damcap: {len(made)} material(s) from {folder}: "
-          + ", ".join(f"{m['name']} (exposure {m['exposure']:.4g})" for m in CONFIG["materials"]))
+          + ", ".join(f"{mat.name} (exposure {m['exposure']:.4g})" for mat, m in zip(made, CONFIG["materials"])))
     print("damcap: scene set to Cycles on the CPU with Open Shading Language (the materials run OSL), view transform Standard")
     mesh = CONFIG.get("mesh")
     if mesh:

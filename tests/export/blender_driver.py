@@ -59,11 +59,16 @@ def run(job: dict) -> dict:
     from mathutils import Matrix
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
-    runpy.run_path(job["script"], run_name="__main__")
+    if job.get("user_material"):  # a material of the user's that happens to have a model's name
+        bpy.data.materials.new(job["user_material"])["mine"] = 1
+    for _ in range(job.get("runs", 1)):  # a second run refills what the first made
+        runpy.run_path(job["script"], run_name="__main__")
     scene = bpy.context.scene
     report = {"engine": scene.render.engine, "device": scene.cycles.device, "osl": bool(scene.cycles.shading_system),
               "view_transform": scene.view_settings.view_transform,
               "materials": {m.name: [n.node_tree.name for n in m.node_tree.nodes if n.type == "GROUP"] for m in bpy.data.materials},
+              "user_materials": [m.name for m in bpy.data.materials if m.get("mine") and len(m.node_tree.nodes) <= 2],
+              "texts": sorted(t.name for t in bpy.data.texts),
               "groups": {g.name: {"exposure": g.interface.items_tree["exposure"].default_value,
                                   "script_outputs": [s.name for n in g.nodes if n.type == "SCRIPT" for s in n.outputs]}
                          for g in bpy.data.node_groups if g.bl_idname == "ShaderNodeTree"},

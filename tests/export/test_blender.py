@@ -222,6 +222,8 @@ def rendered(exported, tmp_path_factory):
              "resolution": RESOLUTION, "out": str(work / n), "camera": CAMERA} for n in sorted(MODELS)]
     jobs += [{"script": str(root / out / "damcap_materials.py"), "resolution": 16, "out": str(work / out), "camera": CAMERA}
              for out in ("out_groups", "out_labels")]
+    jobs.append({"script": str(root / "out_groups" / "damcap_materials.py"), "resolution": 8, "out": str(work / "rerun"), "camera": CAMERA,
+                 "user_material": "yup", "runs": 2})
     frame = json.loads((root / "frames_torus" / "export.json").read_text())
     jobs.append({"script": str(root / "out_torus" / "damcap_materials.py"), "resolution": TORUS_RESOLUTION, "exposure": 1.0,
                  "out": str(work / "out_torus"), "camera": blender_camera_of(frame, BLENDER_FROM_DAM["yup"])})
@@ -318,3 +320,14 @@ def test_the_mesh_in_blender_looks_as_damcaps_own_frame(rendered, exported):
     rel = np.abs(px[..., :3][both] - frame[..., :3][both]) / np.maximum(frame[..., :3][both], 1e-6)
     print(f"torus: {both.sum()} pixels, median relative error {np.median(rel):.2e}, p90 {np.percentile(rel, 90):.2e}")
     assert np.median(rel) <= MEDIAN_REL_TOL, (np.median(rel), np.percentile(rel, 90))
+
+
+def test_script_reruns_refill_its_own_materials_and_leave_the_users(rendered):
+    """Run twice in a scene that has a material of the user's named like a model: that one stays
+    as it was, the DAM's gets a suffix, and the second run makes no further copies."""
+    reports, _ = rendered
+    report, _ = reports["rerun"]
+    assert report["user_materials"] == ["yup"]
+    assert report["materials"] == {"yup": [], "yup.001": ["damcap yup"], "zup": ["damcap zup"]}
+    assert sorted(report["groups"]) == ["damcap yup", "damcap zup"] and report["texts"] == ["yup.osl", "zup.osl"]
+    assert [o["slots"] for o in report["objects"].values()] == [["yup.001", "zup"]] * 2  # each run adds the mesh once

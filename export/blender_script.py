@@ -155,6 +155,8 @@ def add_mesh(path: str, name: str, materials: list, collection):
     mesh.polygons.foreach_set("loop_start", np.arange(0, 3 * len(triangles), 3, dtype=np.int32))
     mesh.polygons.foreach_set("material_index", data["part"].astype(np.int32))
     mesh.update(calc_edges=True)
+    if mesh.validate():  # degenerate triangles (a vertex twice) are dropped, as Blender's importers do
+        print(f"damcap: {name}: dropped {len(triangles) - len(mesh.polygons)} degenerate triangle(s)")
     mesh.shade_smooth()
     if "normals" in data:  # the normals damcap renders with
         mesh.normals_split_custom_set_from_vertices([tuple(n) for n in data["normals"].astype(np.float64)])
@@ -182,7 +184,7 @@ def main() -> None:
     print("damcap: scene set to Cycles on the CPU with Open Shading Language (the materials run OSL), view transform Standard")
     mesh = CONFIG.get("mesh")
     if mesh:
-        obj = add_mesh(os.path.join(folder, mesh["file"]), mesh["name"], made, scene.collection)
+        obj = add_mesh(os.path.join(folder, mesh["file"]), mesh["name"], made, bpy.context.collection or scene.collection)
         print(f"damcap: added {obj.name} ({len(obj.data.polygons)} triangles) with material slots "
               + ", ".join(m.name for m in made))
 

@@ -580,9 +580,15 @@ def _patches(model: DeepAppearanceMap, frames: list[TrainingFrame], arch: DamArc
 
 
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    """Write a training state (tensors and plain values) atomically."""
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+    """Write a training state (tensors and plain values) atomically (through a Python file, so a
+    full disk is an OSError naming ``path``, not torch's RuntimeError)."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        try:
+            torch.save(state, f)
+        except RuntimeError as e:  # torch's zip writer turns the file's OSError into "unexpected pos"
+            if isinstance(e.__context__, OSError):
+                raise e.__context__ from None
+            raise
 
 
 def load_checkpoint(path: Path) -> dict[str, Any]:

@@ -4,6 +4,8 @@ Every user mistake ends in one line on stderr and a non-zero exit, never a trace
 
 - 2: a user mistake (``error: ...``) or an operating-system error while reading or writing
   (``error: PATH: Permission denied; ...``, a full disk, a read-only filesystem);
+- 2 also when memory runs out (``error: out of memory (...)``, a ``MemoryError`` or an
+  allocator's RuntimeError anywhere in the command);
 - 130: Ctrl-C, 143: SIGTERM (``interrupted: ...`` says what was kept, e.g. a checkpoint that a
   rerun resumes).
 
@@ -64,6 +66,27 @@ def _signals_and_warnings():
             signal.signal(signal.SIGTERM, previous)
 
 
+_OOM_PHRASES = ("can't allocate memory", "out of memory", "cannot allocate memory", "std::bad_alloc")
+"""how torch's allocators and C++ extensions say they ran out of memory in a RuntimeError"""
+
+
+def is_out_of_memory(e: BaseException) -> bool:
+    """A RuntimeError that says memory ran out (torch's CPU or CUDA allocator, a C++ bad_alloc)."""
+    text = str(e).lower()
+    return any(p in text for p in _OOM_PHRASES)
+
+
+def out_of_memory_line(e: BaseException) -> str:
+    """The one line for memory running out anywhere in a command.
+
+    >>> out_of_memory_line(MemoryError())
+    'out of memory (MemoryError); close other programs, or make the work smaller (fewer views, a lower resolution or batch size)'
+    """
+    detail = " ".join(str(e).split())
+    detail = f"{type(e).__name__}: {detail[:160]}" if detail else type(e).__name__
+    return f"out of memory ({detail}); close other programs, or make the work smaller (fewer views, a lower resolution or batch size)"
+
+
 def main(argv: list[str] | None = None) -> int:
     """Console-script entry point: runs a command, turning user mistakes into one-line errors."""
     args = sys.argv[1:] if argv is None else [str(a) for a in argv]
@@ -100,6 +123,14 @@ def main(argv: list[str] | None = None) -> int:
         return int(getattr(e, "exit_code", 2) or 2)
     except OSError as e:  # permission denied, disk full, read-only filesystem: one line, never a traceback
         typer.echo(f"error: {os_error_line(e)}", err=True)
+        return 2
+    except MemoryError as e:
+        typer.echo(f"error: {out_of_memory_line(e)}", err=True)
+        return 2
+    except RuntimeError as e:
+        if not is_out_of_memory(e):
+            raise
+        typer.echo(f"error: {out_of_memory_line(e)}", err=True)
         return 2
     except Terminated:
         typer.echo("interrupted (SIGTERM)", err=True)

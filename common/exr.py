@@ -140,13 +140,27 @@ def _write_atomic(path: str | os.PathLike, spec: Any, pixels: np.ndarray) -> Non
             raise DamcapError(f"{path}: cannot create image writer ({_oiio().geterror().strip()})")
         try:
             if not (out.open(str(tmp), spec) and out.write_image(pixels)):
-                raise DamcapError(f"{path}: cannot write image ({out.geterror().strip()})")
+                _raise_full_disk(tmp, path, pixels.nbytes)
+                # the line names the file the user asked for, not the hidden temporary one
+                raise DamcapError(f"{path}: cannot write image ({out.geterror().strip().replace(str(tmp), str(path))})")
         finally:
             out.close()
-        _verify_written(tmp, path)
+        _verify_written(tmp, path, pixels.nbytes)
 
 
-def _verify_written(tmp: Path, path: str | os.PathLike) -> None:
+def _raise_full_disk(tmp: Path, path: str | os.PathLike, nbytes: int) -> None:
+    """Raise ENOSPC naming ``path`` when the disk holding ``tmp`` has less room than ``nbytes``
+    (the pixels, before compression) after a failed write: OpenImageIO's own message says only that
+    the output failed, naming the temporary file."""
+    try:
+        st = os.statvfs(Path(tmp).parent)
+    except OSError:
+        return
+    if st.f_bavail * st.f_frsize < nbytes:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+
+def _verify_written(tmp: Path, path: str | os.PathLike, nbytes: int = 0) -> None:
     """Read a just-written image back: OpenImageIO reports success for a write that the disk cut
     short (full disk, file-size limit), and the file is then a truncated image.
 
@@ -159,6 +173,7 @@ def _verify_written(tmp: Path, path: str | os.PathLike) -> None:
         if inp is not None:
             inp.close()
     if not ok:
+        _raise_full_disk(tmp, path, nbytes)
         raise OSError(errno.ENOSPC, "the image was written incompletely (disk full or file too large)", str(path))
 
 

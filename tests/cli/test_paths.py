@@ -191,6 +191,75 @@ class TestOSErrors:
         assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".r.")] == []
         assert tree_digest(small_capture) == before
 
+    def test_disk_full_at_a_mid_run_checkpoint_is_one_line_and_keeps_the_earlier_checkpoint(self, small_capture, tmp_path, capsys,
+                                                                                            monkeypatch):
+        """The disk fills while the fit writes its second checkpoint (as a Python file write does:
+        ENOSPC naming no file): one line naming the checkpoint and the full disk, exit 2, the first
+        checkpoint intact and no temporary file left."""
+        import torch
+
+        import damcap.appearance.fit as fit
+
+        real, saves = torch.save, []
+
+        class Filling:  # a file on a disk that fills after 1000 bytes, as torch's zip writer meets it
+            def __init__(self, f):
+                self.f, self.written = f, 0
+
+            def write(self, data):
+                self.written += len(data)
+                if self.written > 1000:
+                    raise OSError(errno.ENOSPC, "No space left on device")
+                return self.f.write(data)
+
+            def flush(self):
+                return self.f.flush()
+
+        def filling(obj, f, *a, **k):
+            saves.append(1)
+            # the disk stays full from the second checkpoint on: the fit's last try to checkpoint fails too
+            return real(obj, Filling(f) if len(saves) >= 2 else f, *a, **k)
+
+        monkeypatch.setattr(fit.torch, "save", filling)
+        out = tmp_path / "m.dam"
+        code, _, err = run_cli(["fit", small_capture, "-o", out, "--steps", "60", "--checkpoint-every", "10"], capsys)
+        ckpt = tmp_path / "m.dam.ckpt"
+        assert_one_line_error(code, err, f"{ckpt}: No space left on device", "free disk space")
+        assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["m.dam.ckpt"]
+        assert torch.load(ckpt, weights_only=True)["step"] == 10
+
+    def test_memory_running_out_under_an_address_space_limit_is_one_line(self, tmp_path):
+        """A real MemoryError (the address space limited with setrlimit, then an allocation beyond it
+        inside a command) ends in one line, exit 2, nothing written."""
+        import subprocess
+        import sys
+
+        code = (
+            "import resource, sys\n"
+            "import numpy as np\n"
+            "import damcap.common.shapes as shapes\n"
+            "from damcap.cli.main import main\n"
+            "shapes.write_shape = lambda name, path: np.ones(2 ** 34, dtype=np.uint8)\n"
+            "resource.setrlimit(resource.RLIMIT_AS, (8 * 2 ** 30, resource.getrlimit(resource.RLIMIT_AS)[1]))\n"
+            "sys.exit(main(['shape', 'sphere', sys.argv[1]]))\n")
+        got = subprocess.run([sys.executable, "-c", code, str(tmp_path / "s.obj")], capture_output=True, text=True, timeout=120)
+        assert got.returncode == 2 and "Traceback" not in got.stderr, got.stderr[-800:]
+        assert got.stderr.strip().startswith("error: out of memory (MemoryError: Unable to allocate 16.0 GiB"), got.stderr
+        assert len(got.stderr.strip().splitlines()) == 1 and not (tmp_path / "s.obj").exists()
+
+    @pytest.mark.parametrize("message", ["[enforce fail at alloc_cpu.cpp:117] data. DefaultCPUAllocator: can't allocate memory: "
+                                         "you tried to allocate 107374182400 bytes. Error code 12 (Cannot allocate memory)",
+                                         "CUDA out of memory. Tried to allocate 20.00 GiB"])
+    def test_an_allocators_runtime_error_is_one_line(self, message, tmp_path, capsys, monkeypatch):
+        import damcap.common.shapes as shapes
+
+        def oom(name, path):
+            raise RuntimeError(message)
+
+        monkeypatch.setattr(shapes, "write_shape", oom)
+        code, _, err = run_cli(["shape", "sphere", tmp_path / "s.obj"], capsys)
+        assert_one_line_error(code, err, "out of memory (RuntimeError: ", "make the work smaller")
+
     def test_permission_denied_on_a_single_file(self, tmp_path, capsys, monkeypatch):
         import damcap.common.shapes as shapes
 

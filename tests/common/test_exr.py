@@ -111,3 +111,41 @@ def test_u8_png_round_trip_of_a_2d_image(tmp_path, shape):
     grey = (np.arange(np.prod(shape)).reshape(shape) * 11).astype(np.uint8)
     write_png(tmp_path / "g.png", grey)
     np.testing.assert_array_equal(read_image_u8(tmp_path / "g.png")[..., 0], grey)
+
+
+_WRITE_CUT_SHORT = r"""
+import os, resource, signal, sys
+import numpy as np
+from damcap.common.errors import DamcapError
+import damcap.common.exr as exr
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (20000, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+if sys.argv[2] == "full":
+    real = os.statvfs
+    class Full:
+        f_bavail, f_frsize = 1, 4096
+    exr.os.statvfs = lambda p: Full()
+try:
+    exr.write_exr(sys.argv[1], np.random.default_rng(0).random((256, 256, 3), dtype=np.float32), ("R", "G", "B"), dtype="float")
+except (OSError, DamcapError) as e:
+    print(type(e).__name__, getattr(e, "errno", None), getattr(e, "filename", None), str(e).replace("\n", " "))
+"""
+
+
+@pytest.mark.parametrize("disk", ["full", "limit"])
+def test_a_write_cut_short_names_the_file_asked_for(tmp_path, disk):
+    """A write the disk cuts short is one error naming the .exr asked for (never OpenImageIO's hidden
+    temporary file): ENOSPC when the disk has no room for the pixels, else the writer's reason."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "a.exr"
+    got = subprocess.run([sys.executable, "-c", _WRITE_CUT_SHORT, str(out), disk], capture_output=True, text=True, timeout=60)
+    line = got.stdout.strip()
+    assert got.returncode == 0 and line, got.stderr[-500:]
+    assert ".tmp" not in line and str(out) in line, line
+    if disk == "full":
+        assert line.startswith(f"OSError 28 {out} ") and "No space left on device" in line, line
+    else:
+        assert line.startswith("DamcapError"), line
+    assert list(tmp_path.iterdir()) == []

@@ -175,14 +175,26 @@ def synth_studio(
 
 @command()
 def shape(
-    name: str = typer.Argument(..., parser=parse_choice("SHAPE", ("torus", "sphere")), metavar="[torus|sphere]",
-                               help="the procedural shape"),
-    output: Path = typer.Argument(..., help=".obj or .ply file to write"),
+    name: str = typer.Argument(..., parser=parse_choice("SHAPE", ("torus", "sphere", "pot")), metavar="[torus|sphere|pot]",
+                               help="the procedural shape (pot: a lidded pot in three parts, body, lid and handle)"),
+    output: Path = typer.Argument(..., help=".obj or .ply file to write (pot: .obj, with its .mtl beside it)"),
 ) -> None:
     """Write a procedural shape as an OBJ/PLY mesh.
 
-    For damcap export --mesh.
+    For damcap export --mesh. The pot's parts are OBJ material groups (body, lid, handle): give
+    export and view one .dam per part, in that order.
     """
+    if name == "pot":
+        from damcap.export.shapes import POT_MTL_KD, pot_mesh, write_parted_obj
+
+        if output.suffix.lower() != ".obj":
+            raise DamcapError(f"{output}: the pot is written as .obj (its parts are OBJ material groups)")
+        check_paths([], [file_out(output), file_out(output.with_suffix(".mtl"))])
+        mesh, names = pot_mesh()
+        obj, mtl = write_parted_obj(mesh, names, output, POT_MTL_KD)
+        typer.echo(f"wrote {obj} and {mtl.name} ({len(mesh.triangles)} triangles; parts {', '.join(names)}: "
+                   "give one .dam per part, in this order)")
+        return
     from damcap.common.shapes import write_shape
 
     check_paths([], [file_out(output)])

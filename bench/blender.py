@@ -62,8 +62,8 @@ def agreement(work: Path, n: int) -> list[dict]:
     """The test's two models (+Y up and +Z up) on an exact sphere, n x n pixels, against damcap."""
     from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
     from damcap.appearance.dam_file import save_dam
-    from damcap.cli.main import main as damcap
-    from damcap.export.blender import blender_from_world
+    from damcap.export.blender import blender_from_world, export_blender
+    from damcap.export.turntable import OrbitOptions
 
     cases = {"yup": (DamArchitecture(width=16, depth=3, encoding="vnr", bias=True, activation="leaky_relu"), 2.5, [0.0, 1.0, 0.0]),
              "zup": (DamArchitecture(width=16, depth=2, encoding="nr", separable=True, activation="shifted_softplus"), 0.7, [0.0, 0.0, 1.0]),
@@ -75,8 +75,8 @@ def agreement(work: Path, n: int) -> list[dict]:
         if arch.bias:
             model.set_flat_weights(model.get_flat_weights() + 0.2 * torch.randn(arch.num_weights, generator=g))
         save_dam(work / f"{name}.dam", model, colorspace="lin_rec709", made_by="fit", up_world=np.array(up))
-        if damcap(["export", str(work / f"{name}.dam"), "--format", "blender", "-o", str(work / f"out_{name}")]) != 0:
-            raise SystemExit(f"damcap export --format blender failed for {name}")
+        (work / f"out_{name}").mkdir()
+        export_blender([model], [work / f"{name}.dam"], np.array(up), work / f"out_{name}", OrbitOptions())  # what damcap export --format blender writes
         models[name] = (model, arch, up)
         jobs.append({"script": str(work / f"out_{name}" / "damcap_materials.py"), "sphere_material": name, "exposure": 1.0,
                      "resolution": n, "out": str(work / name), "camera": SPHERE_CAMERA})
@@ -104,35 +104,46 @@ def agreement(work: Path, n: int) -> list[dict]:
 
 
 def mesh_render(work: Path, demo: Path | None, resolution: int, samples: list[int], picture: Path | None) -> dict:
-    """A mesh with the exported materials, resolution^2, seen from damcap export's first camera:
-    once as damcap's frame is made (pixel-centre rays) and compared with it, then timed per sample
+    """A mesh with the exported materials, resolution^2, seen from damcap export's first camera
+    (orbit defaults): once as damcap's frame is made (pixel-centre rays) and compared with it, then timed per sample
     count with Blender's default pixel filter (Blackman-Harris 1.5 px). ``picture``: where the
     side-by-side PNG (damcap | Blender) goes, or None."""
     from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
-    from damcap.appearance.dam_file import save_dam
-    from damcap.cli.main import main as damcap
-    from damcap.common.colour import display_srgb8
-    from damcap.common.exr import read_exr, write_png
-    from damcap.export.blender import blender_from_world
+    from damcap.appearance.dam_file import load_dam, recorded_up, save_dam
+    from damcap.common.cameras import focal_px_from_fov
+    from damcap.common.colour import display_srgb8, exposure_scale_for
+    from damcap.common.exr import write_png
+    from damcap.common.mesh import unit_sphere_transform
+    from damcap.export.blender import blender_from_world, export_blender
+    from damcap.export.turntable import OrbitOptions, orbit_up, render_orbit, shape_and_parts
 
     if demo is not None:
-        models = [str(demo / "segmentation" / f"material_{k}.dam") for k in range(3)]
-        mesh, extra = demo / "torus.obj", ["--labels", str(demo / "torus_labels.npy")]
+        model_paths = [demo / "segmentation" / f"material_{k}.dam" for k in range(3)]
+        mesh, labels = demo / "torus.obj", demo / "torus_labels.npy"
         what = f"the demo's three segmentation materials on its torus ({demo.name}/torus.obj, labels torus_labels.npy)"
     else:
         from damcap.common.shapes import write_shape
 
-        mesh = write_shape("torus", work / "torus.obj")
+        mesh, labels = write_shape("torus", work / "torus.obj"), None
         model = DeepAppearanceMap(DamArchitecture(activation="shifted_softplus"), 1.0, generator=torch.Generator().manual_seed(0))
         save_dam(work / "random.dam", model, colorspace="lin_rec709", made_by="fit")
-        models, extra = [str(work / "random.dam")], []
+        model_paths = [work / "random.dam"]
         what = "one DAM of the fit's default architecture (random weights) on damcap's generated torus"
-    if damcap(["export", *models, "--format", "blender", "--mesh", str(mesh), *extra, "-o", str(work / "out_mesh")]) != 0:
-        raise SystemExit("damcap export --format blender --mesh failed")
-    if damcap(["export", *models, "--mesh", str(mesh), *extra, "-o", str(work / "frames"), "--views", "1", "--resolution", str(resolution)]) != 0:
-        raise SystemExit("damcap export (frames) failed")
-    frame_doc = json.loads((work / "frames" / "export.json").read_text())
-    cam = blender_camera_of(frame_doc, blender_from_world(np.array(frame_doc["up_world"])))
+    loaded = [load_dam(p) for p in model_paths]
+    dams = [d.dam_alone() for d, _ in loaded]
+    up, _, _ = orbit_up("model", [recorded_up(meta) for _, meta in loaded])  # as damcap export takes it
+    orbit = OrbitOptions(views=1, resolution=resolution)
+    (work / "out_mesh").mkdir()
+    export_blender(dams, model_paths, up, work / "out_mesh", orbit, mesh, labels)  # what damcap export --format blender writes
+    # damcap export's first frame (pixel-centre rays), and the Blender camera that sees the file's mesh as it does
+    raw, shape, part = shape_and_parts(mesh, labels, len(dams))
+    world_from_cam, buf, rad = next(render_orbit(dams, shape, part, orbit, up_world=up))
+    centre, radius = unit_sphere_transform(raw.vertices)
+    rot = blender_from_world(up)
+    cam = {"location": (rot @ (centre + radius * world_from_cam[:3, 3])).tolist(), "target": (rot @ centre).tolist(),
+           "lens_mm": focal_px_from_fov(orbit.fov_deg, resolution) / resolution * 36.0}
+    frame = np.concatenate([rad, buf.coverage[..., None]], -1)
+    scale = exposure_scale_for(rad, buf.coverage > 0.5)
     script = str(work / "out_mesh" / "damcap_materials.py")
     jobs = [{"script": script, "resolution": resolution, "samples": 1, "exposure": 1.0, "out": str(work / "mesh_exact"), "camera": cam}]
     jobs += [{"script": script, "resolution": resolution, "samples": s, "filter_width": 1.5, "out": str(work / f"mesh_{s}spp"), "camera": cam}
@@ -141,13 +152,11 @@ def mesh_render(work: Path, demo: Path | None, resolution: int, samples: list[in
     obj = next(iter(reps[0]["objects"].values()))
     # damcap's own frame (pixel-centre rays) against Blender's 1-sample, 0.01 px box-filter render, linear radiance
     exact = np.load(jobs[0]["out"] + ".npy")
-    frame = read_exr(work / "frames" / "frames" / "0000.exr")[0]
     both = (frame[..., 3] > 0.999) & (exact[..., 3] > 0.999)
     rel = np.abs(exact[..., :3][both] - frame[..., :3][both]) / np.maximum(frame[..., :3][both], 1e-6)
     versus = {"pixels": int(both.sum()), "damcap_covered": int((frame[..., 3] > 0.999).sum()),
               "blender_covered": int((exact[..., 3] > 0.999).sum()), "median": float(np.median(rel)), "p90": float(np.percentile(rel, 90))}
     log(f"mesh against damcap's frame: {versus}")
-    scale = frame_doc["exposure_scale"]
     if picture is not None:
         write_png(picture, np.concatenate([display_srgb8(frame[..., :3], scale), display_srgb8(exact[..., :3], scale)], 1))
     rows = []
@@ -158,17 +167,6 @@ def mesh_render(work: Path, demo: Path | None, resolution: int, samples: list[in
     return {"what": what, "triangles": int(sum(obj["material_index"])), "materials": obj["slots"], "resolution": resolution,
             "threads": os.cpu_count(), "camera": "damcap export's first orbit view (elevation 20 deg, azimuth 0, 45 deg field of view)",
             "against_damcap_frame": versus, "picture": None if picture is None else picture.name, "rows": rows}
-
-
-def blender_camera_of(export_json: dict, rot: np.ndarray) -> dict:
-    """The Blender camera (driver spec) that sees the mesh file's vertices, turned by ``rot``, as
-    the first frame of damcap export did (its centre moved from the unit-sphere render to the file's frame)."""
-    m = np.array(export_json["world_from_cam"][0])
-    t = export_json["mesh_transform"]
-    centre, radius = np.array(t["centre"]), t["radius"]
-    intr = export_json["intrinsics"]
-    return {"location": (rot @ (centre + radius * m[:3, 3])).tolist(), "target": (rot @ centre).tolist(),
-            "lens_mm": intr["fl_x"] / intr["w"] * 36.0}
 
 
 def install_cost(work: Path) -> dict:

@@ -46,8 +46,8 @@ def export(
     """Render a DAM on a new shape, or write it for other tools.
 
     --format frames: an orbit of linear EXR + sRGB PNG frames (and an MP4 with --video); glb: the
-    mesh with the radiance of one view baked per vertex; threejs: a three.js ShaderMaterial that
-    evaluates the DAM; matcap: the DAM on a sphere for matcap shaders; onnx / glsl: the DAM as an
+    mesh with the radiance of one view baked per vertex; threejs: three.js ShaderMaterials that
+    evaluate the DAMs (one per part, with --mesh the mesh in parts); matcap: the DAM on a sphere for matcap shaders; onnx / glsl: the DAM as an
     ONNX model or a fragment-shader function; blender: an OSL shader per model and a script that
     makes Blender materials of them (and the mesh with them, with --mesh).
     """
@@ -69,6 +69,8 @@ def export(
     else:
         target = folder_out(output, replaces=holds("export.json"))  # type: ignore[assignment]
     check_paths([*models, mesh, labels], [target])
+    if opts.format == "threejs":
+        _check_parts_given(models, mesh, labels)
     loaded = [load_dam(m) for m in models]
     dams = [m for m, _ in loaded]
     if opts.format != "frames" and any(d.has_surface_factors for d in dams):
@@ -96,9 +98,8 @@ def export(
                    f"elevation {orbit.elevation_deg:g} deg, azimuth {orbit.azimuth0_deg:g} deg)")
         return
     if opts.format == "threejs":
-        if len(dams) != 1:
-            raise DamcapError("--format threejs takes one model (one material per file; export each part's model)")
-        _export_threejs(dams[0].dam_alone() if dams[0].has_surface_factors else dams[0], loaded[0][1], models[0], target.path, orbit)
+        _export_threejs([d.dam_alone() if d.has_surface_factors else d for d in dams], [meta for _, meta in loaded], models, mesh,
+                        labels, target.path, orbit)
         return
     if opts.format == "blender":
         _export_blender([d.dam_alone() if d.has_surface_factors else d for d in dams], [meta for _, meta in loaded], models,
@@ -210,7 +211,7 @@ def _export_glb(dams, metas, model_paths, mesh_path: Path, labels, path: Path, o
     typer.echo(f"note: {VIEW_DEPENDENCE_NOTE}")
 
 
-def _export_threejs(dam, meta: dict, model_path: Path, path: Path, orbit: OrbitOptions) -> None:
+def _export_threejs(dams, metas, model_paths, mesh_path: Optional[Path], labels: Optional[Path], path: Path, orbit: OrbitOptions) -> None:
     from damcap.appearance.dam_file import recorded_up
     from damcap.common.atomic import write_text_atomic
     from damcap.export.gltf import gltf_from_world
@@ -218,11 +219,18 @@ def _export_threejs(dam, meta: dict, model_path: Path, path: Path, orbit: OrbitO
     from damcap.export.turntable import orbit_up
 
     orbit.validate()
-    up, _, _ = orbit_up(orbit.up, [recorded_up(meta)])
-    shape = _load_mesh(None)
-    scale = _first_view_exposure([dam], shape, np.zeros(len(shape.triangles), np.int64), orbit, up)
-    write_text_atomic(path, threejs_module(dam, scale, gltf_from_world(up)[:3, :3].T, note=f"Model: {model_path.name}."))
-    typer.echo(f"wrote {path} (import {{ damcapMaterial }} from it; exposure x{scale:.4g} on a sphere seen from the orbit's first view)")
+    up, _, up_note = orbit_up(orbit.up, [recorded_up(m) for m in metas])
+    if up_note:
+        typer.echo(f"note: {up_note}", err=True)
+    shape, part, names = _parts_of_shape(model_paths, mesh_path, labels)
+    scale = _first_view_exposure(dams, shape, part, orbit, up)
+    gltf_rot = gltf_from_world(up)[:3, :3]
+    note = "Models: " + _parts_caption(model_paths, names, mesh_path) + "." if len(dams) > 1 else f"Model: {model_paths[0].name}."
+    write_text_atomic(path, threejs_module(dams, scale, gltf_rot.T, note=note, part_names=names,
+                                           mesh=shape if mesh_path is not None else None, triangle_part=part, scene_from_world=gltf_rot))
+    use = "import { damcapMaterial } from it" if mesh_path is None else \
+        "new THREE.Mesh(damcapGeometry(THREE), damcapMaterials(THREE)): " + _parts_caption(model_paths, names, mesh_path)
+    typer.echo(f"wrote {path} ({use}; exposure x{scale:.4g} on {mesh_path.name if mesh_path else 'a sphere'} seen from the orbit's first view)")
 
 
 def _export_blender(dams, metas, model_paths, mesh_path, labels, output: Path, orbit: OrbitOptions) -> None:
@@ -408,18 +416,20 @@ def _unobserved_normals(model_paths, histograms, shown, what: str, record: str) 
 
 @command(cam="damcap.export.viewer:ViewerCamera")
 def view(
-    model: Path = typer.Argument(..., help="model file (.dam)"),
+    models: List[Path] = typer.Argument(..., help="model file(s) (.dam); several = one per mesh part"),
     output: Path = typer.Option(..., "-o", "--output", help="HTML file to write"),
     mesh: Optional[Path] = typer.Option(None, "--mesh", help="OBJ/PLY shape (default: a sphere)"),
+    labels: Optional[Path] = typer.Option(None, "--labels", help="per-vertex part labels (.npy or .txt), instead of OBJ material groups"),
     serve: bool = typer.Option(False, "--serve/--no-serve", help="serve the page (only it) on 127.0.0.1 until Ctrl-C"),
     port: int = typer.Option(8765, parser=parse_int("--port", (0, 65535)), metavar="INTEGER",
                              help="port for --serve: 1-65535, or 0 for any free port"),
     *,
     cam: ViewerCamera,
 ) -> None:
-    """Write an HTML page showing the DAM on a mesh in real time.
+    """Write an HTML page showing DAMs on a mesh in real time.
 
-    Self-contained, WebGL 2.
+    Self-contained, WebGL 2. Several models: one per part of the mesh (its OBJ material groups, or
+    --labels), each drawn with its own shader.
     """
     from damcap.appearance.dam_file import load_dam
     from damcap.common.atomic import write_text_atomic
@@ -430,17 +440,19 @@ def view(
     opts = OrbitOptions(views=1, elevation_deg=cam.elevation_deg, azimuth0_deg=cam.azimuth_deg, resolution=128, distance=cam.distance,
                         fov_deg=cam.fov_deg)
     opts.validate()
-    check_paths([model, mesh], [file_out(output)])
-    dam, _ = load_dam(model)
-    if dam.has_surface_factors:
+    check_paths([*models, mesh, labels], [file_out(output)])
+    _check_parts_given(models, mesh, labels)
+    dams = [load_dam(m)[0] for m in models]
+    if any(d.has_surface_factors for d in dams):
         typer.echo("note: the viewer draws the DAM alone; the surface factors of the model's capture (albedo texture, normal "
                    "field) are left out", err=True)
-        dam = dam.dam_alone()
-    shape = _load_mesh(mesh)
-    scale = _first_view_exposure([dam], shape, np.zeros(len(shape.triangles), np.int64), opts, None)
-    html = viewer_html(dam, shape, scale, cam, title=f"{model.name} on {mesh.name if mesh else 'a sphere'}")
+        dams = [d.dam_alone() if d.has_surface_factors else d for d in dams]
+    shape, part, names = _parts_of_shape(models, mesh, labels)
+    scale = _first_view_exposure(dams, shape, part, opts, None)
+    html = viewer_html(dams, shape, scale, cam, title=_parts_caption(models, names, mesh), triangle_part=part,
+                       part_names=names or [f"part {k}" for k in range(len(models))])
     write_text_atomic(output, html)
-    typer.echo(f"wrote {output}")
+    typer.echo(f"wrote {output}" + (f" ({_parts_caption(models, names, mesh)})" if len(models) > 1 else ""))
     if serve:
         from urllib.parse import quote
 
@@ -452,6 +464,46 @@ def view(
                 httpd.serve_forever()
             except KeyboardInterrupt as e:
                 raise Interrupted(f"{output} is kept; the server stopped", isinstance(e, Terminated)) from None
+
+
+def _check_parts_given(models: List[Path], mesh: Optional[Path], labels: Optional[Path]) -> None:
+    """Several models need a mesh with parts; labels need a mesh (checked before any file is read)."""
+    if labels is not None and mesh is None:
+        raise DamcapError(f"{labels}: --labels needs --mesh (the labels are one per vertex of that mesh)")
+    if len(models) > 1 and mesh is None:
+        raise DamcapError(f"{len(models)} models were given (one per part of a mesh) but no --mesh: give --mesh SHAPE.obj with one OBJ "
+                          "material group per model, or --mesh with --labels")
+
+
+def _parts_of_shape(models: List[Path], mesh: Optional[Path], labels: Optional[Path]):
+    """The shape in the unit sphere, each triangle's part (model index) and the parts' names
+    (the OBJ's material names; None when unknown). A mesh whose labels or OBJ material groups
+    name fewer parts than there are models is refused, as is one naming more (a part without a
+    model, :func:`damcap.export.turntable.shape_and_parts`)."""
+    from damcap.export.shapes import obj_part_names
+    from damcap.export.turntable import shape_and_parts
+
+    if mesh is None:
+        shape = _load_mesh(None)
+        return shape, np.zeros(len(shape.triangles), np.int64), None
+    _, shape, part = shape_and_parts(mesh, labels, len(models))
+    found = int(part.max()) + 1 if len(part) else 0
+    if len(models) > 1 and found < len(models):
+        where = (f"{labels}: its labels name parts 0..{found - 1}" if labels is not None
+                 else f"{mesh}: {'its OBJ material groups name' if found > 1 else 'the mesh has no OBJ material groups, so'} {found} part(s)")
+        raise DamcapError(f"{where}, but {len(models)} models were given; give one .dam per part"
+                          + ("" if labels is not None else " (or --labels)"))
+    names = obj_part_names(mesh) if labels is None and len(models) > 1 else None
+    return shape, part, names if names is not None and len(names) == len(models) else None
+
+
+def _parts_caption(models: List[Path], names, mesh: Optional[Path]) -> str:
+    """'body: a.dam, lid: b.dam on pot.obj' (one model: 'a.dam on pot.obj')."""
+    shape = mesh.name if mesh else "a sphere"
+    if len(models) == 1:
+        return f"{models[0].name} on {shape}"
+    names = names or [f"part {k}" for k in range(len(models))]
+    return ", ".join(f"{n}: {m.name}" for n, m in zip(names, models)) + f" on {shape}"
 
 
 @command("export-capture", opts="damcap.export.capture_export:CaptureExportOptions")

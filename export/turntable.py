@@ -56,7 +56,8 @@ class ExportOptions:
     model), 'glsl' (the DAM as a fragment-shader function), 'matcap' (the DAM on a sphere seen from the
     orbit's first view, orthographic: EXR + PNG for any matcap shader), 'glb' (binary glTF: the
     mesh with the radiance of the orbit's first view baked per vertex, unlit, that view as its
-    camera), 'threejs' (an ES module making a three.js ShaderMaterial that evaluates the DAM) or
+    camera), 'threejs' (an ES module making three.js ShaderMaterials that evaluate the DAMs, one
+    per part; with --mesh the mesh in parts too) or
     'blender' (an OSL shader per model and a script making Blender materials of them, with --mesh
     the mesh too)"""
     video: bool = False

@@ -1,9 +1,10 @@
 """Benchmark: the demo's export against the truth (issue 29).
 
 ``make demo`` exports the three materials it segments from the bundled studio photos
-(``samples/photos_studio``) onto a torus. Those photos were path traced from known materials,
+(``samples/photos_studio``) onto a new shape (one model per part of the mesh: its OBJ material
+groups, as the demo's pot, or ``--labels``; the report's run: a torus). Those photos were path traced from known materials,
 light and cameras (``transforms.json``'s ``damcap_studio`` record), so the truth of that export can
-be rendered: the same torus, posed as the export posed it, each part made of the studio material
+be rendered: the same shape, posed as the export posed it, each part made of the studio material
 its segment covers in the photos, under the same environment map and board, by Mitsuba
 (:func:`damcap.synth.studio.render_on_shape`). Per material region: DSSIM of the export's frames
 against the truth next to a constant-colour baseline (the region painted with its mean truth
@@ -16,13 +17,13 @@ it misses (self-shadowing, the board's reflection, anything not a function of vi
 DAM carried from the photos can recover; a ratio above the target there means the target lies
 beyond the model, not beyond the capture.
 
-What a DAM of the photographed object can carry to the torus (``--transfer-bound``): per
+What a DAM of the photographed object can carry to the new shape (``--transfer-bound``): per
 material, a DAM fitted to path-traced HDR renders of the studio's own object from every photo's
 true camera, with its exact normals and material labels (:func:`object_dams`: no clipping, no
-JPEG, no reconstruction or segmentation error), drawn on the torus. It is a reference, not a
+JPEG, no reconstruction or segmentation error), drawn on the shape. It is a reference, not a
 strict bound: it is one fit (``fit``'s 2000 steps, nothing held out), and another fit of the
-same data may extrapolate differently to the torus's normals that no photo saw. Where it misses
-the target, the photos do not carry the torus's appearance (the board beside the object,
+same data may extrapolate differently to the shape's normals that no photo saw. Where it misses
+the target, the photos do not carry the shape's appearance (the board beside the object,
 occlusion that differs between the two shapes, normals no camera saw). It is fitted twice: to
 every photo's render, and to the renders of the photos the capture trained on alone (the views
 the export learnt from; the others are the demo's novel views).
@@ -49,6 +50,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import re
 import statistics
 import time
 from dataclasses import asdict, replace
@@ -133,6 +135,17 @@ def segment_materials(demo: Path, studio_from_capture: np.ndarray, opts: StudioO
     if counts is None:
         raise SystemExit(f"{demo / 'segmentation'}: no weights/*.exr for the capture's training frames")
     return [int(k) for k in counts.argmax(1)], counts
+
+
+def model_segments(models: list[str]) -> list[int]:
+    """The segment each exported model is (``.../segmentation/material_K.dam`` is segment K), in the export's part order."""
+    out = []
+    for m in models:
+        found = re.fullmatch(r"material_(\d+)", Path(m).stem)
+        if found is None:
+            raise SystemExit(f"{m}: the export's models must be the segmentation's material_K.dam files, one per part")
+        out.append(int(found.group(1)))
+    return out
 
 
 def region_scores(truth: np.ndarray, pred: np.ndarray, mask: np.ndarray, constant: np.ndarray) -> tuple[float, float] | None:
@@ -228,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--render-cache", type=Path, default=CACHE / "export_truth",
                     help="folder of path-traced renders kept between runs (rendered_on_shape)")
     ap.add_argument("--transfer-bound", action="store_true",
-                    help="also fit DAMs to HDR renders of the photographed object itself and draw them on the torus (object_dams)")
+                    help="also fit DAMs to HDR renders of the photographed object itself and draw them on the new shape (object_dams)")
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
     studio = json.loads((args.photos / "transforms.json").read_text())
@@ -242,14 +255,18 @@ def main(argv: list[str] | None = None) -> int:
     log(f"capture -> studio: {len(pairs)} cameras, centre RMS {residual['centre_rms']:.4f}, rotation median {residual['rotation_median_deg']:.3f} deg")
     export = json.loads((args.demo / "export" / "export.json").read_text())
     _, shape, part = shape_and_parts(export["mesh"], Path(export["labels"]) if export["labels"] else None, len(export["models"]))
-    if export["labels"]:
+    if export["labels"] or len(export["models"]) > 1:  # parts by labels or by the mesh's OBJ groups: part k shows models[k]
         seg_material, confusion = segment_materials(args.demo, sim, opts)
+        part_segment = model_segments(export["models"])
+        seg_material, confusion = [seg_material[j] for j in part_segment], confusion[part_segment]
     elif len(names) == 1:  # one DAM of a one-material set
-        seg_material, confusion = [0], np.ones((1, 1), np.int64)
+        seg_material, confusion, part_segment = [0], np.ones((1, 1), np.int64), [0]
     else:
-        raise SystemExit(f"{args.demo / 'export'}: an export without --labels of a {len(names)}-material set; export the segmentation's materials with --labels")
+        raise SystemExit(f"{args.demo / 'export'}: an export of one model of a {len(names)}-material set; export the segmentation's "
+                         "materials, one per part of the mesh (its OBJ groups or --labels)")
+    region = [f"segment {j}" for j in part_segment]  # part k's region is named after the segment its model is
     purity = (confusion.max(1) / np.maximum(confusion.sum(1), 1)).tolist()
-    log("segments: " + ", ".join(f"{k} -> {names[m]} ({p:.0%})" for k, (m, p) in enumerate(zip(seg_material, purity))))
+    log("segments: " + ", ".join(f"{region[k]} (part {k}) -> {names[m]} ({p:.0%})" for k, (m, p) in enumerate(zip(seg_material, purity))))
     i = export["intrinsics"]
     intr = Intrinsics(i["fl_x"], i["fl_y"], i["cx"], i["cy"], int(i["w"]), int(i["h"]))
     cams = np.array(export["world_from_cam"], np.float64)
@@ -325,23 +342,23 @@ def main(argv: list[str] | None = None) -> int:
                     err = np.abs(rad - truth[k]).mean(-1)
                     for flag in (True, False):
                         abs_err[flag].append(err[mask & (observed[k] == flag)])
-        per_region[f"segment {seg}"] = {"material": names[seg_material[seg]], "purity": purity[seg], "frames": len(ours),
+        per_region[region[seg]] = {"material": names[seg_material[seg]], "purity": purity[seg], "frames": len(ours),
                                         "export": statistics.mean(ours) if ours else None, "constant": statistics.mean(base) if base else None,
                                         "noise_floor": statistics.mean(floor) if floor else None,
                                         "best_dam": statistics.mean(bound) if bound else None,
                                         **{key: statistics.mean(v) if v else None for key, v in transfer.items()}}
         if ours:
-            per_region[f"segment {seg}"]["brightness"] = sums["export"] / sums["truth"]
+            per_region[region[seg]]["brightness"] = sums["export"] / sums["truth"]
             if observed is not None:
                 e_obs, e_not = np.concatenate(abs_err[True]), np.concatenate(abs_err[False])
-                per_region[f"segment {seg}"]["unobserved_share"] = len(e_not) / max(len(e_obs) + len(e_not), 1)
-                per_region[f"segment {seg}"]["abs_error_observed"] = float(e_obs.mean()) if len(e_obs) else None
-                per_region[f"segment {seg}"]["abs_error_unobserved"] = float(e_not.mean()) if len(e_not) else None
-            per_region[f"segment {seg}"]["ratio"] = statistics.mean(ours) / statistics.mean(base)
-            per_region[f"segment {seg}"]["best_dam_ratio"] = statistics.mean(bound) / statistics.mean(base)
+                per_region[region[seg]]["unobserved_share"] = len(e_not) / max(len(e_obs) + len(e_not), 1)
+                per_region[region[seg]]["abs_error_observed"] = float(e_obs.mean()) if len(e_obs) else None
+                per_region[region[seg]]["abs_error_unobserved"] = float(e_not.mean()) if len(e_not) else None
+            per_region[region[seg]]["ratio"] = statistics.mean(ours) / statistics.mean(base)
+            per_region[region[seg]]["best_dam_ratio"] = statistics.mean(bound) / statistics.mean(base)
             for key, v in transfer.items():
-                per_region[f"segment {seg}"][f"{key}_ratio"] = statistics.mean(v) / statistics.mean(base)
-                per_region[f"segment {seg}"][f"{key}_brightness"] = sums[key] / sums["truth"]
+                per_region[region[seg]][f"{key}_ratio"] = statistics.mean(v) / statistics.mean(base)
+                per_region[region[seg]][f"{key}_brightness"] = sums[key] / sums["truth"]
     whole = [dssim(truth[k], np.where((truth_alpha[k] > INTERIOR)[..., None] & (a > INTERIOR)[..., None], rad, truth[k]),
                    ((truth_alpha[k] > INTERIOR) & (a > INTERIOR)).astype(np.float32)) for k, (rad, a, _) in enumerate(frames)]
     # side by side for one frame: truth | export | constant colours (one display exposure)
@@ -356,7 +373,7 @@ def main(argv: list[str] | None = None) -> int:
     res = {"command": command_line("export_truth", argv if argv is not None else __import__("sys").argv[1:]),
            "machine": machine_info(), "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
            "demo": str(args.demo), "photos": str(args.photos), "spp": args.spp, "frames": len(frames), "resolution": intr.w,
-           "capture_to_studio": residual, "segment_material": [names[m] for m in seg_material], "confusion": confusion.tolist(),
+           "capture_to_studio": residual, "segment_material": [names[m] for m in seg_material], "part_segment": part_segment, "confusion": confusion.tolist(),
            "per_region": per_region, "whole_object_export_dssim": float(np.mean([w for w in whole if w is not None])),
            "truth_seconds": truth_s, "truth_cached": truth_cached, "best_dam_seconds": best_s, "object_dam_seconds": transfer_s,
            "object_dam_train_photos": int(train_photos.sum()), "best_dam_arch": asdict(arch), "seconds": time.perf_counter() - t_start, "target_ratio": TARGET_RATIO}
@@ -379,7 +396,7 @@ def write_markdown(res: dict, path: Path) -> None:
              f"bench took {res['seconds']:.0f} s.", "",
              f"The capture's world against the studio's: camera centres {r['centre_rms']:.4f} RMS "
              f"(studio units, object radius 1), orientations {r['rotation_median_deg']:.3f} deg median, {r['rotation_max_deg']:.3f} deg at most.", "",
-             "DSSIM against the truth on each material region of the torus (interior pixels; elsewhere both images are the truth), "
+             "DSSIM against the truth on each material region of the new shape (interior pixels; elsewhere both images are the truth), "
              "mean over the frames. Constant colour: the region painted with its mean truth colour. Target: export at most "
              f"{res['target_ratio']}x the constant colour.", "",
              "Noise floor: a second truth render with another seed against the first (what path-tracing noise alone costs).", "",
@@ -389,7 +406,7 @@ def write_markdown(res: dict, path: Path) -> None:
     if transfer:
         lines += ["Object's DAM: per material, a DAM fitted to path-traced HDR renders of the photographed object itself from every "
                   "photo's true camera, with its exact normals and material labels (no clipping, no JPEG, no reconstruction or "
-                  "segmentation error), fitted as `fit` fits (2000 steps, nothing held out) and drawn on the torus: what a DAM of the "
+                  "segmentation error), fitted as `fit` fits (2000 steps, nothing held out) and drawn on the new shape: what a DAM of the "
                   "object carries to this shape (a reference, not a strict bound). *Train photos*: the "
                   f"same from the {res['object_dam_train_photos']} photos the demo trained on, the information the export had "
                   f"(both {res['object_dam_seconds']:.0f} s).", ""]
@@ -416,7 +433,7 @@ def write_markdown(res: dict, path: Path) -> None:
             o, u = d["abs_error_observed"], d["abs_error_unobserved"]
             lines.append(f"| {name} | {d['material']} | {d['unobserved_share']:.1%} | " + (f"{o:.4f}" if o is not None else "") + " | "
                          + (f"{u:.4f}" if u is not None else "") + " | " + (f"x{u / o:.1f}" if o and u is not None else "") + " |")
-    lines += ["", f"Whole torus: export DSSIM {res['whole_object_export_dssim']:.4f}.", "",
+    lines += ["", f"Whole shape: export DSSIM {res['whole_object_export_dssim']:.4f}.", "",
               "`export_truth.png`: the first frame, truth | export | constant colours."]
     path.write_text("\n".join(lines) + "\n")
 

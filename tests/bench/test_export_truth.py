@@ -127,3 +127,11 @@ def test_object_dams_fit_each_material_to_the_photos_asked_for_alone(monkeypatch
     fits.clear()
     export_truth.object_dams(opts, {}, cams, intr, None, 1)
     assert [f for f, _ in fits] == [[1.0, 2.0, 3.0, 4.0]] * 2
+
+
+def test_each_part_is_named_after_its_models_segment():
+    """An export in parts (the demo's pot: body, lid, handle take material_2, _1, _0) maps part k to
+    the segment its model is."""
+    assert export_truth.model_segments(["demo/segmentation/material_2.dam", "material_1.dam", "x/material_0.dam"]) == [2, 1, 0]
+    with pytest.raises(SystemExit, match="material_K.dam"):
+        export_truth.model_segments(["demo/model.dam"])

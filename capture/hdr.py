@@ -20,7 +20,7 @@ from typing import Literal, Sequence
 import numpy as np
 
 from damcap.common.errors import DamcapError
-from damcap.common.validate import FRACTION, POSITIVE, check_ranges, in_range
+from damcap.common.validate import FRACTION, POSITIVE, check_ranges, in_range, no_signal
 
 from damcap.capture.align import chain_shifts, preview_u8, shift_image
 from damcap.capture.exif import Exposure, is_raw_path, parse_exposure_list, read_exposure, resolve_exposure_factors
@@ -370,6 +370,11 @@ def merge_bracket_files(files: Sequence[str | os.PathLike], opts: HdrOptions | N
     if clipped.all():
         raise DamcapError(f"{paths[0]}: every pixel is saturated in every frame; nothing can be measured. "
                           "Add a shorter exposure to the bracket")
+    exposed = np.where(clipped[..., None], 0.0, img)  # the pixels not saturated in every frame
+    if no_signal(exposed, 0.0, None) is not None:
+        raise DamcapError(f"{paths[0]}: no pixel of the bracket is exposed: every frame is black where it is not saturated "
+                          f"(largest merged radiance {float(exposed.max()):g}); nothing can be measured. Add a longer exposure "
+                          "to the bracket")
     if clipped.any():
         result_warnings.append(f"{int(clipped.sum())} pixel(s) saturated in every frame; flagged in the 'clipped' channel "
                                "(their values are lower bounds)")

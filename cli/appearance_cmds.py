@@ -293,6 +293,10 @@ def evaluate(
     cap = read_capture(capture)
     train = load_views(cap, "train")
     test = load_views(cap, "test")
+    from damcap.appearance.pixels import FOREGROUND_COVERAGE
+    from damcap.common.validate import require_foreground
+
+    require_foreground([v.data.coverage for v in train + test], FOREGROUND_COVERAGE, capture)  # nothing to score: refused before any output
     from damcap.cli.app import stage_progress
 
     progress = stage_progress()

@@ -20,7 +20,7 @@ from damcap.common.atomic import write_json_atomic
 from damcap.common.cameras import up_direction
 from damcap.common.errors import DamcapError
 from damcap.common.exr import read_exr_channels, write_exr
-from damcap.common.validate import MAX_MATERIALS, finite_in, load_json_file, require_resolution
+from damcap.common.validate import MAX_MATERIALS, check_camera_centres, finite_in, load_json_file, require_foreground, require_resolution
 
 FORMAT_VERSION = 1
 RADIANCE_CHANNELS = ("R", "G", "B")
@@ -304,6 +304,7 @@ def read_capture(root: str | os.PathLike, *, check_files: bool = True) -> Captur
             extra={k: v for k, v in fr.items() if k not in known},
         ))
     names = [f.file_path for f in frames]
+    check_camera_centres(np.stack([f.world_from_cam[:3, 3] for f in frames]), names, path)
     if len(set(names)) != len(names):
         dup = next(n for n in names if names.count(n) > 1)
         raise DamcapError(f"{path}: duplicate file_path entries ({dup!r} appears {names.count(dup)} times)")
@@ -484,6 +485,7 @@ def inspect_capture(root: str | os.PathLike) -> CaptureSummary:
     capture = read_capture(root, check_files=False)  # a missing file is one of the problems listed
     problems: list[str] = []
     covs, mins, maxs, meds = [], [], [], []
+    peaks: list[np.ndarray] = []
     sizes = set()
     for frame in capture.frames:
         sizes.add((frame.intrinsics.w, frame.intrinsics.h))
@@ -494,11 +496,17 @@ def inspect_capture(root: str | os.PathLike) -> CaptureSummary:
             continue
         fg = d.coverage > 0.5
         covs.append(float(fg.mean()))
+        peaks.append(np.asarray(d.coverage.max()))  # only its peak is kept
         if fg.any():
             vals = d.radiance_lin[fg]
             mins.append(float(vals.min()))
             maxs.append(float(vals.max()))
             meds.append(float(np.median(vals)))
+    if peaks:
+        try:
+            require_foreground(peaks, 0.5, capture.root)
+        except DamcapError as e:
+            problems.append(str(e))
     for split in ("train", "test"):
         try:
             capture.split(split)  # type: ignore[arg-type]

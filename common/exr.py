@@ -11,6 +11,7 @@ import numpy as np
 
 from damcap.common.atomic import atomic_path
 from damcap.common.errors import DamcapError
+from damcap.common.validate import check_format
 from damcap.common.native_stderr import native_stderr_caught
 
 
@@ -69,6 +70,7 @@ def read_exr(path: str | os.PathLike) -> tuple[np.ndarray, tuple[str, ...]]:
     path = Path(path)
     if not path.is_file():
         raise DamcapError(f"{path}: file not found")
+    check_format(path)  # OpenImageIO reads any format by content: a PNG named .exr is not an EXR
     inp = _oiio().ImageInput.open(str(path))
     if inp is None:
         raise DamcapError(f"{path}: cannot read image ({_one_line(_oiio().geterror(), path)})")

@@ -311,3 +311,141 @@ def loads_json(text: str | bytes, where: str | os.PathLike, what: str = "JSON") 
                           f"{__import__('sys').getrecursionlimit()}); not a damcap file") from None
     except (ValueError, UnicodeDecodeError) as e:  # JSONDecodeError, int conversion limits
         raise DamcapError(f"{where}: invalid JSON ({str(e).splitlines()[0][:160]})") from None
+
+
+# --------------------------------------------------------------------------------------------
+# Cannot be right: values a file may hold that no physical input has
+# --------------------------------------------------------------------------------------------
+
+#: a camera centre this many times farther from the cameras' median centre than their median
+#: distance to it lies beyond any scene the other cameras see
+MAX_CAMERA_SPREAD = 1e6
+
+#: a format's first bytes, by the suffix the contract names it with
+MAGIC: dict[str, tuple[bytes, ...]] = {
+    ".exr": (b"\x76\x2f\x31\x01",),
+    ".png": (b"\x89PNG\r\n\x1a\n",),
+    ".jpg": (b"\xff\xd8\xff",),
+    ".jpeg": (b"\xff\xd8\xff",),
+    ".tif": (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"),
+    ".tiff": (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"),
+    ".npy": (b"\x93NUMPY",),
+}
+_FORMAT_NAMES = {".exr": "OpenEXR", ".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG", ".tif": "TIFF", ".tiff": "TIFF",
+                 ".npy": "NumPy .npy"}
+
+
+def content_format(head: bytes) -> str:
+    """What a file's first bytes say it is (``"PNG"``, ``"OpenEXR"``, ...; ``"unknown"``).
+
+    >>> content_format(b"\\x89PNG\\r\\n\\x1a\\n...")
+    'PNG'
+    """
+    for suffix, magics in MAGIC.items():
+        if any(head.startswith(m) for m in magics):
+            return _FORMAT_NAMES[suffix]
+    if head[:1] in (b"{", b"["):
+        return "JSON text"
+    return "empty" if not head else "unknown"
+
+
+def check_format(path: str | os.PathLike) -> None:
+    """Refuse a file whose first bytes are not the format its suffix names (a PNG named ``.exr``),
+    before a decoder that reads any format by content accepts it; suffixes without a known
+    signature pass.
+
+    Raises:
+        DamcapError: naming the file, the format its name says and what its content is.
+    """
+    path = Path(path)
+    magics = MAGIC.get(path.suffix.lower())
+    if magics is None:
+        return
+    try:
+        with open(path, "rb") as f:
+            head = f.read(16)
+    except OSError:
+        return  # the reader's own error names what is wrong
+    if not any(head.startswith(m) for m in magics):
+        raise DamcapError(f"{path}: named {path.suffix} but its content is {content_format(head)}, not "
+                          f"{_FORMAT_NAMES[path.suffix.lower()]}; convert it to {_FORMAT_NAMES[path.suffix.lower()]} "
+                          f"(or give it the name of what it is)")
+
+
+def check_camera_centres(centres_world: np.ndarray, names: list[str], where: str | os.PathLike) -> None:
+    """Refuse camera centres no scene can have: beyond float32 (where the cameras are used), or
+    farther from the cameras' median centre than :data:`MAX_CAMERA_SPREAD` times their median
+    distance to it (a translation of 1e300 among cameras a few units apart).
+
+    Args:
+        centres_world: (N, 3) float64 camera centres, any world unit.
+        names: N frame names, for the message.
+        where: the file that holds them.
+
+    Raises:
+        DamcapError: naming the frame, its centre and the bound.
+    """
+    c = np.asarray(centres_world, dtype=np.float64).reshape(-1, 3)
+    limit = float(np.finfo(np.float32).max)
+    far = np.abs(c).max(axis=1)
+    bad = np.flatnonzero(~(far <= limit))
+    if bad.size:
+        k = int(bad[0])
+        raise DamcapError(f"{where}: {names[k]}: camera centre {c[k].tolist()} lies beyond float32's range ({limit:.4g}); "
+                          f"no scene is that large: fix its transform_matrix")
+    if len(c) < 3:
+        return
+    d = np.linalg.norm(c - np.median(c, axis=0), axis=1)
+    scale = float(np.median(d))
+    if scale > 0:
+        k = int(np.argmax(d))
+        if d[k] > MAX_CAMERA_SPREAD * scale:
+            raise DamcapError(f"{where}: {names[k]}: camera centre {c[k].tolist()} is {d[k] / scale:.3g} times farther from the "
+                              f"cameras' median centre than their median distance ({scale:.4g}; at most {MAX_CAMERA_SPREAD:g} "
+                              f"times): no scene spans that; fix its transform_matrix")
+
+
+def no_signal(values: np.ndarray, black: float, saturated: float | None) -> str | None:
+    """Why an image (or a set of them) holds nothing to measure, or None.
+
+    Args:
+        values: any shape, the stored values (codes or radiance).
+        black: values at or below this are black.
+        saturated: values at or above this are saturated (None: no ceiling, e.g. radiance).
+
+    Returns:
+        ``"black everywhere (largest value 0)"``, ``"saturated everywhere (smallest value 255,
+        saturation at 250)"`` or None.
+
+    >>> no_signal(np.zeros((2, 2)), 0.0, None)
+    'black everywhere (largest value 0)'
+    >>> no_signal(np.full((2, 2), 255), 2, 250)
+    'saturated everywhere (smallest value 255, saturation at 250)'
+    """
+    v = np.asarray(values)
+    if v.size == 0:
+        return "empty (no pixel)"
+    hi = float(np.nanmax(v)) if np.issubdtype(v.dtype, np.floating) else float(v.max())
+    if not (hi > black):
+        return f"black everywhere (largest value {hi:g})"
+    if saturated is not None:
+        lo = float(v.min())
+        if lo >= saturated:
+            return f"saturated everywhere (smallest value {lo:g}, saturation at {saturated:g})"
+    return None
+
+
+def require_foreground(coverages: list[np.ndarray], threshold: float, where: str | os.PathLike) -> None:
+    """Refuse a capture with no foreground pixel in any frame (nothing to fit, score or render).
+
+    Args:
+        coverages: per frame (H, W) coverage in [0, 1].
+        threshold: coverage above which a pixel is foreground.
+
+    Raises:
+        DamcapError: naming the capture and the largest coverage found.
+    """
+    peak = max((float(c.max()) for c in coverages if c.size), default=0.0)
+    if not (peak > threshold):
+        raise DamcapError(f"{where}: no frame has a foreground pixel (largest coverage {peak:g}, foreground is above "
+                          f"{threshold:g}); the capture shows no object: check its geometry and masks")

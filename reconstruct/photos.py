@@ -38,6 +38,7 @@ from typing import Any, Callable, Literal
 import numpy as np
 
 from damcap.common.errors import DamcapError
+from damcap.common.validate import no_signal
 
 from damcap.capture.exif import RAW_EXTENSIONS
 
@@ -366,12 +367,37 @@ def verify_photos(folder: str | os.PathLike, names: list[str],
     """
     folder = Path(folder)
     display = [n for n in names if photo_kind(n) == "display"]
+    empty: list[tuple[str, str]] = []
     for k, name in enumerate(display):
         if progress:
             progress("checking photos", k, len(display))
-        _read_display_codes(folder / name)
+        codes = _read_display_codes(folder / name)
+        if (why := display_photo_signal(codes)) is not None:
+            empty.append((name, why))
     if progress and display:
         progress("checking photos", len(display), len(display))
+    if display and len(empty) == len(display):
+        name, why = empty[0]
+        raise DamcapError(f"{folder / name}: {why}, as is every photo in {folder} ({len(display)}); they show nothing to "
+                          f"reconstruct: photograph the object with an exposure that shows it")
+
+
+#: display codes at or below this fraction of full scale are black (JPEG noise of a black frame)
+BLACK_FRACTION = 0.02
+#: display codes at or above this fraction of full scale are saturated
+SATURATED_FRACTION = 0.98
+
+
+def display_photo_signal(codes: np.ndarray) -> str | None:
+    """Why a display photo shows nothing (black or saturated everywhere, in codes), or None.
+
+    >>> display_photo_signal(np.full((4, 4, 3), 255, np.uint8))
+    'saturated everywhere (smallest value 255, saturation at 249.9)'
+    >>> display_photo_signal(np.arange(48, dtype=np.uint8).reshape(4, 4, 3)) is None
+    True
+    """
+    full = float(np.iinfo(codes.dtype).max) if np.issubdtype(codes.dtype, np.integer) else 1.0
+    return no_signal(codes, BLACK_FRACTION * full, SATURATED_FRACTION * full)
 
 
 def _read_display_codes(path: Path) -> np.ndarray:

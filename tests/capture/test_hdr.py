@@ -283,6 +283,22 @@ def test_all_frames_clipped(tmp_path):
     assert (result.radiance_lin[:2, :2] >= result.radiance_lin[4:, 4:].max()).all()
 
 
+def test_a_bracket_with_no_exposed_pixel_is_refused(tmp_path):
+    """All black, or black wherever it is not saturated: nothing to measure, refused naming a file
+    and the largest merged radiance (0)."""
+    opts = HdrOptions(exposures_s=[1, 2], response="srgb")
+    black = np.zeros((2, 8, 8, 3), np.uint8)
+    with pytest.raises(DamcapError, match=r"b/.*: no pixel of the bracket is exposed.*largest merged radiance 0\)"):
+        merge_bracket_files(write_png_bracket(tmp_path / "b", black), opts)
+    half = black.copy()
+    half[:, :4] = 255
+    with pytest.raises(DamcapError, match="no pixel of the bracket is exposed"):
+        merge_bracket_files(write_png_bracket(tmp_path / "h", half), opts)
+    dim = black.copy()
+    dim[1, 3, 3] = 40  # one exposed pixel is something to measure
+    assert merge_bracket_files(write_png_bracket(tmp_path / "d", dim), opts).radiance_lin.max() > 0
+
+
 def test_raw_all_clipped_flagged_everywhere_is_an_error(tmp_path):
     model = CameraModel()
     sb = simulate_raw_bracket(np.ones((32, 32, 3)), tmp_path, [1.0, 2.0, 4.0], model, peak_fraction_shortest=5.0)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from damcap.common.capture_folder import (
-    GEOMETRY_CHANNELS, inspect_capture, read_capture, read_frame, rigid_problem, write_transforms,
+    GEOMETRY_CHANNELS, inspect_capture, read_capture, read_frame, rigid_problem, write_frame, write_transforms,
 )
 from damcap.common.errors import DamcapError
 from damcap.common.exr import read_exr, write_exr
@@ -104,6 +104,38 @@ def test_non_rigid_camera(capture_copy):
     (capture_copy / "transforms.json").write_text(json.dumps(doc))
     with pytest.raises(DamcapError, match=r"frames\[2\].*not a rigid camera-to-world.*not orthonormal"):
         read_capture(capture_copy)
+
+
+@pytest.mark.parametrize("far, needle", [(1e300, "beyond float32's range"), (1e12, "times farther from the cameras' median centre")])
+def test_a_camera_centre_no_scene_can_have_is_refused(capture_copy, far, needle):
+    doc = json.loads((capture_copy / "transforms.json").read_text())
+    doc["frames"][2]["transform_matrix"][1][3] = far
+    (capture_copy / "transforms.json").write_text(json.dumps(doc))
+    with pytest.raises(DamcapError, match=f"transforms.json: {doc['frames'][2]['file_path']}: camera centre .*{needle}"):
+        read_capture(capture_copy)
+    with pytest.raises(DamcapError, match=needle):
+        inspect_capture(capture_copy)
+
+
+def test_a_png_named_exr_is_refused_by_its_content(capture_copy):
+    from damcap.common.exr import write_png
+
+    frame = json.loads((capture_copy / "transforms.json").read_text())["frames"][1]["file_path"]
+    write_png(capture_copy / "x.png", np.zeros((8, 8, 3), np.uint8))
+    (capture_copy / "x.png").replace(capture_copy / frame)
+    problems = inspect_capture(capture_copy).problems
+    assert problems == [f"{capture_copy / frame}: named .exr but its content is PNG, not OpenEXR; convert it to OpenEXR "
+                        "(or give it the name of what it is)"]
+
+
+def test_a_capture_without_a_foreground_pixel_is_a_problem(capture_copy):
+    cap = read_capture(capture_copy)
+    for f in cap.frames:
+        d = read_frame(cap, f)
+        d.coverage[:] = d.coverage * 0.4  # covered, but nowhere foreground
+        write_frame(cap, f, d)
+    problems = inspect_capture(capture_copy).problems
+    assert len(problems) == 1 and "no frame has a foreground pixel (largest coverage 0.4" in problems[0]
 
 
 def test_rigid_problem_cases():

@@ -235,3 +235,54 @@ class TestOptionsCounts:
         with pytest.raises(DamcapError, match=r"^--steps must be an integer in"):
             check_ranges(FitOptions(steps=2.0))  # an int option given a float by a library caller
 
+
+
+class TestCannotBeRight:
+    def test_camera_centres(self):
+        from damcap.common.validate import check_camera_centres
+
+        ring = np.array([[3 * np.cos(a), 0.5, 3 * np.sin(a)] for a in np.linspace(0, 6, 10)])
+        names = [f"f{k}" for k in range(10)]
+        check_camera_centres(ring, names, "t.json")
+        check_camera_centres(ring * 1e30, names, "t.json")  # any unit, while float32 holds it
+        for far, needle in ((1e300, "f4: camera centre .* beyond float32's range"), (np.inf, "f4: camera centre .* beyond float32"),
+                            (np.nan, "f4: camera centre .* beyond float32"), (3e6 * 3, r"f4: camera centre .* times farther .* at most 1e\+06")):
+            bad = ring.copy()
+            bad[4, 0] = far
+            with pytest.raises(DamcapError, match=f"^t.json: {needle}"):
+                check_camera_centres(bad, names, "t.json")
+        bad = ring.copy()
+        bad[4, 0] = 3e5 * 3  # 1e5 times the ring's scale: a distant camera, not an impossible one
+        check_camera_centres(bad, names, "t.json")
+
+    @pytest.mark.parametrize("name, head, says", [("a.exr", b"\x89PNG\r\n\x1a\n....", "PNG"), ("a.png", b"\xff\xd8\xff\xe0", "JPEG"),
+                                                  ("a.exr", b"", "empty"), ("a.npy", b"{\"a\": 1}", "JSON text"),
+                                                  ("a.exr", b"v/1\x00xx", "unknown")])
+    def test_content_that_is_not_the_named_format(self, tmp_path, name, head, says):
+        from damcap.common.validate import check_format
+
+        (tmp_path / name).write_bytes(head)
+        with pytest.raises(DamcapError, match=f"{name}: named .{name.split('.')[1]} but its content is {says}, not "):
+            check_format(tmp_path / name)
+
+    def test_content_of_the_named_format_passes(self, tmp_path):
+        from damcap.common.validate import check_format
+
+        for name, head in (("a.EXR", b"\x76\x2f\x31\x01\x02"), ("b.tif", b"MM\x00*"), ("c.hdr", b"#?RADIANCE"), ("d.jpeg", b"\xff\xd8\xff\xdb")):
+            (tmp_path / name).write_bytes(head)
+            check_format(tmp_path / name)
+
+    def test_no_signal(self):
+        from damcap.common.validate import no_signal, require_foreground
+
+        assert no_signal(np.zeros((3, 3)), 0.0, None) == "black everywhere (largest value 0)"
+        assert no_signal(np.full((3, 3), np.nan), 0.0, None).startswith("black everywhere (largest value nan")
+        assert no_signal(np.full((3, 3), 5), 5, None) == "black everywhere (largest value 5)"
+        assert no_signal(np.full((3, 3), 250), 5, 250) == "saturated everywhere (smallest value 250, saturation at 250)"
+        assert no_signal(np.array([0, 6, 255]), 5, 250) is None
+        assert no_signal(np.zeros(0), 0, None) == "empty (no pixel)"
+        require_foreground([np.zeros((2, 2)), np.array([[0.0, 0.6]])], 0.5, "cap")
+        with pytest.raises(DamcapError, match=r"^cap: no frame has a foreground pixel \(largest coverage 0.5, foreground is above 0.5\)"):
+            require_foreground([np.zeros((2, 2)), np.full((2, 2), 0.5)], 0.5, "cap")
+        with pytest.raises(DamcapError, match="largest coverage 0,"):
+            require_foreground([], 0.5, "cap")

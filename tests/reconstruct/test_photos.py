@@ -538,3 +538,21 @@ class TestTruncatedJpeg:
         with pytest.raises(DamcapError, match=r"cut\.jpg: cannot read pixels, the file is damaged or truncated"):
             reconstruct_capture(photos, tmp_path / "out", ReconstructOptions())
         assert not (tmp_path / "out" / "transforms.json").exists()
+
+
+def test_a_photo_set_that_shows_nothing_is_refused_before_any_work(tmp_path):
+    """Every photo saturated (or black) everywhere: refused naming a photo and its value; one such
+    photo among others passes (registration leaves it out)."""
+    from damcap.reconstruct.photos import verify_photos
+
+    for k in range(4):
+        write_image_u8(tmp_path / f"w{k}.png", np.full((16, 16, 3), 255, np.uint8))
+    names = [f"w{k}.png" for k in range(4)]
+    with pytest.raises(DamcapError, match=r"w0.png: saturated everywhere \(smallest value 255, saturation at 249.9\), as is every photo .* \(4\)"):
+        verify_photos(tmp_path, names)
+    for k in range(4):
+        write_image_u8(tmp_path / f"w{k}.png", np.full((16, 16, 3), 3, np.uint8))
+    with pytest.raises(DamcapError, match=r"w0.png: black everywhere \(largest value 3\)"):
+        verify_photos(tmp_path, names)
+    write_image_u8(tmp_path / "w2.png", np.random.default_rng(0).integers(0, 256, (16, 16, 3), dtype=np.uint8))
+    verify_photos(tmp_path, names)

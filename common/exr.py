@@ -39,8 +39,16 @@ CLIPPED_CHANNEL = "clipped"
 MAX_IMAGE_CHANNELS = 1024
 
 
-def check_header_size(path: str | os.PathLike, width: int, height: int, channels: int, bytes_per_value: int) -> None:
+def check_header_size(path: str | os.PathLike, width: int, height: int, channels: int, bytes_per_value: int,
+                      working_bytes_per_pixel: int = 0) -> None:
     """Refuse an image whose header states a size that could not be held, before reading pixels.
+
+    Args:
+        bytes_per_value: of the decoded pixels (1 for uint8, 4 for float32); the decoder's buffer
+            and its copy are counted.
+        working_bytes_per_pixel: what the caller makes of each pixel once decoded (a mask's float32
+            copy: 4), counted too, so that a picture that decodes but cannot be used is refused
+            before it is decoded.
 
     Raises:
         DamcapError: a side outside [1, MAX_IMAGE_SIDE], a channel count outside [1, 1024], or
@@ -51,7 +59,30 @@ def check_header_size(path: str | os.PathLike, width: int, height: int, channels
     w = bounded_int(width, 1, MAX_IMAGE_SIDE, "image width (header)", path)
     h = bounded_int(height, 1, MAX_IMAGE_SIDE, "image height (header)", path)
     c = bounded_int(channels, 1, MAX_IMAGE_CHANNELS, "image channel count (header)", path)
-    require_memory(float(w) * h * c * bytes_per_value * 2, f"an image of {w}x{h} pixels, {c} channels", path)
+    require_memory(float(w) * h * (c * bytes_per_value * 2 + working_bytes_per_pixel), f"an image of {w}x{h} pixels, {c} channels", path)
+
+
+def image_header(path: str | os.PathLike) -> tuple[int, int, int, int]:
+    """(width, height, channels, EXIF orientation) of an image, from its header only (no pixel
+    is decoded); orientation 1 when the file has none (5 to 8: stored turned by 90 degrees).
+
+    Raises:
+        DamcapError: missing, or not an image OpenImageIO reads.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DamcapError(f"{path}: {'is a folder, not an image' if path.is_dir() else 'file not found'}")
+    with native_stderr_caught() as printed:
+        inp = _oiio().ImageInput.open(str(path))
+        if inp is not None:
+            try:
+                spec = inp.spec()
+                orientation = spec.get_int_attribute("Orientation", 1)
+            finally:
+                inp.close()
+    if inp is None:
+        raise DamcapError(f"{path}: cannot read image ({_one_line(_oiio().geterror() or chr(10).join(printed), path)})")
+    return spec.width, spec.height, spec.nchannels, orientation if 1 <= orientation <= 8 else 1
 
 
 def read_exr(path: str | os.PathLike) -> tuple[np.ndarray, tuple[str, ...]]:
@@ -202,8 +233,11 @@ def write_png(path: str | os.PathLike, pixels_u8: np.ndarray) -> None:
     write_image_u8(path, pixels_u8)
 
 
-def read_image_u8(path: str | os.PathLike) -> np.ndarray:
-    """Read an 8-bit display image (PNG/JPEG) as (H, W, C) uint8, alpha unassociated (as stored)."""
+def read_image_u8(path: str | os.PathLike, working_bytes_per_pixel: int = 0) -> np.ndarray:
+    """Read an 8-bit display image (PNG/JPEG) as (H, W, C) uint8, alpha unassociated (as stored).
+
+    ``working_bytes_per_pixel``: what the caller makes of each pixel (:func:`check_header_size`),
+    refused with the decode, before it."""
     path = Path(path)
     if not path.is_file():
         raise DamcapError(f"{path}: {'is a folder, not an image' if path.is_dir() else 'file not found'}")
@@ -214,7 +248,7 @@ def read_image_u8(path: str | os.PathLike) -> np.ndarray:
         if inp is not None:
             try:
                 spec = inp.spec()
-                check_header_size(path, spec.width, spec.height, spec.nchannels, 1)
+                check_header_size(path, spec.width, spec.height, spec.nchannels, 1, working_bytes_per_pixel)
                 px = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
                 err = inp.geterror()  # a truncated JPEG/PNG reads with gray filler and an error here
             finally:

@@ -365,15 +365,27 @@ def verify_photos(folder: str | os.PathLike, names: list[str],
         DamcapError: the first unreadable or truncated photo, named (as ``damcap hdr`` and
             ``damcap linearize`` refuse it).
     """
+    from damcap.common.exr import image_header
+
     folder = Path(folder)
     display = [n for n in names if photo_kind(n) == "display"]
     empty: list[tuple[str, str]] = []
+    turned: dict[str, int] = {}
     for k, name in enumerate(display):
         if progress:
             progress("checking photos", k, len(display))
+        if (orientation := image_header(folder / name)[3]) != 1:
+            turned[name] = orientation
         codes = _read_display_codes(folder / name)
         if (why := display_photo_signal(codes)) is not None:
             empty.append((name, why))
+    if turned:
+        import warnings
+
+        first = sorted(turned)[0]
+        warnings.warn(f"{folder / first}: {len(turned)} of {len(display)} photos carry an EXIF Orientation other than upright "
+                      f"({turned[first]} here, as phones store portrait photos); damcap uses their pixels as stored, so their "
+                      f"frames (and any masks) are as stored, not as a viewer shows them", stacklevel=2)
     if progress and display:
         progress("checking photos", len(display), len(display))
     if display and len(empty) == len(display):
@@ -530,13 +542,31 @@ def read_mask(path: str | os.PathLike, size: tuple[int, int] | None = None, phot
     Raises:
         DamcapError: unreadable, or a size different from the photo's.
     """
-    from damcap.common.exr import read_image_u8
+    from damcap.common.exr import image_header, read_image_u8
 
-    m = mask_to_unit(read_image_u8(path))
-    if size is not None and (m.shape[1], m.shape[0]) != tuple(size):
-        raise DamcapError(f"{path}: mask is {m.shape[1]}x{m.shape[0]} but its photo {photo_name + ' ' if photo_name else ''}is "
-                          f"{size[0]}x{size[1]}; masks must match the photos' size")
+    if size is not None:  # from the header: a mask of another size is refused before it is decoded
+        w, h, _, _ = image_header(path)
+        _check_mask_size(path, (w, h), tuple(size), photo_name)
+    m = mask_to_unit(read_image_u8(path, working_bytes_per_pixel=MASK_WORKING_BYTES))
+    if size is not None:
+        _check_mask_size(path, (m.shape[1], m.shape[0]), tuple(size), photo_name)
     return m
+
+
+#: bytes per pixel a mask needs beside its decoded pixels (its float32 copy and the comparisons made of it)
+MASK_WORKING_BYTES = 8
+
+
+def _check_mask_size(path: str | os.PathLike, mask: tuple[int, int], photo: tuple[int, int], photo_name: str) -> None:
+    if mask == photo:
+        return
+    of = f"its photo {photo_name + ' ' if photo_name else ''}is {photo[0]}x{photo[1]}"
+    if mask == photo[::-1] and mask[0] != mask[1]:
+        raise DamcapError(f"{path}: mask is {mask[0]}x{mask[1]} but {of} (stored on its side): the photo and its mask "
+                          f"are turned by 90 degrees to each other, as when a phone's portrait photo is stored sideways "
+                          f"with an EXIF Orientation tag and the mask drawn upright; save the photo's pixels upright "
+                          f"(exiftran -ai, mogrify -auto-orient) or turn the mask to the photo as stored")
+    raise DamcapError(f"{path}: mask is {mask[0]}x{mask[1]} but {of}; masks must match the photos' size")
 
 
 # --------------------------------------------------------------------------------------------

@@ -556,3 +556,48 @@ def test_a_photo_set_that_shows_nothing_is_refused_before_any_work(tmp_path):
         verify_photos(tmp_path, names)
     write_image_u8(tmp_path / "w2.png", np.random.default_rng(0).integers(0, 256, (16, 16, 3), dtype=np.uint8))
     verify_photos(tmp_path, names)
+
+
+def _png_claiming(width: int, height: int) -> bytes:
+    """A PNG whose header (IHDR) claims width x height, grey 8-bit: a few bytes, a huge decode."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    # a 1 MiB private chunk: OpenImageIO refuses a header that claims 1000x its file's size itself (a real
+    # 60000x60000 grey PNG of one colour is about 3.5 MB, and it decodes)
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0))
+            + chunk(b"prVt", bytes(2 ** 20)) + chunk(b"IDAT", zlib.compress(b"\0" * 4096)) + chunk(b"IEND", b""))
+
+
+def test_a_huge_mask_is_refused_from_its_header_before_decoding(tmp_path, monkeypatch):
+    """A 60000x60000 grey PNG given as a mask: refused from its header, by its size against the
+    photo's and, without a photo size, by memory (the decoder is never reached)."""
+    import damcap.common.exr as exr
+    from damcap.common import validate
+    from damcap.reconstruct.photos import read_mask
+
+    (tmp_path / "m.png").write_bytes(_png_claiming(60000, 60000))
+    monkeypatch.setattr(exr._oiio().ImageInput, "read_image", lambda *a, **k: pytest.fail("decoded"), raising=False)
+    with pytest.raises(DamcapError, match=r"m.png: mask is 60000x60000 but its photo IMG_1.jpg is 32x48; masks must match"):
+        read_mask(tmp_path / "m.png", (32, 48), "IMG_1.jpg")
+    monkeypatch.setattr(validate, "machine_memory_bytes", lambda: 16 * 2 ** 30)
+    # 3.6 GB of pixels, decoded and copied (7.2 GB: 6.7 GiB, within 8 GiB) plus what a mask makes of them (28.8 GB)
+    with pytest.raises(DamcapError, match=r"m.png: an image of 60000x60000 pixels, 1 channels would need 33.5 GiB of memory"):
+        read_mask(tmp_path / "m.png")
+
+
+def test_a_photo_stored_sideways_and_its_upright_mask_are_refused_in_one_line(tmp_path):
+    """A phone's portrait photo stored sideways (EXIF Orientation 6) with a mask drawn upright: one
+    line saying they are turned to each other; the photo set itself says it carries the tag."""
+    from damcap.reconstruct.photos import read_mask, verify_photos
+
+    write_image_u8(tmp_path / "IMG_1.jpg", np.random.default_rng(0).integers(0, 256, (32, 48, 3), dtype=np.uint8), {"Orientation": 6})
+    write_image_u8(tmp_path / "IMG_1.png", np.full((48, 32), 255, np.uint8))  # upright: 32 wide, 48 high
+    with pytest.raises(DamcapError, match=r"IMG_1.png: mask is 32x48 but its photo IMG_1.jpg is 48x32 \(stored on its side\): "
+                                          r"the photo and its mask are turned by 90 degrees"):
+        read_mask(tmp_path / "IMG_1.png", (48, 32), "IMG_1.jpg")
+    with pytest.warns(UserWarning, match=r"IMG_1.jpg: 1 of 1 photos carry an EXIF Orientation other than upright \(6 here"):
+        verify_photos(tmp_path, ["IMG_1.jpg"])

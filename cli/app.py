@@ -41,8 +41,14 @@ def _print_version(value: bool) -> None:
 
 
 def _root(version: bool = typer.Option(False, "--version", is_eager=True, callback=_print_version,
-                                       help="print damcap's version and exit")) -> None:
+                                       help="print damcap's version and exit"),
+          verbose: bool = typer.Option(False, "--verbose", help="also show native libraries' own log lines (COLMAP's), "
+                                       "before the command: damcap --verbose CMD ...")) -> None:
     """damcap: from photos to deep appearance maps."""
+    if verbose:
+        from damcap.common.native_stderr import VERBOSE_ENV
+
+        os.environ[VERBOSE_ENV] = "1"
 
 
 def summary(doc: str | None) -> str:

@@ -50,3 +50,51 @@ def native_stderr_caught() -> Iterator[list[str]]:
                 lines.extend(ln.strip() for ln in text.splitlines() if ln.strip())
     finally:
         os.close(saved)
+
+
+#: set (to anything but 0) by ``damcap --verbose``: native libraries' own log lines reach the terminal
+VERBOSE_ENV = "DAMCAP_VERBOSE"
+
+
+def native_logs_wanted() -> bool:
+    """Whether the user asked for native libraries' own log lines (``damcap --verbose``)."""
+    return os.environ.get(VERBOSE_ENV, "").strip() not in ("", "0")
+
+
+@contextlib.contextmanager
+def signal_handlers_kept() -> Iterator[None]:
+    """Load a native library inside the block: the Ctrl-C and SIGTERM handlers in place before it
+    are in place after it.
+
+    glog, inside pycolmap, installs its failure handler for SIGTERM when it loads (a SIGTERM then
+    printed a 35-line native stack dump instead of damcap's one ``interrupted`` line), while
+    Python still reports its own handler; setting Python's handler again puts it back.
+    """
+    import signal
+    import threading
+
+    signals = [signal.SIGINT, signal.SIGTERM]
+    main = threading.current_thread() is threading.main_thread()
+    saved = {s: signal.getsignal(s) for s in signals} if main else {}
+    try:
+        yield
+    finally:
+        for s, handler in saved.items():
+            if handler is not None:  # None: installed outside Python, nothing of ours to put back
+                signal.signal(s, handler)
+
+
+def load_pycolmap():
+    """pycolmap, loaded as damcap needs it everywhere: after OpenImageIO and OpenCV (its wheel
+    bundles its own libpng/zlib; loaded first, their PNG writers crash later in the same process,
+    ``free(): invalid pointer``), with damcap's signal handlers kept (:func:`signal_handlers_kept`)
+    and COLMAP's own log lines (its errors too: "Failed to create any sparse model") off the
+    terminal, where damcap's line says what happened, unless ``damcap --verbose``."""
+    import cv2  # noqa: F401
+    import OpenImageIO  # noqa: F401
+
+    with signal_handlers_kept():  # glog takes SIGTERM when it loads
+        import pycolmap
+
+    pycolmap.logging.minloglevel = 0 if native_logs_wanted() else 3
+    return pycolmap

@@ -257,7 +257,9 @@ def registration_points(capture: Capture) -> TrackedPoints | None:
     source = capture.extra.get("damcap_source")
     if not isinstance(source, dict) or source.get("norm_from_input_world") is None:
         return None
-    import pycolmap
+    from damcap.common.native_stderr import load_pycolmap
+
+    pycolmap = load_pycolmap()
 
     for rel in REGISTRATION_MODELS:
         folder = capture.root / "reconstruction" / rel
@@ -361,7 +363,9 @@ def _write_colmap(capture: Capture, sparse: Path, points: np.ndarray, colours: n
                   tracked: TrackedPoints | None) -> dict[str, Any]:
     """Write the model; with ``tracked``, its points and their observations instead of ``points``.
     Returns what the summary says about the points."""
-    import pycolmap
+    from damcap.common.native_stderr import load_pycolmap
+
+    pycolmap = load_pycolmap()
 
     observations: list[list[tuple[int, np.ndarray]]] = [[] for _ in capture.frames]  # per frame: (point, xy)
     if tracked is not None:

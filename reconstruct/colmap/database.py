@@ -75,17 +75,12 @@ def unregistered_reasons(names: list[str], registered: set[str], keypoints: dict
 
 
 def import_pycolmap():
-    """pycolmap, imported after OpenImageIO and OpenCV.
+    """pycolmap, as :func:`damcap.common.native_stderr.load_pycolmap` loads it: after OpenImageIO
+    and OpenCV, with damcap's signal handlers kept and COLMAP's log lines off the terminal unless
+    ``damcap --verbose``."""
+    from damcap.common.native_stderr import load_pycolmap
 
-    pycolmap's wheel bundles its own libpng/zlib; when it is loaded first, OpenImageIO's and
-    OpenCV's PNG writers crash later in the same process (``free(): invalid pointer``).
-    """
-    import cv2  # noqa: F401
-    import OpenImageIO  # noqa: F401
-    import pycolmap
-
-    pycolmap.logging.minloglevel = 2  # warnings and below stay quiet; damcap reports progress itself
-    return pycolmap
+    return load_pycolmap()
 
 
 def feature_mask(mask: np.ndarray, erode_fraction: float = 0.01, threshold: float = 0.5) -> np.ndarray:

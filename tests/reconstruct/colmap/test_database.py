@@ -127,3 +127,37 @@ def test_a_run_killed_while_matching_gets_its_names_back(tmp_path):
     restore_image_names(db_path)
     assert _image_names(db_path) == before
     assert not (tmp_path / "database.db.aliases.json").exists()
+
+
+_LOADED_THEN_SIGTERM = r"""
+import os, signal, sys, time
+from damcap.cli.main import _signals_and_warnings
+from damcap.cli.paths import Terminated
+from damcap.reconstruct.colmap.database import import_pycolmap
+with _signals_and_warnings():
+    pycolmap = import_pycolmap()
+    pycolmap.logging.error("E-from-colmap")
+    sys.stderr.flush()
+    try:
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)
+        print("not interrupted")
+    except Terminated:
+        print("terminated: damcap's handler")
+"""
+
+
+@pytest.mark.parametrize("verbose", [False, True])
+def test_colmap_keeps_damcaps_sigterm_handler_and_its_log_lines_off_the_terminal(verbose):
+    """Once pycolmap is loaded (glog installs its failure handler for SIGTERM when it loads), SIGTERM
+    still reaches damcap's handler (not a native stack dump); COLMAP's own log lines, its errors
+    too, stay off stderr unless --verbose (DAMCAP_VERBOSE)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "DAMCAP_VERBOSE"} | ({"DAMCAP_VERBOSE": "1"} if verbose else {})
+    got = subprocess.run([sys.executable, "-c", _LOADED_THEN_SIGTERM], capture_output=True, text=True, timeout=120, env=env)
+    assert got.returncode == 0 and got.stdout.strip() == "terminated: damcap's handler", (got.returncode, got.stdout, got.stderr[-1500:])
+    assert ("E-from-colmap" in got.stderr) == verbose, got.stderr[-500:]
+    assert "*** SIGTERM" not in got.stderr and "Check failure stack trace" not in got.stderr

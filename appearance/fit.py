@@ -51,6 +51,10 @@ SpatialMode = Literal["off", "albedo", "auto"]
 SPATIAL_MODES: tuple[str, ...] = ("off", "albedo", "auto")
 NormalRefineMode = Literal["off", "on", "auto"]
 NORMAL_REFINE_MODES: tuple[str, ...] = ("off", "on", "auto")
+HoldoutRule = Literal["arc", "spread"]
+HOLDOUT_RULES: tuple[str, ...] = ("arc", "spread")
+PriorMode = Literal["off", "predictor"]
+PRIOR_MODES: tuple[str, ...] = ("off", "predictor")
 AFTER_FIT_PREFIXES = ("spatial", "normal_refine")
 """options whose names start so act after :func:`fit_dam` (they are not part of its fingerprint)"""
 _REFINE = {f.name: f for f in fields(NormalRefineOptions)}
@@ -91,9 +95,26 @@ class FitOptions:
     adversarial_alpha: float = field(default=0.001, metadata=in_range(0, 1e6, cli_panel="advanced"))
     """weight of the adversarial cost (the paper: 0.001)"""
     holdout_views: int = field(default=2, metadata=COUNT_OR_ZERO)
-    """training views held out for the stopping rule (0 = none, keep the last weights)"""
+    """training views held out for the stopping rule and the 'auto' decisions (0 = none, keep the
+    last weights)"""
+    holdout: HoldoutRule = field(default="arc", metadata={"cli_panel": "advanced"})
+    """which training views are held out: 'arc' (a group of neighbouring cameras that lies
+    farthest from the others, so that the stopping rule and the 'auto' decisions judge views the
+    fit must extrapolate to, as novel views are; :func:`holdout_arc`) or 'spread' (views spread
+    over the training order, each between two that train)"""
     eval_every: int = field(default=100, metadata={**COUNT, "cli_panel": "advanced"})
     """steps between held-out evaluations"""
+    prior: PriorMode = field(default="off", metadata={"cli_what": "prior"})
+    """a prior on the DAM: 'off' or 'predictor' (the shipped predictor's prediction from the
+    training views pulls the fit, most where the training views constrain it least:
+    appearance/prior.py)"""
+    prior_weight: float = field(default=1.0, metadata=in_range(0, 1e6, cli_panel="advanced"))
+    """weight of the prior's cost against the data cost (both L1 of radiance / scale)"""
+    prior_sigma: float = field(default=0.25, metadata=in_range(0, 10, lo_open=True, cli_panel="advanced"))
+    """distance in the DAM's input encoding (unit vectors) over which the training pixels take
+    over from the prior: a prior sample that far from every training pixel has weight 0.63"""
+    prior_samples: int = field(default=32768, metadata={**COUNT, "cli_panel": "advanced"})
+    """prior: (view, normal) samples drawn once, over the training normals and their hemispheres"""
     seed: int = field(default=0, metadata=SEED)
     """seeds initialisation and pixel sampling: same seed, same model"""
     device: str = "cpu"
@@ -167,6 +188,10 @@ class FitOptions:
             raise DamcapError(f"--precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")
         if self.spatial not in SPATIAL_MODES:
             raise DamcapError(f"--spatial must be one of {', '.join(SPATIAL_MODES)}, got {self.spatial!r}")
+        if self.holdout not in HOLDOUT_RULES:
+            raise DamcapError(f"--holdout must be one of {', '.join(HOLDOUT_RULES)}, got {self.holdout!r}")
+        if self.prior not in PRIOR_MODES:
+            raise DamcapError(f"--prior must be one of {', '.join(PRIOR_MODES)}, got {self.prior!r}")
         if self.normal_refine not in NORMAL_REFINE_MODES:
             raise DamcapError(f"--normal-refine must be one of {', '.join(NORMAL_REFINE_MODES)}, got {self.normal_refine!r}")
         self.architecture  # width and depth within DamArchitecture's bounds (named in its error)
@@ -226,6 +251,80 @@ def holdout_frames(n_frames: int, k: int) -> list[int]:
     return sorted({int(round((i + 1) * (n_frames - 1) / (k + 1))) for i in range(k)})
 
 
+def holdout_arc(directions: np.ndarray, k: int) -> list[int]:
+    """k views that together lie farthest from the others: a seed view and its k - 1 nearest
+    neighbours by angle, for the seed whose group's smallest angle to any view outside it is the
+    largest (ties: the lowest seed index). On one ring of cameras that is an arc of k neighbours;
+    where the cameras are denser in one place than another, the most isolated group. Held out,
+    such a group is judged as novel views are: by how the fit extrapolates, not by how it
+    interpolates between neighbours on either side.
+
+    Args:
+        directions: (N, 3) unit vectors from the object's centre towards each camera (world).
+        k: views to hold out (at most N - 2, so that two train).
+
+    Returns:
+        sorted indices (empty when k <= 0 or N < 3).
+
+    >>> a = np.arange(8) * np.pi / 4
+    >>> holdout_arc(np.stack([np.cos(a), np.sin(a), 0 * a], 1), 2)
+    [0, 1]
+    >>> b = np.array([0, 0.1, 0.2, 0.3, 2.0, 2.1])
+    >>> holdout_arc(np.stack([np.cos(b), np.sin(b), 0 * b], 1), 2)
+    [4, 5]
+    """
+    d = np.asarray(directions, np.float64)
+    n = d.shape[0]
+    if k <= 0 or n < 3:
+        return []
+    k = min(k, n - 2)
+    angle = np.arccos(np.clip(d @ d.T, -1.0, 1.0))
+    np.fill_diagonal(angle, -1.0)  # each view is its own nearest
+    order = np.argsort(angle, axis=1, kind="stable")
+    best: list[int] = []
+    best_gap = -np.inf
+    for seed in range(n):
+        group = order[seed, :k]
+        outside = np.ones(n, bool)
+        outside[group] = False
+        gap = float(angle[np.ix_(group, np.flatnonzero(outside))].min())
+        if gap > best_gap + 1e-9:
+            best, best_gap = sorted(int(i) for i in group), gap
+    return best
+
+
+def camera_directions(views: list[ViewData]) -> np.ndarray:
+    """(N, 3) unit vectors from the object's centre (the mean of the views' mean foreground
+    surface points; the world origin where no view has foreground) towards each view's camera."""
+    means = [v.data.position_world[fg].mean(0) for v in views if (fg := v.data.coverage > FOREGROUND_COVERAGE).any()]
+    centre = np.mean(means, 0) if means else np.zeros(3)
+    d = np.array([v.centre_world for v in views], np.float64).reshape(-1, 3) - centre
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+
+
+def held_out(views: list[ViewData], opts: "FitOptions") -> list[int]:
+    """The training views ``opts`` holds out (``holdout_views`` of them, by the ``holdout`` rule):
+    the stopping rule's and every 'auto' decision's judges. The first and last view always train
+    under 'spread'; two views always train under 'arc'."""
+    if opts.holdout == "spread" or len(views) < 3:
+        return holdout_frames(len(views), opts.holdout_views)
+    return holdout_arc(camera_directions(views), opts.holdout_views)
+
+
+@dataclass
+class PriorSamples:
+    """Samples of a prior DAM that a fit is pulled towards (:func:`fit_dam`, ``prior``), built by
+    :func:`.prior.prior_samples`."""
+
+    inputs: torch.Tensor
+    """(M, C) encoded DAM inputs, in the fit's encoding"""
+    target: torch.Tensor
+    """(M, 3) the prior's radiance / the fit's radiance scale"""
+    weight: torch.Tensor
+    """(M,) in [0, 1]: how little the training pixels constrain each sample (0: a training pixel
+    lies on it)"""
+
+
 def quantile_loss(pred: torch.Tensor, target: torch.Tensor, quantile: float) -> torch.Tensor:
     """(N,) per-sample pinball loss 2 max(q u, (q - 1) u), u = target - pred, averaged over the
     channels of (N, C) radiance; exactly the mean absolute difference at q = 0.5."""
@@ -268,7 +367,8 @@ being resumed or deleted"""
 
 
 def fit_fingerprint(samples: PixelSamples, opts: FitOptions, frames_for_adversarial: list[TrainingFrame] | None = None,
-                    init_model: DeepAppearanceMap | None = None) -> str:
+                    init_model: DeepAppearanceMap | None = None, held: list[int] | None = None,
+                    prior: PriorSamples | None = None) -> str:
     """What a fit's result depends on: the training pixels (every tensor of ``samples``, bit for
     bit), the adversarial cost's whole frames, the initial model, the resolved options (but the
     spatial factor's and the normal refinement's, which act after the fit) and the damcap version. A checkpoint is resumed only by a fit with the same fingerprint."""
@@ -279,6 +379,10 @@ def fit_fingerprint(samples: PixelSamples, opts: FitOptions, frames_for_adversar
         parts += [f.radiance_norm, f.inputs, f.foreground]
     if init_model is not None:
         parts += [init_model.get_flat_weights(), float(init_model.radiance_scale)]
+    if held is not None:
+        parts += [{"held_frames": list(held)}]
+    if prior is not None:
+        parts += [prior.inputs, prior.target, prior.weight]
     return fingerprint(*parts)
 
 
@@ -349,6 +453,8 @@ def fit_dam(
     init_model: DeepAppearanceMap | None = None,
     log: Callable[[str], None] | None = None,
     remove_checkpoint: bool = True,
+    held_frames: list[int] | None = None,
+    prior: PriorSamples | None = None,
 ) -> FitResult:
     """Fit one DAM to pixel samples.
 
@@ -370,6 +476,12 @@ def fit_dam(
             architecture must be opts' and its radiance scale is kept.
         log: one-line messages (resuming; starting afresh); without it, starting afresh is a
             ``warnings.warn`` and resuming is silent.
+        held_frames: the training frames (``samples.frame_index`` values) the stopping rule holds
+            out (:func:`held_out`); None: :func:`holdout_frames` of ``opts.holdout_views``.
+        prior: samples of a prior DAM (:func:`.prior.prior_samples`): each step adds
+            ``opts.prior_weight`` times their weighted L1 (a batch of a quarter of
+            ``opts.batch_size``) to the cost. With an initial model and held-out views, the initial
+            model is scored too (step 0), so the fit keeps it where no step beats it.
 
     Raises:
         KeyboardInterrupt, SystemExit and any other exception of the loop propagate unchanged
@@ -395,8 +507,8 @@ def fit_dam(
     model = DeepAppearanceMap(arch, scale, None if init_model is None else init_model.get_flat_weights(), generator=gen).to(device)
 
     n_frames = int(samples.frame_index.max()) + 1
-    held = holdout_frames(n_frames, opts.holdout_views)
-    if log is not None and len(held) < opts.holdout_views:
+    held = sorted(int(k) for k in held_frames) if held_frames is not None else holdout_frames(n_frames, opts.holdout_views)
+    if log is not None and held_frames is None and len(held) < opts.holdout_views:
         log(f"note: {len(held)} of {n_frames} training views held out for the stopping rule (--holdout-views "
             f"{opts.holdout_views} leaves the first and last view to fit)")
     is_held = torch.zeros(len(samples), dtype=torch.bool)
@@ -427,7 +539,10 @@ def fit_dam(
     elapsed_before = 0.0
     ckpt = Path(checkpoint_path) if checkpoint_path else None
     say = log or _warn
-    fp = fit_fingerprint(samples, opts, frames_for_adversarial, init_model) if ckpt else ""
+    fp = fit_fingerprint(samples, opts, frames_for_adversarial, init_model, held, prior) if ckpt else ""
+    if prior is not None:
+        px, pt, pw = prior.inputs.to(device), prior.target.to(device), prior.weight.to(device)
+        prior_batch = max(1, min(opts.batch_size // 4, px.shape[0]))
     if ckpt and ckpt.is_file():
         state = load_checkpoint(ckpt)
         if state.get(FINGERPRINT_KEY) != fp:
@@ -460,6 +575,10 @@ def fit_dam(
 
     t0 = time.perf_counter()
     n_tr = x_tr.shape[0]
+    if start == 0 and init_model is not None and prior is not None and x_ho.shape[0]:  # the prior itself is a candidate
+        best_loss = _evaluate_cost(model, x_ho, y_ho, w_ho, arch, opts.quantile)
+        history.append({"step": 0, "train_l1": _evaluate_cost(model, x_tr, y_tr, w_tr, arch, opts.quantile), "holdout_l1": best_loss,
+                        "seconds": 0.0})
     # ``completed``/``gen_after``: the last step whose update and bookkeeping finished and the
     # generator state after it; ``mutating``: a step is changing weights, optimiser or records
     # (an interrupt there cannot be checkpointed exactly: the last periodic checkpoint stays).
@@ -473,6 +592,12 @@ def fit_dam(
                 pred = dam_forward(model.weights_flat, x_tr[idx], arch)
                 loss = weighted_quantile_cost(pred, y_tr[idx], w_tr[idx], opts.quantile)
             stats = {"loss": float(loss.detach())}
+            if prior is not None and opts.prior_weight > 0:
+                j = torch.randint(0, px.shape[0], (prior_batch,), generator=gen).to(device)
+                with compute_precision(device, opts.precision):
+                    prior_cost = (quantile_loss(dam_forward(model.weights_flat, px[j], arch), pt[j], 0.5) * pw[j]).mean()
+                loss = loss + opts.prior_weight * prior_cost
+                stats["prior"] = float(prior_cost.detach())
             if disc is not None:
                 real, fake = _patches(model, adv_frames, arch, gen, device)  # type: ignore[arg-type]
                 d_optim.zero_grad()  # type: ignore[union-attr]

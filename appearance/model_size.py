@@ -3,7 +3,7 @@
 ``damcap fit --target-dssim X`` fits DAMs of growing size (:data:`SIZE_LADDER`, ordered by
 weight count) and keeps the first whose DSSIM on held-out *training* views is at most X. The
 held-out views are the ones the fit's stopping rule already keeps out
-(:func:`.fit.holdout_frames`), so the test split stays untouched for evaluation.
+(:func:`.fit.held_out`), so the test split stays untouched for evaluation.
 
 Resuming: with a ``checkpoint_path`` (``damcap fit`` uses ``OUTPUT.ckpt``), the size in progress
 checkpoints to its own file beside it (``OUTPUT.ckpt.w16d2``, :func:`.fit.fit_dam`'s checkpoints)
@@ -29,7 +29,7 @@ from damcap.common.errors import DamcapError
 from damcap.appearance.views import ViewData
 from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
 from damcap.appearance.evaluate import score_view
-from damcap.appearance.fit import FitOptions, fit_dam, holdout_frames, load_checkpoint, save_checkpoint
+from damcap.appearance.fit import FitOptions, fit_dam, held_out, load_checkpoint, save_checkpoint
 from damcap.appearance.render import render_frame
 from damcap.appearance.views import samples_of
 from damcap.appearance.pixels import PixelSamples
@@ -138,7 +138,7 @@ def fit_to_target(train: list[ViewData], target_dssim: float, opts: FitOptions,
     """
     if not 0 < target_dssim < 1:
         raise DamcapError(f"--target-dssim must lie in (0, 1), got {target_dssim}")
-    held = holdout_frames(len(train), opts.holdout_views)
+    held = held_out(train, opts)
     if not held:
         raise DamcapError(f"--target-dssim needs held-out training views: use --holdout-views >= 1 and at least 3 train views "
                           f"(got {opts.holdout_views} and {len(train)})")
@@ -157,7 +157,7 @@ def fit_to_target(train: list[ViewData], target_dssim: float, opts: FitOptions,
             err, seconds, note = float(done["heldout_dssim"]), float(done["seconds"]), " (recorded)"
         else:
             ckpt = size_checkpoint_path(checkpoint_path, width, depth) if checkpoint_path is not None else None
-            result = fit_dam(samples, size_opts, checkpoint_path=ckpt, progress=fit_progress)
+            result = fit_dam(samples, size_opts, checkpoint_path=ckpt, progress=fit_progress, held_frames=held)
             model, seconds = result.model, result.seconds
             note = f" (resumed from step {result.resumed_from})" if result.resumed_from else ""
             scores = [score_view(train[k], render_frame(model, train[k].data, train[k].centre_world)) for k in held]

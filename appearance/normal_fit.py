@@ -6,7 +6,7 @@ surface and the DAM's weights are then optimised together on the training pixels
 render, evaluate and export on the capture's own surface shade with the refined normals.
 
 ``auto`` models only what the scene requires, like ``--spatial auto``: the field is refined on
-the training views without the ones the fit's stopping rule held out (:func:`.fit.holdout_frames`;
+the training views without the ones the fit's stopping rule held out (:func:`.fit.held_out`;
 the DAM never trained on them) and kept only when it lowers those held-out views' mean DSSIM by at
 least ``FitOptions.normal_refine_min_gain`` (a fraction) and ``normal_refine_min_gain_abs``. The
 kept field is then refined again from every training view (so 'auto' costs two refinements).
@@ -28,7 +28,7 @@ import numpy as np
 from damcap.common.errors import DamcapError
 
 from damcap.appearance.dam import DeepAppearanceMap
-from damcap.appearance.fit import FitOptions, holdout_frames
+from damcap.appearance.fit import FitOptions, held_out
 from damcap.appearance.normal_field import NormalField
 from damcap.appearance.normal_refine import refine_normals
 from damcap.appearance.spatial_fit import mean_dssim, pays_on_heldout, training_footprint
@@ -114,7 +114,7 @@ def choose_normal_refine(model: DeepAppearanceMap, views: list[ViewData], opts: 
     footprint = training_footprint(views)
     voxel = opts.normal_refine_voxel_px * footprint
     scores: dict[str, float] = {}
-    held = holdout_frames(len(views), opts.holdout_views)
+    held = held_out(views, opts)
     probe = None
     if opts.normal_refine == "auto" or (opts.spatial == "auto" and held):
         if not held:

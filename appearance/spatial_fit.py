@@ -8,7 +8,7 @@ is made.
 
 ``auto`` models only what the scene requires, like ``--materials auto`` and ``--target-dssim``:
 the albedo is estimated from the training views the fit's stopping rule held out
-(:func:`.fit.holdout_frames`; the DAM never trained on them) left out as well, and kept only when
+(:func:`.fit.held_out`; the DAM never trained on them) left out as well, and kept only when
 it lowers those held-out views' mean DSSIM by at least ``FitOptions.spatial_min_gain`` (a
 fraction) and ``spatial_min_gain_abs``. The kept texture is then estimated again from every
 training view.
@@ -28,7 +28,7 @@ from damcap.common.errors import DamcapError
 
 from damcap.appearance.dam import DeepAppearanceMap
 from damcap.appearance.evaluate import score_view
-from damcap.appearance.fit import FitOptions, holdout_frames
+from damcap.appearance.fit import FitOptions, held_out
 from damcap.appearance.normal_field import surface_normals
 from damcap.appearance.render import render_frame
 from damcap.appearance.spatial import SpatialAlbedo, estimate_spatial_albedo, log_ratio, pixel_footprint_world
@@ -147,7 +147,7 @@ def choose_spatial(model: DeepAppearanceMap, views: list[ViewData], opts: FitOpt
     voxel = opts.spatial_voxel_px * footprint
     scores: dict[str, float] = {}
     if opts.spatial == "auto":
-        held = holdout_frames(len(views), opts.holdout_views)
+        held = held_out(views, opts)
         if not held:
             raise DamcapError(f"--spatial auto decides on held-out training views: use --holdout-views >= 1 and at least 3 train views "
                               f"(got {opts.holdout_views} and {len(views)}), or --spatial albedo")

@@ -64,9 +64,8 @@ def fit(
     """
     from damcap.appearance.coverage import training_normal_histogram
     from damcap.appearance.dam_file import save_dam
-    from damcap.appearance.fit import adversarial_frames, fit_dam, holdout_frames
-    from damcap.appearance.normal_fit import choose_normal_refine
-    from damcap.appearance.spatial_fit import choose_spatial
+    from damcap.appearance.fit import held_out
+    from damcap.appearance.fit_views import fit_views
     from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import read_capture
     from damcap.common.version import package_version
@@ -77,7 +76,7 @@ def fit(
     check_paths([capture], [file_out(output), file_out(ckpt)])
     cap = read_capture(capture)
     views = load_views(cap, split)  # type: ignore[arg-type]
-    held = len(holdout_frames(len(views), opts.holdout_views))  # the first and last view always train
+    held = len(held_out(views, opts))  # two views always train
     if "holdout_views" in given and held < opts.holdout_views:
         raise DamcapError(f"--holdout-views must leave 2 of the {len(views)} training views of {capture} to fit "
                           f"(at most {held}), got {opts.holdout_views}")
@@ -88,28 +87,20 @@ def fit(
         _fit_to_target(capture, cap, views, split, target_dssim, opts, output, width_or_depth_given=bool({"width", "depth"} & given),
                        resume=resume)
         return
-    samples = samples_of(views)
-    frames = adversarial_frames(views, samples, opts)
     if not resume and ckpt.exists():
         ckpt.unlink()
     say = lambda message: typer.echo(message, err=True)  # noqa: E731
     # an interrupt during the refinement or the spatial factor keeps the fit's checkpoint too: a rerun resumes the fit, then redoes them
     with on_interrupt(lambda: _checkpoint_kept(ckpt, opts.checkpoint_every)):
-        result = fit_dam(samples, opts, frames_for_adversarial=frames, checkpoint_path=ckpt, progress=progress_bar(opts.steps, "fit"),
-                         log=say, remove_checkpoint=False)
-        normals = choose_normal_refine(result.model, views, opts, log=say,
-                                       progress=_bar_per_run(opts.normal_refine_steps, "normal refinement"))
-        spatial = choose_spatial(normals.model, views, opts, log=say, heldout_model=normals.heldout_model)
-    last = result.history[-1] if result.history else {}
-    save_dam(output, spatial.model, colorspace=cap.colorspace, made_by="fit", provenance={
+        out = fit_views(views, opts, checkpoint_path=ckpt, progress=progress_bar(opts.steps, "fit"),
+                        refine_progress=_bar_per_run(opts.normal_refine_steps, "normal refinement"), log=say)
+    save_dam(output, out.model, colorspace=cap.colorspace, made_by="fit", provenance={
         "damcap_package_version": package_version(), "options": asdict(opts), "capture": str(capture.resolve()),
-        "split": split, "frames": [v.name for v in views], "pixels": len(samples), "best_step": result.best_step,
-        "train_l1": last.get("train_l1"), "holdout_l1": last.get("holdout_l1"), "seconds": result.seconds, "threads": result.threads,
-        "history": result.history, "normal_refine": normals.record(), "spatial": spatial.record(),
-    }, up_world=cap.up_world, normal_histogram=training_normal_histogram(samples))
+        "split": split, "frames": [v.name for v in views], **out.record(views),
+    }, up_world=cap.up_world, normal_histogram=training_normal_histogram(samples_of(views)))
     ckpt.unlink(missing_ok=True)  # only now that the model is saved
-    typer.echo(f"wrote {output} ({result.model.arch.num_weights} weights, {len(samples)} pixels, "
-               f"best step {result.best_step}, {result.seconds:.1f} s)")
+    typer.echo(f"wrote {output} ({out.result.model.arch.num_weights} weights, {out.samples} pixels, "
+               f"best step {out.result.best_step}, {out.result.seconds + out.prior_seconds:.1f} s)")
 
 
 def _bar_per_run(steps: int, desc: str):

@@ -34,7 +34,7 @@ from damcap.common.validate import COUNT, COUNT_OR_ZERO, MAX_COUNT, check_ranges
 
 from damcap.appearance.dam import DeepAppearanceMap, dam_forward, encode_inputs
 from damcap.appearance.evaluate import score_view
-from damcap.appearance.fit import FitOptions, holdout_frames, refine_dam, training_l1, weighted_quantile_cost
+from damcap.appearance.fit import FitOptions, held_out, holdout_frames, refine_dam, training_l1, weighted_quantile_cost
 from damcap.appearance.pixels import PixelSamples
 from damcap.appearance.readout import ReadoutResult, solve_first_and_output_layers, solve_output_layer
 from damcap.appearance.render import render_frame
@@ -223,8 +223,8 @@ def resynthesis_line(err: Resynthesis, threshold: float) -> str:
     """
     head = f"re-synthesis of the {err.views} train views: DSSIM {err.dssim:.4f}, L1 {err.l1:.4f}; "
     if refinement_needed(err.dssim, threshold):
-        return head + (f"above --refine-threshold {threshold:g}: this capture is unlike the predictor's training set, "
-                       f"refinement needed (--refine-steps auto)")
+        return head + (f"above --refine-threshold {threshold:g}: this capture is unlike the predictor's training set; "
+                       f"--refine-steps auto refines only while an arc of held-out train views improves")
     return head + f"within --refine-threshold {threshold:g}: the prediction can be used as it is"
 
 
@@ -250,10 +250,12 @@ class AutoRefineResult:
 def refine_until_holdout_stops(model: DeepAppearanceMap, samples: PixelSamples, *, max_steps: int, patience_steps: int,
                                eval_every: int = 25, holdout_views: int = FitOptions.holdout_views,
                                learning_rate: float = PredictOptions.refine_learning_rate, batch_size: int = FitOptions.batch_size,
-                               seed: int = 0, progress: Callable[[int, int, dict[str, float]], None] | None = None) -> AutoRefineResult:
+                               seed: int = 0, progress: Callable[[int, int, dict[str, float]], None] | None = None,
+                               held: list[int] | None = None) -> AutoRefineResult:
     """Refine a (predicted) DAM until its held-out training views stop improving.
 
-    The views :func:`.fit.holdout_frames` holds out for the fit's stopping rule are scored, every
+    The views the fit's stopping rule holds out (``held``: :func:`.fit.held_out` of the train
+    views, an arc of cameras; None: :func:`.fit.holdout_frames`) are scored, every
     ``eval_every`` steps, by the fit's data cost (L1, :func:`.fit.training_l1`); the others train
     (Adam at a constant ``learning_rate``, ``batch_size`` random pixels a step, seeded). Training
     stops at ``max_steps`` or once ``patience_steps`` have passed since the held-out L1 last fell;
@@ -270,7 +272,7 @@ def refine_until_holdout_stops(model: DeepAppearanceMap, samples: PixelSamples, 
     if max_steps < 1 or patience_steps < 1 or eval_every < 1:
         raise DamcapError(f"max_steps, patience_steps and eval_every must be >= 1, got {max_steps}, {patience_steps}, {eval_every}")
     n_frames = int(samples.frame_index.max()) + 1 if len(samples) else 0
-    held = holdout_frames(n_frames, holdout_views)
+    held = holdout_frames(n_frames, holdout_views) if held is None else sorted(held)
     if not held:
         raise DamcapError(f"--refine-steps auto holds training views out to know when to stop, and {n_frames} train view(s) "
                           f"leave none to hold out (it needs 3); give a number of steps instead")
@@ -317,7 +319,7 @@ def refine_auto(model: DeepAppearanceMap, samples: PixelSamples, *, max_steps: i
                 learning_rate: float = PredictOptions.refine_learning_rate,
                 choose_progress: Callable[[int, int, dict[str, float]], None] | None = None,
                 refine_progress: Callable[[int, int], Callable[[int, int, dict[str, float]], None]] | None = None,
-                ) -> tuple[DeepAppearanceMap, AutoRefineResult]:
+                held: list[int] | None = None) -> tuple[DeepAppearanceMap, AutoRefineResult]:
     """``--refine-steps auto``: choose K with :func:`refine_until_holdout_stops`, then refine the
     start for K steps on all samples with :func:`.fit.refine_dam` (nothing when K = 0), both at
     ``learning_rate``.
@@ -330,7 +332,7 @@ def refine_auto(model: DeepAppearanceMap, samples: PixelSamples, *, max_steps: i
         (the refined model, the choice: K = ``steps_used``).
     """
     chosen = refine_until_holdout_stops(model, samples, max_steps=max_steps, patience_steps=patience_steps,
-                                        learning_rate=learning_rate, progress=choose_progress)
+                                        learning_rate=learning_rate, progress=choose_progress, held=held)
     if chosen.steps_used == 0:
         return model, chosen
     refined, _, _ = refine_dam(model, samples, chosen.steps_used, learning_rate,
@@ -344,6 +346,55 @@ def refine_auto(model: DeepAppearanceMap, samples: PixelSamples, *, max_steps: i
 
 BarFactory = Callable[[str, int], Callable[[int, int, dict], None]]
 """``(description, total) -> progress(step, steps, stats)``: one progress bar per loop"""
+
+
+@dataclass(frozen=True)
+class ForwardPass:
+    """The predictor's forward pass on a capture's views (:func:`forward_pass`)."""
+
+    model: DeepAppearanceMap
+    input_views: list[int]
+    """indices (into the views given) of the views the predictor read; the first is the chosen one"""
+    light_fit: object
+    """a light-orientation predictor's terminator fit (:func:`.orientation.terminator_fit`), else None"""
+    seconds: float
+
+
+def forward_pass(net, views: list[ViewData], view: str | None = None) -> ForwardPass:
+    """The predictor ``net``'s DAM from ``views`` (its input views chosen among them; ``view``: the
+    first one's name, else the best covered lit one), in its light orientation for a
+    light-orientation predictor, before any solve.
+
+    Raises:
+        DamcapError: too few views with foreground, or ``view`` not among them.
+    """
+    from damcap.appearance.hyper.model import input_images, predict_from_images, predictor_inputs
+    from damcap.appearance.hyper.orientation import rotation_to_up, terminator_fit
+
+    ks, crops, capture_scale = predictor_inputs(views, net.arch.input_views, view)
+    t0 = time.perf_counter()
+    images, scale = input_images(crops, net.arch.input_size, capture_scale)
+    # a light-orientation predictor: its rotation (orientation.light_rotation) is fitted once, for the network and the record
+    light_fit = terminator_fit(images[None]) if net.arch.orientation == "light" else None
+    model = predict_from_images(net, images, scale, None if light_fit is None else rotation_to_up(light_fit)[0])
+    return ForwardPass(model, list(ks), light_fit, time.perf_counter() - t0)
+
+
+def predict_views(views: list[ViewData], opts: PredictOptions = PredictOptions(), predictor_path=None, device: str = "cpu") -> DeepAppearanceMap:
+    """``damcap predict``'s DAM from ``views`` without refinement: the default predictor's
+    forward pass, then its solves on the views' pixels (:func:`solve_prediction`).
+
+    Raises:
+        DamcapError: an unreadable predictor; too few views with foreground.
+    """
+    from damcap.appearance.hyper.file import load_predictor, predictor_path as resolve_predictor
+    from damcap.appearance.views import samples_of
+    from damcap.common.device import resolve_device
+
+    net, _ = load_predictor(resolve_predictor(predictor_path))
+    net.to(resolve_device(device))
+    model = forward_pass(net, views).model
+    return solve_prediction(model, samples_of(views), opts).model
 
 
 @dataclass
@@ -396,8 +447,7 @@ def predict_capture(capture, opts: PredictOptions = PredictOptions(), predictor_
 
     from damcap.appearance.coverage import training_normal_histogram
     from damcap.appearance.hyper.file import load_predictor, predictor_path as resolve_predictor
-    from damcap.appearance.hyper.orientation import rotation_to_up, terminator_fit, unit_direction
-    from damcap.appearance.hyper.model import input_images, predict_from_images, predictor_inputs
+    from damcap.appearance.hyper.orientation import unit_direction
     from damcap.appearance.views import load_views, samples_of
     from damcap.common.capture_folder import Capture, read_capture
     from damcap.common.device import resolve_device
@@ -412,16 +462,11 @@ def predict_capture(capture, opts: PredictOptions = PredictOptions(), predictor_
     cap = capture if isinstance(capture, Capture) else read_capture(capture)
     train_views = load_views(cap, "train")
     try:
-        ks, crops, capture_scale = predictor_inputs(train_views, net.arch.input_views, None if view is None else Path(view).stem)
+        forward = forward_pass(net, train_views, None if view is None else Path(view).stem)
     except DamcapError as e:
         raise DamcapError(f"{cap.root}: {e}") from None
-    frames = [cap.split("train")[k] for k in ks]
-    t0 = time.perf_counter()
-    images, scale = input_images(crops, net.arch.input_size, capture_scale)
-    # a light-orientation predictor: its rotation (orientation.light_rotation) is fitted once, for the network and the record
-    light_fit = terminator_fit(images[None]) if net.arch.orientation == "light" else None
-    model = predict_from_images(net, images, scale, None if light_fit is None else rotation_to_up(light_fit)[0])
-    predict_s = time.perf_counter() - t0
+    model, light_fit, predict_s = forward.model, forward.light_fit, forward.seconds
+    frames = [cap.split("train")[k] for k in forward.input_views]
     samples = samples_of(train_views)
     err = resynthesis_error(model, train_views, samples)
     advice = resynthesis_line(err, opts.refine_threshold)
@@ -458,7 +503,7 @@ def predict_capture(capture, opts: PredictOptions = PredictOptions(), predictor_
         model, auto = refine_auto(model, samples, max_steps=opts.refine_max_steps, patience_steps=opts.refine_patience,
                                   learning_rate=opts.refine_learning_rate,
                                   choose_progress=bar("choose refine steps", opts.refine_max_steps),
-                                  refine_progress=lambda n: bar("refine", n))
+                                  refine_progress=lambda n: bar("refine", n), held=held_out(train_views, FitOptions()))
         record.update(refine_seconds=time.perf_counter() - t1, refine_steps_used=auto.steps_used, refine_steps_run=auto.steps_run,
                       refine_stopped_by=auto.stopped_by, refine_held_out_views=[train_views[i].name for i in auto.held_out],
                       refine_holdout_curve=auto.curve)

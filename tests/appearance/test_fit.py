@@ -481,3 +481,66 @@ def _samples_for_fingerprint():
     n = 64
     v = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
     return PixelSamples(v, v.flip(1), torch.rand(n, 3, generator=g), torch.ones(n), torch.arange(n) % 4)
+
+
+def _ring(n: int, elevation: float = 0.0):
+    import numpy as np
+
+    a = 2 * np.pi * np.arange(n) / n
+    return np.stack([np.cos(a) * np.cos(elevation), np.sin(a) * np.cos(elevation), np.full(n, np.sin(elevation))], 1)
+
+
+def test_holdout_arc_takes_neighbours_on_a_ring_and_the_isolated_group_elsewhere():
+    import numpy as np
+
+    from damcap.appearance.fit import holdout_arc
+
+    assert holdout_arc(_ring(10), 3) == [0, 1, 9]  # an arc of neighbours, the first seed on ties
+    assert holdout_arc(_ring(10), 0) == [] and holdout_arc(_ring(2), 1) == []
+    assert len(holdout_arc(_ring(4), 5)) == 2  # two views always train
+    # a ring of 8 plus two cameras high above it: those two are held out (the fit must extrapolate to them)
+    dirs = np.concatenate([_ring(8), _ring(2, np.radians(70))])
+    assert holdout_arc(dirs, 2) == [8, 9]
+    # the group's smallest angle to the rest is the largest of any group of that size
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(12, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    ang = np.arccos(np.clip(d @ d.T, -1, 1))
+    held = holdout_arc(d, 3)
+    gap = lambda g: ang[np.ix_(g, [i for i in range(12) if i not in g])].min()  # noqa: E731
+    nearest_groups = [list(np.argsort(ang[s])[:3]) for s in range(12)]
+    assert gap(held) >= max(gap(g) for g in nearest_groups) - 1e-9
+
+
+def test_held_out_follows_the_rule(sample_views):
+    from damcap.appearance.fit import camera_directions, held_out, holdout_arc
+
+    train, _ = sample_views
+    assert held_out(train, FitOptions(holdout="spread")) == holdout_frames(len(train), 2)
+    assert held_out(train, FitOptions()) == holdout_arc(camera_directions(train), 2)
+    with pytest.raises(DamcapError, match="--holdout must be one of arc, spread, got 'ring'"):
+        FitOptions(holdout="ring").validate()
+    with pytest.raises(DamcapError, match="--prior must be one of off, predictor"):
+        FitOptions(prior="yes").validate()
+
+
+def test_given_held_frames_are_the_ones_scored(small_samples):
+    s = small_samples
+    opts = FitOptions(steps=40, eval_every=40, checkpoint_every=0, seed=2)
+    a = fit_dam(s, opts, held_frames=[0])
+    b = fit_dam(s, opts, held_frames=[1])
+    assert a.history[-1]["holdout_l1"] != b.history[-1]["holdout_l1"]
+
+
+def test_with_a_prior_the_initial_model_is_a_candidate_and_kept_when_no_step_beats_it(small_samples):
+    """Start from a model; a learning rate so high that every step is worse: the start is kept."""
+    from damcap.appearance.fit import PriorSamples, training_l1
+
+    s = small_samples
+    good = fit_dam(s, FitOptions(steps=300, checkpoint_every=0, seed=0)).model
+    prior = PriorSamples(torch.zeros(0, 6), torch.zeros(0, 3), torch.zeros(0))
+    wild = FitOptions(steps=50, eval_every=25, checkpoint_every=0, learning_rate=5.0, seed=0, prior_weight=0.0)
+    kept = fit_dam(s, wild, init_model=good, prior=prior)
+    assert kept.best_step == 0 and kept.history[0]["step"] == 0
+    assert torch.equal(kept.model.get_flat_weights(), good.get_flat_weights())
+    assert training_l1(kept.model, s) == training_l1(good, s)

@@ -12,7 +12,7 @@ import torch
 
 from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
 from damcap.appearance.dam_file import load_dam
-from damcap.appearance.fit import holdout_frames, refine_dam, training_l1
+from damcap.appearance.fit import FitOptions, held_out, holdout_frames, refine_dam, training_l1
 from damcap.appearance.hyper.file import load_predictor, save_predictor
 from damcap.appearance.hyper.model import HyperArchitecture, HyperNet, predict_dam, predictor_input
 from damcap.appearance.hyper.predict import (
@@ -70,7 +70,7 @@ def test_refinement_advice_follows_the_threshold():
     assert refinement_needed(0.06, 0.05) and not refinement_needed(0.05, 0.05) and refinement_needed(math.nan, 0.05)
     above = resynthesis_line(Resynthesis(0.2084, 0.1396, 10), 0.05)
     assert above.startswith("re-synthesis of the 10 train views: DSSIM 0.2084, L1 0.1396; above --refine-threshold 0.05")
-    assert "refinement needed (--refine-steps auto)" in above and "\n" not in above
+    assert "--refine-steps auto refines only while an arc of held-out train views improves" in above and "\n" not in above
     assert "within --refine-threshold 0.3" in resynthesis_line(Resynthesis(0.2084, 0.1396, 10), 0.3)
 
 
@@ -141,10 +141,11 @@ def test_predict_reports_its_resynthesis_error_and_refines_until_the_held_out_vi
     assert lines[0] == resynthesis_line(ref, default)
     assert prov["refinement_needed"] is refinement_needed(ref.dssim, default) and prov["refine_threshold"] == default
     # auto: the library's choice of K, then K steps on all train views (what --refine-steps K does)
-    refined, auto = refine_auto(predicted, samples, max_steps=60, patience_steps=50)
+    held = held_out(views, FitOptions())  # an arc of the train cameras, as the fit's stopping rule holds out
+    refined, auto = refine_auto(predicted, samples, max_steps=60, patience_steps=50, held=held)
     assert prov["refine_steps"] == "auto" and prov["options"]["refine_max_steps"] == 60
     assert (prov["refine_steps_used"], prov["refine_steps_run"]) == (auto.steps_used, auto.steps_run)
-    assert prov["refine_held_out_views"] == [views[1].name, views[2].name]
+    assert prov["refine_held_out_views"] == [views[k].name for k in held] == [views[0].name, views[1].name]
     assert prov["refine_holdout_curve"] == auto.curve
     assert np.array_equal(model.get_flat_weights().numpy(), refined.get_flat_weights().numpy())
     if auto.steps_used:
@@ -180,12 +181,12 @@ def test_predict_threshold_and_integer_refinement(tmp_path, small_capture, tiny_
     code, stdout, err = run(["predict", small_capture, "-o", tmp_path / "s.dam", "--predictor", tiny_predictor, "--refine-threshold",
                              str(prov["train_dssim_readout"])], capsys)
     assert code == 0, err
-    assert f"train views: DSSIM {raw:.4f}" in stdout and "refinement needed" in stdout
+    assert f"train views: DSSIM {raw:.4f}" in stdout and "--refine-steps auto refines only while" in stdout
     assert load_dam(tmp_path / "s.dam")[1]["provenance"]["refinement_needed"] is True
     code, stdout, err = run(["predict", small_capture, "-o", tmp_path / "b.dam", "--predictor", tiny_predictor, "--refine-threshold", "0",
                              "--refine-steps", "20"], capsys)
     assert code == 0, err
-    assert "above --refine-threshold 0: this capture is unlike the predictor's training set, refinement needed" in stdout
+    assert "above --refine-threshold 0: this capture is unlike the predictor's training set; --refine-steps auto refines only while" in stdout
     prov = load_dam(tmp_path / "b.dam")[1]["provenance"]
     assert prov["refinement_needed"] is True and prov["refine_steps"] == prov["refine_steps_used"] == 20
     assert prov["train_l1_refined"] <= prov["train_l1_predicted"]

@@ -1,0 +1,92 @@
+"""``damcap fit`` on a capture's views, without the command line: the held-out views, the prior,
+the DAM's fit, then the normal refinement and the spatial factor (each as ``FitOptions`` asks).
+
+1. The held-out views (:func:`.fit.held_out`): the stopping rule and every 'auto' decision
+   judge the fit on them; by default an arc of cameras farthest from the rest.
+2. The prior (``prior='predictor'``, :mod:`.prior`): the shipped predictor's DAM from the views
+   that train (not the held-out ones, so that they stay a fair judge), sampled once.
+3. :func:`.fit.fit_dam` on the views that train, stopped at the step the held-out views score
+   best.
+4. :func:`.normal_fit.choose_normal_refine`, then :func:`.spatial_fit.choose_spatial`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from damcap.appearance.fit import FitOptions, FitResult, TrainingFrame, adversarial_frames, fit_dam, held_out
+from damcap.appearance.normal_fit import NormalRefineDecision, choose_normal_refine
+from damcap.appearance.prior import prior_samples
+from damcap.appearance.spatial_fit import SpatialDecision, choose_spatial
+from damcap.appearance.views import ViewData, radiance_scale_of, samples_of
+
+
+@dataclass
+class FitOutcome:
+    """What :func:`fit_views` made."""
+
+    result: FitResult
+    """the DAM's fit (the model before the surface factors)"""
+    normals: NormalRefineDecision
+    spatial: SpatialDecision
+    held: list[int]
+    """indices of the held-out views"""
+    prior_seconds: float
+    """the prediction and the prior's samples (0 without a prior)"""
+    samples: int
+    """training pixels"""
+
+    @property
+    def model(self):
+        """The final DAM, with the surface factors that were kept."""
+        return self.spatial.model
+
+    def record(self, views: list[ViewData]) -> dict:
+        """The provenance entries of this fit (beside the options and the capture)."""
+        last = self.result.history[-1] if self.result.history else {}
+        return {"pixels": self.samples, "best_step": self.result.best_step, "train_l1": last.get("train_l1"),
+                "holdout_l1": last.get("holdout_l1"), "held_out_views": [views[k].name for k in self.held],
+                "prior_seconds": self.prior_seconds, "seconds": self.result.seconds, "threads": self.result.threads,
+                "history": self.result.history, "normal_refine": self.normals.record(), "spatial": self.spatial.record()}
+
+
+def fit_views(views: list[ViewData], opts: FitOptions, *, checkpoint_path: str | Path | None = None,
+              progress: Callable | None = None, refine_progress: Callable | None = None,
+              log: Callable[[str], None] | None = None) -> FitOutcome:
+    """Fit a DAM (and the surface factors ``opts`` asks for) to ``views`` (module docstring).
+
+    Args:
+        views: the training views.
+        opts: the fit's options (validated by the caller).
+        checkpoint_path: the fit's checkpoint (kept until the caller removes it: a rerun after an
+            interrupt during the surface factors resumes the fit, then redoes them).
+        progress: the fit's progress(step, steps, stats); refine_progress: the normal
+            refinement's progress(step, loss).
+        log: one-line messages (resuming, decisions).
+
+    Raises:
+        DamcapError: no covered pixels; a prior without views to predict from; an 'auto' rule
+            without held-out views.
+    """
+    samples = samples_of(views)
+    held = held_out(views, opts)
+    frames: list[TrainingFrame] | None = adversarial_frames(views, samples, opts)
+    prior, init, prior_s = None, None, 0.0
+    if opts.prior == "predictor":
+        from damcap.appearance.hyper.predict import predict_views
+
+        t0 = time.perf_counter()
+        predicted = predict_views([v for k, v in enumerate(views) if k not in held], device=opts.device)
+        if predicted.arch == opts.architecture:  # start from the prediction itself (the fit keeps its radiance scale)
+            init = predicted
+        scale = predicted.radiance_scale if init is not None else radiance_scale_of(samples.radiance_lin, samples.weight)
+        prior = prior_samples(predicted, samples, opts.encoding, scale, opts.prior_samples, opts.prior_sigma, opts.seed)
+        prior_s = time.perf_counter() - t0
+    result = fit_dam(samples, opts, frames_for_adversarial=frames, checkpoint_path=checkpoint_path, progress=progress, log=log,
+                     remove_checkpoint=False, held_frames=held, prior=prior, init_model=init)
+    normals = choose_normal_refine(result.model, views, opts, log=log, progress=refine_progress)
+    spatial = choose_spatial(normals.model, views, opts, log=log, heldout_model=normals.heldout_model)
+    return FitOutcome(result, normals, spatial, held, prior_s, len(samples))

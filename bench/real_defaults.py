@@ -1,0 +1,231 @@
+"""Do damcap's defaults take its best path on objects it was never tuned on, judged on whole
+rings of cameras held out?
+
+For each capture (real photos: the cape, the fox; rendered photos: the studio bunny's two rings,
+the blob), each geometry (visual hull, dense), the capture is split by camera rings
+(:func:`ring_split`): the training views are one ring (or the densest elevation band), the novel
+views are every camera more than ``--gap-deg`` away in elevation. Every method fits on the
+training views only and is scored by its mean DSSIM on the novel views, beside RM++ on the same
+views, and timed (wall seconds of the whole ``damcap fit`` path, :func:`.fit_views.fit_views`).
+
+Run from the repository root::
+
+    .venv/bin/python -m bench.real_defaults [--captures studio,cape,blob,fox] [--methods ...] [--fresh]
+
+Writes ``bench/results/real_defaults.json`` (rows accumulate: a rerun of some methods keeps the
+others) and ``bench/real_defaults.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import numpy as np
+
+from bench.common import BENCH, CACHE, RESULTS, command_line, log, machine_info, shared_data_dir
+
+RESULT = RESULTS / "real_defaults.json"
+REPORT = BENCH / "real_defaults.md"
+WORK = CACHE / "real_defaults"
+
+
+def capture_sources(data: Path) -> dict[str, dict]:
+    """name -> photos, masks (or None) and known cameras of each capture."""
+    real = data / "real"
+    samples = BENCH.parent / "samples"
+    return {
+        "studio": {"photos": samples / "photos_studio" / "images", "masks": samples / "photos_studio" / "masks",
+                   "poses": samples / "photos_studio" / "transforms.json", "kind": "rendered photos (Mitsuba), 3 materials"},
+        "cape": {"photos": real / "mold_gold_cape" / "images", "masks": real / "mold_gold_cape" / "masks",
+                 "poses": real / "mold_gold_cape" / "poses_bounds.npy", "kind": "real photos, glossy gold"},
+        "blob": {"photos": samples / "photos_blob" / "images", "masks": samples / "photos_blob" / "masks",
+                 "poses": samples / "photos_blob" / "transforms.json", "kind": "rendered photos, printed texture"},
+        "fox": {"photos": real / "fox", "masks": None, "poses": None, "kind": "real phone photos, no masks"},
+    }
+
+
+def ring_split(directions: np.ndarray, up: np.ndarray, train_views: int, band_deg: float = 20.0,
+               gap_deg: float = 15.0) -> tuple[list[int], list[int]]:
+    """A split by camera rings: train on one elevation band, test on the cameras far above or below it.
+
+    The band is the ``band_deg``-wide window of elevations holding the most cameras (ties: the
+    higher one); ``train_views`` of its cameras spread in azimuth train (farthest-point order
+    from the first); the test views are all cameras whose elevation differs from the band's
+    mean by more than ``gap_deg``.
+
+    Args:
+        directions: (N, 3) unit vectors from the object's centre to the cameras.
+        up: (3,) the capture's up direction.
+
+    >>> a = np.arange(12) * np.pi / 6
+    >>> ring = lambda e: np.stack([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.full(12, np.sin(e))], 1)
+    >>> tr, te = ring_split(np.concatenate([ring(0.26), ring(0.79)]), np.array([0, 0, 1.0]), 6)
+    >>> sorted(tr), te
+    ([12, 14, 15, 18, 21, 23], [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11])
+    """
+    up = up / np.linalg.norm(up)
+    elev = np.degrees(np.arcsin(np.clip(directions @ up, -1, 1)))
+    starts = np.sort(elev)
+    counts = [(int(((elev >= s) & (elev <= s + band_deg)).sum()), s) for s in starts]
+    best = max(c for c, _ in counts)
+    lo = max(s for c, s in counts if c == best)
+    band = np.flatnonzero((elev >= lo) & (elev <= lo + band_deg))
+    mean = float(elev[band].mean())
+    horiz = directions[band] - np.outer(directions[band] @ up, up)
+    az = np.arctan2(horiz @ np.cross(up, horiz[0] / np.linalg.norm(horiz[0])), horiz @ (horiz[0] / np.linalg.norm(horiz[0])))
+    chosen = [0]
+    while len(chosen) < min(train_views, len(band)):
+        gap = np.min(np.abs(np.angle(np.exp(1j * (az[:, None] - az[None, chosen])))), axis=1)
+        chosen.append(int(np.argmax(gap)))
+    train = [int(band[k]) for k in chosen]
+    test = [int(i) for i in np.flatnonzero(np.abs(elev - mean) > gap_deg)]
+    return train, test
+
+
+def build_capture(name: str, src: dict, geometry: str, size: int, fresh: bool) -> Path:
+    """The capture folder of ``name`` at ``size`` px with ``geometry`` (built once, cached)."""
+    import shutil
+
+    from damcap.reconstruct.geometry import GeometryOptions
+    from damcap.reconstruct.pipeline import ReconstructOptions, reconstruct_capture
+
+    out = WORK / f"{name}-{geometry}-{size}"
+    if fresh and out.exists():
+        shutil.rmtree(out)
+    if (out / "transforms.json").is_file():
+        return out
+    opts = ReconstructOptions(capture_size=size, train_views=2, geometry=GeometryOptions(mode=geometry))
+    poses = str(src["poses"]) if src["poses"] else None
+    reconstruct_capture(src["photos"], out, opts, masks_dir=src["masks"], poses=poses, log=log)
+    return out
+
+
+def methods() -> dict[str, dict]:
+    """method name -> FitOptions changes from the defaults (``predict``: the predictor alone)."""
+    old = {"holdout": "spread", "prior": "off"}
+    return {
+        "fit (old default)": old,
+        "fit": {"prior": "off"},
+        "fit + prior": {"prior": "predictor"},
+        "predict": {"predict": True},
+        "auto (old rules)": {**old, "normal_refine": "auto", "spatial": "auto"},
+        "auto": {"prior": "off", "normal_refine": "auto", "spatial": "auto"},
+        "prior + auto": {"prior": "predictor", "normal_refine": "auto", "spatial": "auto"},
+        "refine + albedo": {**old, "normal_refine": "on", "spatial": "albedo"},
+        "prior + refine + albedo": {"prior": "predictor", "normal_refine": "on", "spatial": "albedo"},
+        "defaults": {},
+    }
+
+
+def run_method(name: str, change: dict, train, test) -> dict:
+    """Fit (or predict) on ``train``; mean DSSIM on ``test``; wall seconds."""
+    from damcap.appearance.evaluate import evaluate_split
+    from damcap.appearance.fit import FitOptions
+    from damcap.appearance.fit_views import fit_views
+    from damcap.appearance.hyper.predict import predict_views
+
+    t0 = time.perf_counter()
+    record: dict = {}
+    if change.get("predict"):
+        model = predict_views(train)
+    else:
+        opts = replace(FitOptions(), **change)
+        out = fit_views(train, opts, log=log)
+        model = out.model
+        record = {"best_step": out.result.best_step, "held_out": [train[k].name for k in out.held],
+                  "normal_refine": out.normals.record(), "spatial": out.spatial.record(), "options": change}
+    seconds = time.perf_counter() - t0
+    scores = evaluate_split(train, test, {name: model}, baselines=False)[name]
+    return {"method": name, "novel_dssim": scores.mean, "seconds": seconds, **record}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--captures", default="studio,cape,blob,fox")
+    ap.add_argument("--geometries", default="visual-hull,dense")
+    ap.add_argument("--methods", default=",".join(methods()))
+    ap.add_argument("--size", type=int, default=256, help="capture size, px")
+    ap.add_argument("--train-views", type=int, default=10)
+    ap.add_argument("--gap-deg", type=float, default=15.0)
+    ap.add_argument("--fresh", action="store_true", help="rebuild the captures and drop earlier rows")
+    args = ap.parse_args(argv)
+
+    import torch
+
+    from damcap.appearance.baselines import rm_plus_plus
+    from damcap.appearance.evaluate import score_view
+    from damcap.appearance.fit import camera_directions
+    from damcap.appearance.views import load_views
+    from damcap.common.capture_folder import read_capture
+
+    torch.set_num_threads(2)
+    data = shared_data_dir()
+    sources = capture_sources(data)
+    prev = json.loads(RESULT.read_text()) if RESULT.is_file() and not args.fresh else {}
+    rows: list[dict] = prev.get("rows", [])
+    splits: dict = prev.get("splits", {})
+    wanted = [m for m in args.methods.split(",") if m]
+    unknown = set(wanted) - set(methods())
+    if unknown:
+        sys.exit(f"unknown methods {sorted(unknown)}; known: {list(methods())}")
+    for name in args.captures.split(","):
+        src = sources[name]
+        for geometry in args.geometries.split(","):
+            if src["masks"] is None and geometry == "visual-hull":
+                continue
+            cap_dir = build_capture(name, src, geometry, args.size, args.fresh)
+            cap = read_capture(cap_dir)
+            views = load_views(cap, "all")
+            train_idx, test_idx = ring_split(camera_directions(views), cap.up_world, args.train_views, gap_deg=args.gap_deg)
+            train, test = [views[k] for k in train_idx], [views[k] for k in test_idx]
+            key = f"{name}/{geometry}"
+            rmpp = float(np.mean([s for t, p in zip(test, rm_plus_plus(train, test)) if (s := score_view(t, p)) is not None]))
+            splits[key] = {"train": [v.name for v in train], "test": len(test), "rm++": rmpp, "kind": src["kind"],
+                           "capture": str(cap_dir.relative_to(BENCH.parent)), "size": args.size}
+            log(f"{key}: {len(train)} train, {len(test)} novel views; RM++ {rmpp:.4f}")
+            for m in wanted:
+                row = {"capture": name, "geometry": geometry, **run_method(m, methods()[m], train, test)}
+                row["x_rmpp"] = row["novel_dssim"] / rmpp
+                log(f"{key} {m}: novel DSSIM {row['novel_dssim']:.4f} (x{row['x_rmpp']:.2f} RM++), {row['seconds']:.1f} s")
+                rows = [r for r in rows if (r["capture"], r["geometry"], r["method"]) != (name, geometry, m)] + [row]
+                res = {"command": command_line("real_defaults", argv if argv is not None else sys.argv[1:]), "machine": machine_info(),
+                       "splits": splits, "rows": rows}
+                RESULT.write_text(json.dumps(res, indent=1, default=float))
+    write_report(json.loads(RESULT.read_text()))
+    return 0
+
+
+def write_report(res: dict) -> None:
+    """bench/real_defaults.md from the results (generated tables above the history marker)."""
+    lines = ["# Defaults on objects damcap was not tuned on, judged on held-out camera rings", "",
+             "Question: do `damcap fit`'s defaults take its best path on captures it was never tuned on? Each capture is split by "
+             "camera rings (`bench.real_defaults.ring_split`): train on one elevation band, score the mean DSSIM on every camera more "
+             "than 15 deg above or below it (novel views), beside RM++ on the same views. Seconds: the whole fit path "
+             "(prediction, fit, refinement, albedo), wall clock on the machine below.", "",
+             f"Command: `{res['command']}`", "", f"Machine: {res['machine'].get('cpu', '')}, {res['machine'].get('date_utc', '')}", ""]
+    by = {}
+    for r in res["rows"]:
+        by.setdefault((r["capture"], r["geometry"]), []).append(r)
+    for (cap, geo), rs in by.items():
+        sp = res["splits"][f"{cap}/{geo}"]
+        lines += [f"## {cap}, {geo} ({sp['kind']}; {len(sp['train'])} train views, {sp['test']} novel; RM++ {sp['rm++']:.4f})", "",
+                  "| method | novel DSSIM | x RM++ | seconds | kept |", "|---|---:|---:|---:|---|"]
+        for r in sorted(rs, key=lambda r: r["novel_dssim"]):
+            kept = []
+            if r.get("normal_refine", {}).get("mode", "off") != "off":
+                kept.append(f"normals {'kept' if r['normal_refine']['kept'] else 'not kept'}")
+            if r.get("spatial", {}).get("mode", "off") != "off":
+                kept.append(f"albedo {'kept' if r['spatial']['kept'] else 'not kept'}")
+            lines.append(f"| {r['method']} | {r['novel_dssim']:.4f} | {r['x_rmpp']:.2f} | {r['seconds']:.0f} | {', '.join(kept)} |")
+        lines.append("")
+    REPORT.write_text("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,50 @@
+"""damcap fit's path on views (appearance/fit_views.py): held-out arc, prior, factors, record."""
+
+from __future__ import annotations
+
+import pytest
+
+from damcap.appearance.fit import FitOptions, held_out
+from damcap.appearance.fit_views import fit_views
+from damcap.appearance.views import load_views
+from damcap.common.capture_folder import read_capture
+
+
+@pytest.fixture(scope="module")
+def views(sample_capture):
+    return load_views(read_capture(sample_capture), "train")
+
+
+def test_plain_fit_records_the_held_out_arc(views):
+    opts = FitOptions(steps=60, eval_every=30, checkpoint_every=0)
+    out = fit_views(views, opts)
+    assert out.held == held_out(views, opts) and len(out.held) == 2
+    rec = out.record(views)
+    assert rec["held_out_views"] == [views[k].name for k in out.held]
+    assert rec["prior_seconds"] == 0.0 and rec["normal_refine"]["mode"] == "off" and rec["spatial"]["mode"] == "off"
+    assert out.model is out.spatial.model
+
+
+def test_the_predictor_prior_starts_from_the_prediction_without_the_held_out_views(views, monkeypatch):
+    """With the predictor's architecture the fit starts from its prediction, made from the views
+    that train only (the held-out arc stays a fair judge), and scores it as step 0."""
+    import damcap.appearance.hyper.predict as predict
+
+    seen = {}
+    real = predict.predict_views
+
+    def spy(vs, *a, **k):
+        seen["names"] = [v.name for v in vs]
+        return real(vs, *a, **k)
+
+    monkeypatch.setattr(predict, "predict_views", spy)
+    opts = FitOptions(steps=50, eval_every=25, checkpoint_every=0, prior="predictor", activation="leaky_relu", prior_samples=4096)
+    opts = FitOptions(**{**opts.__dict__, "width": 32, "depth": 4})
+    from damcap.appearance.hyper.file import load_predictor, predictor_path
+
+    arch = load_predictor(predictor_path(None))[0].arch.dam
+    opts = opts.for_architecture(arch)
+    out = fit_views(views, opts)
+    held_names = {views[k].name for k in out.held}
+    assert seen["names"] and not held_names & set(seen["names"])
+    assert out.result.history[0]["step"] == 0 and out.prior_seconds > 0

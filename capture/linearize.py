@@ -188,7 +188,15 @@ def linearize_files(photos: Sequence[Path], out_dir: Path, opts: LinearizeOption
     # read: a bad photo late in the list leaves no partial set of EXRs behind
     stage = Path(tempfile.mkdtemp(prefix=".linearize-", dir=out_dir))
     try:
-        records = _linearize_into(photos, exposures, factors, ref, stage, opts, progress)
+        try:
+            records = _linearize_into(photos, exposures, factors, ref, stage, opts, progress)
+        except OSError as e:  # the error names the file in OUT it was writing, not the hidden stage
+            name = None if e.filename is None else Path(os.fsdecode(e.filename))
+            if name is not None and stage in name.parents:
+                raise OSError(e.errno, e.strerror or str(e), str(out_dir / name.relative_to(stage))) from None
+            raise
+        except DamcapError as e:
+            raise DamcapError(str(e).replace(str(stage), str(out_dir))) from None
         for rec in records:
             os.replace(stage / rec["output"], out_dir / rec["output"])
     except BaseException:

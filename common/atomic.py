@@ -102,6 +102,29 @@ def _naming(path: Path, stage: Optional[Path] = None) -> Iterator[None]:
         raise
 
 
+def cut_short_error(tmp: str | os.PathLike, path: str | os.PathLike, nbytes: int) -> Optional[OSError]:
+    """Why a native writer (OpenImageIO, RPly) failed to write ``tmp``, as an OSError naming
+    ``path`` (the file the user asked for), or None when it is neither of these:
+
+    - ENOSPC: the disk holding ``tmp`` has less room left than ``nbytes`` (what was being written);
+    - EFBIG: ``tmp`` reached the process's file size limit (``ulimit -f``).
+
+    Such writers say only that the output failed, naming the temporary file.
+    """
+    import resource
+
+    try:
+        st = os.statvfs(Path(tmp).parent)
+        if st.f_bavail * st.f_frsize < nbytes:
+            return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+        if limit != resource.RLIM_INFINITY and os.path.getsize(tmp) >= limit:
+            return OSError(errno.EFBIG, f"{os.strerror(errno.EFBIG)} (the file size limit, ulimit -f, is {limit} bytes)", str(path))
+    except OSError:
+        return None
+    return None
+
+
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     """Write ``text`` (UTF-8) to ``path`` atomically."""
     with atomic_path(path) as tmp:

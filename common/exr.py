@@ -9,7 +9,7 @@ from typing import Any, Literal, Mapping, Sequence
 
 import numpy as np
 
-from damcap.common.atomic import atomic_path
+from damcap.common.atomic import atomic_path, cut_short_error
 from damcap.common.errors import DamcapError
 from damcap.common.validate import check_format
 from damcap.common.native_stderr import native_stderr_caught
@@ -182,15 +182,12 @@ def _write_atomic(path: str | os.PathLike, spec: Any, pixels: np.ndarray) -> Non
 
 
 def _raise_full_disk(tmp: Path, path: str | os.PathLike, nbytes: int) -> None:
-    """Raise ENOSPC naming ``path`` when the disk holding ``tmp`` has less room than ``nbytes``
-    (the pixels, before compression) after a failed write: OpenImageIO's own message says only that
-    the output failed, naming the temporary file."""
-    try:
-        st = os.statvfs(Path(tmp).parent)
-    except OSError:
-        return
-    if st.f_bavail * st.f_frsize < nbytes:
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+    """Raise ENOSPC (the disk has less room than ``nbytes``, the pixels before compression) or
+    EFBIG (the file size limit) naming ``path`` after a failed write (:func:`cut_short_error`):
+    OpenImageIO's own message says only that the output failed, naming the temporary file."""
+    error = cut_short_error(tmp, path, nbytes)
+    if error is not None:
+        raise error
 
 
 def _verify_written(tmp: Path, path: str | os.PathLike, nbytes: int = 0) -> None:

@@ -38,7 +38,7 @@ from typing import Any, Callable, Literal, get_args
 
 import numpy as np
 
-from damcap.common.atomic import atomic_path, fsync_path, write_json_atomic
+from damcap.common.atomic import atomic_path, cut_short_error, fsync_path, write_json_atomic
 from damcap.common.capture_folder import FRAME_BYTES_PER_PIXEL, Capture, Frame, Intrinsics, write_transforms
 from damcap.common.errors import DamcapError
 from damcap.common.validate import COUNT, COUNT_OR_ZERO, FRACTION, MAX_IMAGE_SIDE, check_ranges, in_range, require_memory, require_resolution
@@ -253,9 +253,16 @@ def _save_mesh(path: Path, mesh: Mesh) -> None:
     m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices.astype(np.float64)),
                                   o3d.utility.Vector3iVector(mesh.triangles))
     m.vertex_normals = o3d.utility.Vector3dVector(mesh.vertex_normals.astype(np.float64))
+    from damcap.common.native_stderr import native_stderr_caught
+
     with atomic_path(path) as tmp:
-        if not o3d.io.write_triangle_mesh(str(tmp), m):
-            raise DamcapError(f"{path}: cannot write the mesh")
+        with native_stderr_caught() as printed:  # RPly reports a write the disk cut short only there, and open3d returns True
+            ok = o3d.io.write_triangle_mesh(str(tmp), m)
+        if not ok or any("Failed writing" in line or "Error" in line for line in printed):
+            error = cut_short_error(tmp, path, 32 * (len(mesh.vertices) + len(mesh.triangles)))
+            if error is not None:
+                raise error
+            raise DamcapError(f"{path}: cannot write the mesh ({printed[-1] if printed else 'open3d failed'})")
 
 
 @dataclass

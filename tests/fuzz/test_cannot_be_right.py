@@ -195,3 +195,22 @@ def test_memory_running_out_is_one_line(work):
                       timeout=LIMIT, memory=600 * 2 ** 20)
     assert run.code == 2 and len(run.lines) == 1 and run.lines[0].startswith("error: out of memory ("), run.err[-500:]
     assert not (work / "newcap").exists() and not [p for p in work.iterdir() if p.name.startswith(".newcap.")]
+
+
+def test_reconstruct_killed_mid_rerun_keeps_the_earlier_capture(work):
+    """kill -9 while a rerun writes its frames: the earlier capture is byte for byte as it was
+    (its frames, transforms.json); the next run removes the staged frames and says so."""
+    from damcap.common.capture_folder import inspect_capture
+
+    p, out = work / "photos", work / "rcap"
+    args = ["reconstruct", p / "images", "-o", out, "--poses", p / "transforms.json", "--geometry", "sphere", "--capture-size", 48,
+            "--train-views", 2, "--masks", p / "masks", "--supersample", 3]
+    capture_files = lambda: {q: digest(out / q) for q in ("transforms.json", "images", "geometry")}  # noqa: E731
+    before = capture_files()
+    staged = out / "reconstruction" / "frames.next"
+    run = damcap_fork(args, timeout=LIMIT, signal_when=(lambda: staged.is_dir() and any(staged.rglob("*.exr")), signal.SIGKILL))
+    assert run.code == -signal.SIGKILL, (run.code, run.err[-300:])
+    assert capture_files() == before and inspect_capture(out).problems == []
+    again = damcap_fork(args, timeout=LIMIT)
+    assert again.code == 0 and f"removed: the frames an interrupted run left in {staged}" in again.out, again.out[-500:] + again.err[-300:]
+    assert capture_files() != before and not staged.exists() and inspect_capture(out).problems == []

@@ -352,6 +352,11 @@ def apply_flip(image: np.ndarray, flip: int) -> np.ndarray:
 # Reader
 # --------------------------------------------------------------------------------------------
 
+#: bytes per photosite that reading a RAW photo makes (normalised float64 counts, its saturation
+#: mask, the demosaiced and converted float32 RGB, the flipped copies)
+RAW_WORKING_BYTES = 48
+
+
 def read_raw(path: str | os.PathLike, saturation_fraction: float = SATURATION_FRACTION) -> RawMosaic:
     """Read one RAW file as normalised linear counts (no demosaicing, no colour processing).
 
@@ -360,15 +365,21 @@ def read_raw(path: str | os.PathLike, saturation_fraction: float = SATURATION_FR
         saturation_fraction: see :func:`normalize_raw`.
 
     Raises:
-        DamcapError: the file is missing, not a RAW LibRaw can read, damaged, or not an RGB sensor.
+        DamcapError: the file is missing, not a RAW LibRaw can read, damaged, not an RGB sensor,
+            or (from its header, before decoding) more pixels than this machine's memory holds.
     """
     import rawpy
 
     path = Path(path)
     if not path.is_file():
         raise DamcapError(f"{path}: file not found")
+    from damcap.common.exr import check_header_size
+
     try:
-        with rawpy.imread(str(path)) as raw:
+        with rawpy.RawPy() as raw:
+            raw.open_file(str(path))  # the header: sizes are known before anything is decoded
+            check_header_size(path, raw.sizes.raw_width, raw.sizes.raw_height, 1, 2, RAW_WORKING_BYTES)
+            raw.unpack()
             values = np.array(raw.raw_image_visible, copy=True)
             blacks = np.asarray(raw.black_level_per_channel, dtype=np.float64)
             white = float(raw.white_level)

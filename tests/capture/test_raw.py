@@ -62,6 +62,18 @@ def test_corrupt_and_non_raw_files(tmp_path, shared_data):
         read_raw(tmp_path / "missing.nef")
 
 
+def test_a_raw_file_beyond_memory_is_refused_from_its_header(shared_data, monkeypatch):
+    """The sensor size is read from the header and checked against memory (with what reading makes
+    of each photosite) before LibRaw decodes anything."""
+    from damcap.common import validate
+
+    monkeypatch.setattr(validate, "machine_memory_bytes", lambda: 64 * 2 ** 20)
+    # 1888x1182 photosites (the sensor's whole raw size), 2 bytes each decoded and copied, 48 made of each
+    with pytest.raises(DamcapError, match=r"tinydng_colorchart.dng: an image of 1888x1182 pixels, 1 channels would need 0.108 GiB "
+                                          r"of memory; this machine allows 0.0312 GiB"):
+        read_raw(shared_data / "raw" / "tinydng_colorchart.dng")
+
+
 def test_normalize_and_saturation_on_raw_values():
     raw = np.array([[512, 8448, 16190, 16383]], np.uint16)
     counts, sat = normalize_raw(raw, 512.0, 16383.0, 0.99)

@@ -39,7 +39,7 @@ from typing import Any, Callable, Literal, get_args
 import numpy as np
 
 from damcap.common.atomic import atomic_path, cut_short_error, fsync_path, write_json_atomic
-from damcap.common.capture_folder import FRAME_BYTES_PER_PIXEL, Capture, Frame, Intrinsics, write_transforms
+from damcap.common.capture_folder import FRAME_BYTES_PER_PIXEL, Capture, Intrinsics, write_transforms
 from damcap.common.errors import DamcapError
 from damcap.common.validate import COUNT, COUNT_OR_ZERO, FRACTION, MAX_IMAGE_SIDE, check_ranges, in_range, require_memory, require_resolution
 from damcap.common.version import package_version

@@ -102,16 +102,29 @@ def upright(rgb: np.ndarray, rotation_deg: float) -> np.ndarray:
     return np.ascontiguousarray(np.rot90(rgb, turns)) if turns else rgb
 
 
+#: bytes per pixel that scoring a decoded video frame makes of it (its upright copy, grey, the
+#: float32 sharpness filter)
+VIDEO_WORKING_BYTES = 16
+
+
 def _video_frames(path: Path) -> Any:
     """Yield (video frame index, time_s, (H, W, 3) uint8 RGB upright, display rotation deg) of every decoded video frame."""
     import av
 
+    from damcap.common.exr import check_header_size
+
     container = _open(path)
     try:
         stream = container.streams.video[0]
+        checked = (stream.codec_context.width, stream.codec_context.height)
+        if min(checked) > 0:  # the stream's header: a frame size no memory holds is refused before decoding
+            check_header_size(path, checked[0], checked[1], 3, 1, VIDEO_WORKING_BYTES)
         k = 0
         try:
             for frame in container.decode(stream):
+                if (frame.width, frame.height) != checked:  # a size the header did not state
+                    checked = (frame.width, frame.height)
+                    check_header_size(path, frame.width, frame.height, 3, 1, VIDEO_WORKING_BYTES)
                 rotation = float(frame.rotation or 0.0)
                 yield (k, float(frame.time) if frame.time is not None else float("nan"),
                        upright(frame.to_ndarray(format="rgb24"), rotation), rotation)

@@ -83,3 +83,12 @@ def test_a_phone_video_is_turned_upright_as_its_display_matrix_says(tmp_path):
     photo = read_image_u8(tmp_path / "photos" / record["photos"][0]["photo"])
     assert photo.shape == (64, 32, 3)  # portrait
     assert photo[:12].mean() > 200 and photo[20:].mean() < 50  # the sensor's left edge is on top
+
+
+def test_a_video_whose_frames_exceed_memory_is_refused_before_decoding(video, tmp_path, monkeypatch):
+    from damcap.common import validate
+
+    monkeypatch.setattr(validate, "machine_memory_bytes", lambda: 2 * 2 ** 20)  # 1 MiB allowed: a 320x200 frame needs 1.34 MiB
+    with pytest.raises(DamcapError, match=r"turn.mp4: an image of 320x200 pixels, 3 channels would need 0.00131 GiB of memory"):
+        extract_video_frames(video, tmp_path / "photos", VideoFrameOptions(count=3))
+    assert not (tmp_path / "photos").exists()

@@ -117,7 +117,11 @@ def mesh_render(work: Path, demo: Path | None, resolution: int, samples: list[in
     from damcap.export.blender import blender_from_world, export_blender
     from damcap.export.turntable import OrbitOptions, orbit_up, render_orbit, shape_and_parts
 
-    if demo is not None:
+    if demo is not None and (demo / "pot.obj").is_file():  # make demo's pot: body, lid, handle take material_2, _0, _1 (the Makefile's POT_MATERIALS)
+        model_paths = [demo / "segmentation" / f"material_{k}.dam" for k in (2, 0, 1)]
+        mesh, labels = demo / "pot.obj", None
+        what = f"the demo's three segmentation materials on its pot ({demo.name}/pot.obj, its OBJ material groups)"
+    elif demo is not None:
         model_paths = [demo / "segmentation" / f"material_{k}.dam" for k in range(3)]
         mesh, labels = demo / "torus.obj", demo / "torus_labels.npy"
         what = f"the demo's three segmentation materials on its torus ({demo.name}/torus.obj, labels torus_labels.npy)"

@@ -137,7 +137,7 @@ class FitOptions:
     'quantile', for the measured effect on path-traced captures). The stopping rule scores the
     held-out views with the same cost"""
 
-    spatial: SpatialMode = field(default="off", metadata={"cli_what": "spatial factor"})
+    spatial: SpatialMode = field(default="auto", metadata={"cli_what": "spatial factor"})
     """an albedo texture on the surface that multiplies the DAM (the spatial factor). 'off' (the
     DAM alone, a function of view and normal only), 'albedo' (an RGB albedo texture on the surface
     multiplies the DAM: print, tarnish, fine relief) or 'auto' (the albedo only when it lowers the
@@ -158,7 +158,7 @@ class FitOptions:
     this absolute amount. On a uniform closed-form torus it lowered 0.00085 to 0.00071, 17%, and
     changed nothing on the novel views."""
 
-    normal_refine: NormalRefineMode = field(default="off", metadata={"cli_what": "normal refinement"})
+    normal_refine: NormalRefineMode = field(default="auto", metadata={"cli_what": "normal refinement"})
     """normal offsets fitted with the DAM, for relief the geometry lacks
     (appearance/normal_refine.py). 'off' (the geometry's normals), 'on' (a field of normal offsets
     on the surface, optimised together with the DAM so that it reproduces the training photos:
@@ -166,7 +166,7 @@ class FitOptions:
     training views by at least ``normal_refine_min_gain``). On the real cape (8 train views, 256 px,
     dense geometry) it lowered novel-view DSSIM from 0.411 to 0.272, 0.244 with the albedo
     (bench/normal_refine.md). Its cost is steps x pixels per step, whatever the capture's size
-    ('auto' refines twice)"""
+    ('auto' decides with half the steps, then gives a kept field the other half)"""
     normal_refine_voxel_px: float = field(default=_REFINE["voxel_px"].default, metadata={**_REFINE["voxel_px"].metadata, "cli_panel": "advanced"})
     """normal refinement: voxel edge of the offset field, in pixels' footprints on the surface.
     Finer resolves finer relief (1, 2, 4 px measured in bench/normal_refine.md)."""

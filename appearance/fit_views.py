@@ -38,6 +38,8 @@ class FitOutcome:
     """the prediction and the prior's samples (0 without a prior)"""
     samples: int
     """training pixels"""
+    seconds: float = 0.0
+    """the whole path, wall clock (prior, fit, normal refinement, spatial factor)"""
 
     @property
     def model(self):
@@ -49,7 +51,7 @@ class FitOutcome:
         last = self.result.history[-1] if self.result.history else {}
         return {"pixels": self.samples, "best_step": self.result.best_step, "train_l1": last.get("train_l1"),
                 "holdout_l1": last.get("holdout_l1"), "held_out_views": [views[k].name for k in self.held],
-                "prior_seconds": self.prior_seconds, "seconds": self.result.seconds, "threads": self.result.threads,
+                "prior_seconds": self.prior_seconds, "seconds": self.result.seconds, "total_seconds": self.seconds, "threads": self.result.threads,
                 "history": self.result.history, "normal_refine": self.normals.record(), "spatial": self.spatial.record()}
 
 
@@ -71,6 +73,7 @@ def fit_views(views: list[ViewData], opts: FitOptions, *, checkpoint_path: str |
         DamcapError: no covered pixels; a prior without views to predict from; an 'auto' rule
             without held-out views.
     """
+    t_all = time.perf_counter()
     samples = samples_of(views)
     held = held_out(views, opts)
     frames: list[TrainingFrame] | None = adversarial_frames(views, samples, opts)
@@ -89,4 +92,4 @@ def fit_views(views: list[ViewData], opts: FitOptions, *, checkpoint_path: str |
                      remove_checkpoint=False, held_frames=held, prior=prior, init_model=init)
     normals = choose_normal_refine(result.model, views, opts, log=log, progress=refine_progress)
     spatial = choose_spatial(normals.model, views, opts, log=log, heldout_model=normals.heldout_model)
-    return FitOutcome(result, normals, spatial, held, prior_s, len(samples))
+    return FitOutcome(result, normals, spatial, held, prior_s, len(samples), time.perf_counter() - t_all)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from damcap.appearance.spatial import corner_lookup, grid_problem, trilinear_corners
+from damcap.appearance.spatial import KEY_BITS, corner_lookup, grid_problem, pack_keys, trilinear_corners
 
 OFFSET_MAX = 100.0
 """the longest offset a file may store (a tangent of length 100 tilts a normal by 89.4 deg);
@@ -56,6 +56,28 @@ def empty_field(points_world: np.ndarray, voxel_size: float) -> NormalField:
     keys, _ = trilinear_corners(points_world, origin, voxel_size)
     keys = np.unique(keys[keys >= 0])
     return NormalField(origin, float(voxel_size), keys, np.zeros((keys.size, 3), np.float32))
+
+
+def corner_positions(nf: NormalField) -> np.ndarray:
+    """(M, 3) float64 world positions of the field's corners.
+
+    >>> nf = NormalField(np.zeros(3), 0.5, pack_keys(np.array([[1, 2, 3]])), np.zeros((1, 3), np.float32))
+    >>> corner_positions(nf).tolist()
+    [[0.5, 1.0, 1.5]]
+    """
+    k = np.asarray(nf.keys, np.int64)
+    mask = (1 << KEY_BITS) - 1
+    ijk = np.stack([(k >> (2 * KEY_BITS)) & mask, (k >> KEY_BITS) & mask, k & mask], -1)
+    return nf.origin_world + ijk * nf.voxel_size
+
+
+def resampled_offsets(initial: NormalField, onto: NormalField) -> np.ndarray:
+    """(M, 3) float32: ``initial``'s offsets interpolated at ``onto``'s corners (0 where
+    ``initial`` has none): a refinement started from another field on other grid corners."""
+    idx, w, _ = corner_lookup(initial, corner_positions(onto))  # type: ignore[arg-type]
+    if initial.keys.size == 0:
+        return np.zeros((onto.keys.size, 3), np.float32)
+    return np.einsum("nk,nkc->nc", w, initial.offset[idx].astype(np.float64)).astype(np.float32)
 
 
 def apply_offsets(normal_world: torch.Tensor, offset: torch.Tensor, index: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:

@@ -9,7 +9,8 @@ render, evaluate and export on the capture's own surface shade with the refined 
 the training views without the ones the fit's stopping rule held out (:func:`.fit.held_out`;
 the DAM never trained on them) and kept only when it lowers those held-out views' mean DSSIM by at
 least ``FitOptions.normal_refine_min_gain`` (a fraction) and ``normal_refine_min_gain_abs``. The
-kept field is then refined again from every training view (so 'auto' costs two refinements).
+probe takes half the steps (:func:`probe_steps`); a kept field then takes the other half on every
+training view, starting from the probe's offsets, so 'auto' costs one refinement.
 
 The final field has seen the held-out views, so a later decision on them (``--spatial auto``)
 would score views the model has fitted. The decision therefore also returns the model refined
@@ -20,7 +21,7 @@ refinement), for later decisions to be made with.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
 import numpy as np
@@ -85,10 +86,24 @@ def tilt_deg(nf: NormalField) -> dict[str, float]:
 
 
 def _refined(model: DeepAppearanceMap, views: list[ViewData], footprint: float, opts: FitOptions,
-             progress: Callable[[int, float], None] | None) -> DeepAppearanceMap:
-    """The DAM refined on ``views`` together with a new normal field, carrying it (and ``model``'s spatial factor)."""
-    refined, nf = refine_normals(model, samples_of(views), positions_of(views), footprint, opts.normal_refine_options, progress)
+             progress: Callable[[int, float], None] | None, steps: int | None = None,
+             initial: DeepAppearanceMap | None = None) -> DeepAppearanceMap:
+    """The DAM refined on ``views`` together with a new normal field (``steps`` steps, default the
+    options'; started from ``initial``'s field), carrying it (and ``model``'s spatial factor)."""
+    ropts = opts.normal_refine_options if steps is None else replace(opts.normal_refine_options, steps=steps)
+    refined, nf = refine_normals(model, samples_of(views), positions_of(views), footprint, ropts, progress,
+                                 initial=None if initial is None else initial.normal_field)
     return refined.with_spatial(model.spatial).with_normal_field(nf)
+
+
+def probe_steps(steps: int) -> int:
+    """'auto': the steps of the refinement it decides with (without the held-out views); a kept
+    field then takes the rest on every view, so 'auto' costs one refinement, not two.
+
+    >>> probe_steps(400), probe_steps(1)
+    (200, 1)
+    """
+    return max(1, steps // 2)
 
 
 def choose_normal_refine(model: DeepAppearanceMap, views: list[ViewData], opts: FitOptions,
@@ -120,7 +135,9 @@ def choose_normal_refine(model: DeepAppearanceMap, views: list[ViewData], opts: 
         if not held:
             raise DamcapError(f"--normal-refine auto decides on held-out training views: use --holdout-views >= 1 and at least 3 "
                               f"train views (got {opts.holdout_views} and {len(views)}), or --normal-refine on")
-        probe = _refined(base, [v for k, v in enumerate(views) if k not in held], footprint, opts, progress)
+        rest = [v for k, v in enumerate(views) if k not in held]
+        steps = probe_steps(opts.normal_refine_steps) if opts.normal_refine == "auto" else None
+        probe = _refined(base, rest, footprint, opts, progress, steps)
     if opts.normal_refine == "auto":
         assert probe is not None
         held_views = [views[k] for k in held]
@@ -130,7 +147,11 @@ def choose_normal_refine(model: DeepAppearanceMap, views: list[ViewData], opts: 
             if log:
                 log(decision.summary())
             return decision
-    final = _refined(base, views, footprint, opts, progress)
+    if opts.normal_refine == "auto":  # the probe's field, refined on every view for the remaining steps
+        assert probe is not None
+        final = _refined(base, views, footprint, opts, progress, max(1, opts.normal_refine_steps - probe_steps(opts.normal_refine_steps)), probe)
+    else:
+        final = _refined(base, views, footprint, opts, progress)
     decision = NormalRefineDecision(final, opts.normal_refine, True, footprint, voxel, scores, time.perf_counter() - t0, probe)
     if log:
         log(decision.summary())

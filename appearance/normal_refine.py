@@ -28,7 +28,7 @@ from damcap.common.validate import COUNT, SEED, check_ranges, in_range
 
 from damcap.appearance.dam import DeepAppearanceMap, encode_inputs
 from damcap.appearance.pixels import PixelSamples
-from damcap.appearance.normal_field import NormalField, apply_offsets, empty_field
+from damcap.appearance.normal_field import NormalField, apply_offsets, empty_field, resampled_offsets
 from damcap.appearance.spatial import corner_lookup
 
 
@@ -64,8 +64,8 @@ class NormalRefineOptions:
 
 
 def refine_normals(model: DeepAppearanceMap, samples: PixelSamples, points_world: np.ndarray, footprint_world: float,
-                   opts: NormalRefineOptions, progress: Callable[[int, float], None] | None = None
-                   ) -> tuple[DeepAppearanceMap, NormalField]:
+                   opts: NormalRefineOptions, progress: Callable[[int, float], None] | None = None,
+                   initial: NormalField | None = None) -> tuple[DeepAppearanceMap, NormalField]:
     """Optimise a normal field (and, with ``opts.lr_dam`` > 0, the DAM's weights) on the training pixels.
 
     Args:
@@ -76,6 +76,8 @@ def refine_normals(model: DeepAppearanceMap, samples: PixelSamples, points_world
             (:func:`.spatial_fit.training_footprint`).
         opts: the knobs.
         progress: progress(step, loss) after each step.
+        initial: a field to start from (its offsets interpolated at this field's corners,
+            :func:`.normal_field.resampled_offsets`); None: zero offsets.
 
     Returns:
         (the DAM with refined weights, the normal field).
@@ -84,7 +86,8 @@ def refine_normals(model: DeepAppearanceMap, samples: PixelSamples, points_world
     nf = empty_field(points_world, opts.voxel_px * footprint_world)
     idx, w, _ = corner_lookup(nf, points_world)
     idx, w = torch.from_numpy(idx), torch.from_numpy(w).float()
-    offset = torch.zeros(nf.keys.size, 3, requires_grad=True)
+    start = np.zeros((nf.keys.size, 3), np.float32) if initial is None else resampled_offsets(initial, nf)
+    offset = torch.from_numpy(start).requires_grad_(True)
     out = DeepAppearanceMap(model.arch, model.radiance_scale, model.get_flat_weights())
     groups = [{"params": [offset], "lr": opts.lr_offsets}] if opts.lr_offsets > 0 else []
     if opts.lr_dam > 0:

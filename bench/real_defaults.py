@@ -88,6 +88,29 @@ def ring_split(directions: np.ndarray, up: np.ndarray, train_views: int, band_de
     return train, test
 
 
+def arc_split(directions: np.ndarray, up: np.ndarray, train_views: int, arc_deg: float = 90.0) -> tuple[list[int], list[int]]:
+    """A split for one ring of cameras: the cameras within ``arc_deg`` / 2 of the azimuth opposite
+    camera 0 are the novel views; ``train_views`` of the others, spread in azimuth, train.
+
+    >>> a = np.arange(12) * np.pi / 6
+    >>> tr, te = arc_split(np.stack([np.cos(a), np.sin(a), 0 * a], 1), np.array([0, 0, 1.0]), 4)
+    >>> te, sorted(tr)
+    ([5, 6, 7], [0, 2, 4, 8])
+    """
+    up = up / np.linalg.norm(up)
+    horiz = directions - np.outer(directions @ up, up)
+    x = horiz[0] / np.linalg.norm(horiz[0])
+    az = np.degrees(np.arctan2(horiz @ np.cross(up, x), horiz @ x))
+    off = np.abs((az - 180.0 + 180.0) % 360.0 - 180.0)  # angle from the azimuth opposite camera 0
+    test = [int(i) for i in np.flatnonzero(off <= arc_deg / 2 + 1e-6)]
+    rest = np.array([i for i in range(len(directions)) if i not in test])
+    chosen = [0]
+    while len(chosen) < min(train_views, len(rest)):
+        gap = np.min(np.abs(((az[rest][:, None] - az[rest][None, chosen]) + 180.0) % 360.0 - 180.0), axis=1)
+        chosen.append(int(np.argmax(gap)))
+    return [int(rest[k]) for k in chosen], test
+
+
 def build_capture(name: str, src: dict, geometry: str, size: int, fresh: bool) -> Path:
     """The capture folder of ``name`` at ``size`` px with ``geometry`` (built once, cached)."""
     import shutil
@@ -108,18 +131,17 @@ def build_capture(name: str, src: dict, geometry: str, size: int, fresh: bool) -
 
 def methods() -> dict[str, dict]:
     """method name -> FitOptions changes from the defaults (``predict``: the predictor alone)."""
-    old = {"holdout": "spread", "prior": "off"}
+    plain = {"normal_refine": "off", "spatial": "off", "prior": "off"}
+    old = {**plain, "holdout": "spread"}
     return {
         "fit (old default)": old,
-        "fit": {"prior": "off"},
-        "fit + prior": {"prior": "predictor"},
+        "fit": plain,
+        "fit + prior": {**plain, "prior": "predictor"},
         "predict": {"predict": True},
-        "auto (old rules)": {**old, "normal_refine": "auto", "spatial": "auto"},
-        "auto": {"prior": "off", "normal_refine": "auto", "spatial": "auto"},
-        "prior + auto": {"prior": "predictor", "normal_refine": "auto", "spatial": "auto"},
-        "refine + albedo": {**old, "normal_refine": "on", "spatial": "albedo"},
-        "prior + refine + albedo": {"prior": "predictor", "normal_refine": "on", "spatial": "albedo"},
+        "auto, spread hold-out": {**old, "normal_refine": "auto", "spatial": "auto"},
         "defaults": {},
+        "defaults + prior": {"prior": "predictor"},
+        "refine + albedo": {**plain, "normal_refine": "on", "spatial": "albedo"},
     }
 
 
@@ -182,11 +204,16 @@ def main(argv: list[str] | None = None) -> int:
             cap_dir = build_capture(name, src, geometry, args.size, args.fresh)
             cap = read_capture(cap_dir)
             views = load_views(cap, "all")
-            train_idx, test_idx = ring_split(camera_directions(views), cap.up_world, args.train_views, gap_deg=args.gap_deg)
+            dirs = camera_directions(views)
+            train_idx, test_idx = ring_split(dirs, cap.up_world, args.train_views, gap_deg=args.gap_deg)
+            split = "rings"
+            if not test_idx:  # one ring of cameras: hold out an arc of it
+                train_idx, test_idx = arc_split(dirs, cap.up_world, args.train_views)
+                split = "arc"
             train, test = [views[k] for k in train_idx], [views[k] for k in test_idx]
             key = f"{name}/{geometry}"
             rmpp = float(np.mean([s for t, p in zip(test, rm_plus_plus(train, test)) if (s := score_view(t, p)) is not None]))
-            splits[key] = {"train": [v.name for v in train], "test": len(test), "rm++": rmpp, "kind": src["kind"],
+            splits[key] = {"train": [v.name for v in train], "test": len(test), "rm++": rmpp, "kind": src["kind"], "split": split,
                            "capture": str(cap_dir.relative_to(BENCH.parent)), "size": args.size}
             log(f"{key}: {len(train)} train, {len(test)} novel views; RM++ {rmpp:.4f}")
             for m in wanted:
@@ -214,7 +241,8 @@ def write_report(res: dict) -> None:
         by.setdefault((r["capture"], r["geometry"]), []).append(r)
     for (cap, geo), rs in by.items():
         sp = res["splits"][f"{cap}/{geo}"]
-        lines += [f"## {cap}, {geo} ({sp['kind']}; {len(sp['train'])} train views, {sp['test']} novel; RM++ {sp['rm++']:.4f})", "",
+        held = "a 90 deg arc of the ring held out" if sp.get("split") == "arc" else "other rings held out"
+        lines += [f"## {cap}, {geo} ({sp['kind']}; {len(sp['train'])} train views, {sp['test']} novel: {held}; RM++ {sp['rm++']:.4f})", "",
                   "| method | novel DSSIM | x RM++ | seconds | kept |", "|---|---:|---:|---:|---|"]
         for r in sorted(rs, key=lambda r: r["novel_dssim"]):
             kept = []

@@ -80,6 +80,7 @@ def fit(
     if "holdout_views" in given and held < opts.holdout_views:
         raise DamcapError(f"--holdout-views must leave 2 of the {len(views)} training views of {capture} to fit "
                           f"(at most {held}), got {opts.holdout_views}")
+    opts = _surface_factors_for(opts, given, held, target_dssim is not None, lambda m: typer.echo(m, err=True))
     if target_dssim is not None:
         if opts.spatial != "off" or opts.normal_refine != "off":
             raise DamcapError("--target-dssim sizes the DAM alone; leave out --spatial and --normal-refine (or use them without "
@@ -100,7 +101,22 @@ def fit(
     }, up_world=cap.up_world, normal_histogram=training_normal_histogram(samples_of(views)))
     ckpt.unlink(missing_ok=True)  # only now that the model is saved
     typer.echo(f"wrote {output} ({out.result.model.arch.num_weights} weights, {out.samples} pixels, "
-               f"best step {out.result.best_step}, {out.result.seconds + out.prior_seconds:.1f} s)")
+               f"best step {out.result.best_step}, {out.seconds:.1f} s)")
+
+
+def _surface_factors_for(opts, given: frozenset[str], held: int, sizing: bool, say) -> "FitOptions":
+    """The 'auto' surface factors by default, except where they cannot decide: with --target-dssim
+    (it sizes the DAM alone) or without held-out views; said in one line. Asked for explicitly,
+    they stay (and the library or --target-dssim refuses them in one line)."""
+    from dataclasses import replace
+
+    defaults = [k for k in ("normal_refine", "spatial") if k not in given and getattr(opts, k) == "auto"]
+    if not defaults or (held and not sizing):
+        return opts
+    if not sizing and "holdout_views" not in given:  # --holdout-views 0 asks for none: nothing to say
+        say(f"note: normal refinement and the spatial factor decide on held-out views and {held} are held out; both off "
+            f"(--holdout-views >= 1 with 3 or more train views lets them decide)")
+    return replace(opts, **{k: "off" for k in defaults})
 
 
 def _bar_per_run(steps: int, desc: str):

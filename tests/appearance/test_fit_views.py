@@ -16,7 +16,7 @@ def views(sample_capture):
 
 
 def test_plain_fit_records_the_held_out_arc(views):
-    opts = FitOptions(steps=60, eval_every=30, checkpoint_every=0)
+    opts = FitOptions(steps=60, eval_every=30, checkpoint_every=0, normal_refine="off", spatial="off")
     out = fit_views(views, opts)
     assert out.held == held_out(views, opts) and len(out.held) == 2
     rec = out.record(views)
@@ -38,7 +38,8 @@ def test_the_predictor_prior_starts_from_the_prediction_without_the_held_out_vie
         return real(vs, *a, **k)
 
     monkeypatch.setattr(predict, "predict_views", spy)
-    opts = FitOptions(steps=50, eval_every=25, checkpoint_every=0, prior="predictor", activation="leaky_relu", prior_samples=4096)
+    opts = FitOptions(steps=50, eval_every=25, checkpoint_every=0, prior="predictor", activation="leaky_relu", prior_samples=4096,
+                      normal_refine="off", spatial="off")
     opts = FitOptions(**{**opts.__dict__, "width": 32, "depth": 4})
     from damcap.appearance.hyper.file import load_predictor, predictor_path
 

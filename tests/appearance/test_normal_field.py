@@ -44,3 +44,18 @@ def test_problem_names_what_is_wrong(change, needle):
     f = empty_field(np.random.default_rng(3).uniform(-1, 1, (30, 3)), 0.3)
     assert f.problem() is None
     assert needle in change(f).problem()
+
+
+def test_resampled_offsets_carry_a_field_onto_other_corners():
+    from damcap.appearance.normal_field import corner_positions, empty_field, resampled_offsets
+
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-1, 1, (500, 3))
+    a = empty_field(pts, 0.25)
+    a.offset[:] = (corner_positions(a) * [0.1, -0.2, 0.05]).astype(np.float32)  # linear in position
+    b = empty_field(pts[:300] + 0.0, 0.25)  # other points: another origin, other corners
+    got = resampled_offsets(a, b)
+    # trilinear interpolation reproduces a linear field where all 8 corners exist
+    inner = np.abs(corner_positions(b)).max(1) < 0.6
+    assert np.allclose(got[inner], (corner_positions(b) * [0.1, -0.2, 0.05])[inner], atol=1e-5)
+    assert np.array_equal(resampled_offsets(a, a), a.offset)

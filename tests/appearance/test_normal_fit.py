@@ -13,7 +13,7 @@ import torch
 from damcap.appearance.fit import FitOptions, fit_dam
 from damcap.appearance.normal_fit import choose_normal_refine, tilt_deg
 from damcap.appearance.normal_field import NormalField
-from damcap.appearance.spatial_fit import mean_dssim
+from damcap.appearance.spatial_fit import mean_dssim, pays_on_heldout
 from damcap.appearance.views import ViewData, samples_of
 from damcap.common.errors import DamcapError
 from damcap.synth.closed_form import ClosedFormOptions, Material, environment_lighting, render_closed_form, shade
@@ -43,15 +43,23 @@ def fitted():
     out = {}
     for bumpy in (True, False):
         train, test = _views(bumpy)
-        opts = FitOptions(steps=600, seed=0, checkpoint_every=0, normal_refine_steps=300, normal_refine_voxel_px=4.0)
+        opts = FitOptions(steps=600, seed=0, checkpoint_every=0, normal_refine_steps=300, normal_refine_voxel_px=4.0, spatial="off",
+                          normal_refine="off")
         out[bumpy] = (train, test, fit_dam(samples_of(train), opts).model, opts)
     return out
 
 
 @pytest.mark.slow
 def test_auto_keeps_the_field_where_the_shading_has_relief_and_it_cuts_novel_view_error(fitted):
+    """Judged on held-out views between training views (--holdout spread). On this ring of 8
+    interleaved views the default arc judge declines the field (measured: its two held-out views
+    0.049 -> 0.091; the interleaved novel views would gain 0.068 -> 0.055): a field refined from the
+    other views tilts the normals the arc sees face on; docs/model.md says so."""
     train, test, model, opts = fitted[True]
-    d = choose_normal_refine(model, train, replace(opts, normal_refine="auto"))
+    arc = choose_normal_refine(model, train, replace(opts, normal_refine="auto"))
+    assert arc.kept is pays_on_heldout(arc.heldout_dssim["off"], arc.heldout_dssim["on"], opts.normal_refine_min_gain,
+                                       opts.normal_refine_min_gain_abs)
+    d = choose_normal_refine(model, train, replace(opts, normal_refine="auto", holdout="spread"))
     assert d.kept and isinstance(d.model.normal_field, NormalField) and d.model.normal_field.keys.size > 0
     # measured: held out 0.103 -> 0.091, novel views 0.068 -> 0.055 (the DAM's weights kept as fitted)
     assert d.heldout_dssim["on"] < 0.9 * d.heldout_dssim["off"], d.heldout_dssim
@@ -115,7 +123,7 @@ def test_later_held_out_decisions_get_a_field_that_never_saw_those_views(fitted)
     """The final field is refined on every training view; --spatial auto must judge on views the
     model has not fitted, so 'on' with --spatial auto also refines without the held-out views, and
     choose_spatial scores the held-out views with that model."""
-    from damcap.appearance.fit import holdout_frames
+    from damcap.appearance.fit import held_out
     from damcap.appearance.spatial_fit import choose_spatial
 
     train, _, model, opts = fitted[True]
@@ -123,7 +131,7 @@ def test_later_held_out_decisions_get_a_field_that_never_saw_those_views(fitted)
     d = choose_normal_refine(model, train, opts)
     assert d.kept and d.heldout_model is not None and d.heldout_model.normal_field is not None
     assert d.heldout_model.normal_field.keys.size < d.model.normal_field.keys.size  # it saw fewer pixels
-    held = [train[k] for k in holdout_frames(len(train), opts.holdout_views)]
+    held = [train[k] for k in held_out(train, opts)]
     s = choose_spatial(d.model, train, opts, heldout_model=d.heldout_model)
     assert s.heldout_dssim["off"] == pytest.approx(mean_dssim(d.heldout_model, held), rel=1e-6)
     assert s.model.normal_field is d.model.normal_field  # the kept field travels on

@@ -38,7 +38,7 @@ def fitted():
         train, test = _views(textured)
         # the uniform sphere gets the default steps: a DAM fitted less leaves errors an albedo
         # over the sphere (where position = normal) can take up, and auto then rightly keeps it
-        opts = FitOptions(steps=400 if textured else FitOptions.steps, seed=0)
+        opts = FitOptions(steps=400 if textured else FitOptions.steps, seed=0, spatial="off", normal_refine="off")
         out[textured] = (train, test, fit_dam(samples_of(train), opts).model, opts)
     return out
 

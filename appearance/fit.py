@@ -53,8 +53,8 @@ NormalRefineMode = Literal["off", "on", "auto"]
 NORMAL_REFINE_MODES: tuple[str, ...] = ("off", "on", "auto")
 HoldoutRule = Literal["arc", "spread"]
 HOLDOUT_RULES: tuple[str, ...] = ("arc", "spread")
-PriorMode = Literal["off", "predictor"]
-PRIOR_MODES: tuple[str, ...] = ("off", "predictor")
+PriorMode = Literal["off", "predictor", "auto"]
+PRIOR_MODES: tuple[str, ...] = ("off", "predictor", "auto")
 AFTER_FIT_PREFIXES = ("spatial", "normal_refine")
 """options whose names start so act after :func:`fit_dam` (they are not part of its fingerprint)"""
 _REFINE = {f.name: f for f in fields(NormalRefineOptions)}
@@ -104,10 +104,11 @@ class FitOptions:
     over the training order, each between two that train)"""
     eval_every: int = field(default=100, metadata={**COUNT, "cli_panel": "advanced"})
     """steps between held-out evaluations"""
-    prior: PriorMode = field(default="off", metadata={"cli_what": "prior"})
-    """a prior on the DAM: 'off' or 'predictor' (the shipped predictor's prediction from the
+    prior: PriorMode = field(default="auto", metadata={"cli_what": "prior"})
+    """a prior on the DAM: 'off', 'predictor' (the shipped predictor's prediction from the
     training views pulls the fit, most where the training views constrain it least:
-    appearance/prior.py)"""
+    appearance/prior.py) or 'auto' (fit without and with it, keep the fit whose held-out views
+    score better)"""
     prior_weight: float = field(default=1.0, metadata=in_range(0, 1e6, cli_panel="advanced"))
     """weight of the prior's cost against the data cost (both L1 of radiance / scale)"""
     prior_sigma: float = field(default=0.25, metadata=in_range(0, 10, lo_open=True, cli_panel="advanced"))

@@ -3,17 +3,18 @@ the DAM's fit, then the normal refinement and the spatial factor (each as ``FitO
 
 1. The held-out views (:func:`.fit.held_out`): the stopping rule and every 'auto' decision
    judge the fit on them; by default an arc of cameras farthest from the rest.
-2. The prior (``prior='predictor'``, :mod:`.prior`): the shipped predictor's DAM from the views
-   that train (not the held-out ones, so that they stay a fair judge), sampled once.
+2. The prior (``prior='predictor'`` or ``'auto'``, :mod:`.prior`): the shipped predictor's DAM from
+   the views that train (not the held-out ones, so that they stay a fair judge), sampled once.
 3. :func:`.fit.fit_dam` on the views that train, stopped at the step the held-out views score
-   best.
+   best; with ``prior='auto'`` twice, without and with the prior, and the fit whose held-out
+   views score the lower L1 is kept (the second fit keeps no checkpoint).
 4. :func:`.normal_fit.choose_normal_refine`, then :func:`.spatial_fit.choose_spatial`.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -40,6 +41,8 @@ class FitOutcome:
     """training pixels"""
     seconds: float = 0.0
     """the whole path, wall clock (prior, fit, normal refinement, spatial factor)"""
+    prior_choice: dict = field(default_factory=dict)
+    """prior 'auto': the held-out L1 without ('off') and with ('predictor') the prior, and whether it was kept"""
 
     @property
     def model(self):
@@ -51,7 +54,7 @@ class FitOutcome:
         last = self.result.history[-1] if self.result.history else {}
         return {"pixels": self.samples, "best_step": self.result.best_step, "train_l1": last.get("train_l1"),
                 "holdout_l1": last.get("holdout_l1"), "held_out_views": [views[k].name for k in self.held],
-                "prior_seconds": self.prior_seconds, "seconds": self.result.seconds, "total_seconds": self.seconds, "threads": self.result.threads,
+                "prior_seconds": self.prior_seconds, "prior_choice": self.prior_choice or None, "seconds": self.result.seconds, "total_seconds": self.seconds, "threads": self.result.threads,
                 "history": self.result.history, "normal_refine": self.normals.record(), "spatial": self.spatial.record()}
 
 
@@ -78,7 +81,9 @@ def fit_views(views: list[ViewData], opts: FitOptions, *, checkpoint_path: str |
     held = held_out(views, opts)
     frames: list[TrainingFrame] | None = adversarial_frames(views, samples, opts)
     prior, init, prior_s = None, None, 0.0
-    if opts.prior == "predictor":
+    if opts.prior == "auto" and not held:  # nothing to judge the prior on: the plain fit
+        opts = replace(opts, prior="off")
+    if opts.prior in ("predictor", "auto"):
         from damcap.appearance.hyper.predict import predict_views
 
         t0 = time.perf_counter()
@@ -88,8 +93,27 @@ def fit_views(views: list[ViewData], opts: FitOptions, *, checkpoint_path: str |
         scale = predicted.radiance_scale if init is not None else radiance_scale_of(samples.radiance_lin, samples.weight)
         prior = prior_samples(predicted, samples, opts.encoding, scale, opts.prior_samples, opts.prior_sigma, opts.seed)
         prior_s = time.perf_counter() - t0
-    result = fit_dam(samples, opts, frames_for_adversarial=frames, checkpoint_path=checkpoint_path, progress=progress, log=log,
-                     remove_checkpoint=False, held_frames=held, prior=prior, init_model=init)
+    prior_choice: dict = {}
+    if opts.prior == "auto":  # both fits, the one whose held-out views score better is kept
+        plain = fit_dam(samples, replace(opts, prior="off"), frames_for_adversarial=frames, checkpoint_path=checkpoint_path,
+                        progress=progress, log=log, remove_checkpoint=False, held_frames=held)
+        leaned = fit_dam(samples, opts, frames_for_adversarial=frames, progress=progress, log=log, held_frames=held, prior=prior,
+                         init_model=init)
+        prior_choice = {"off": best_holdout_l1(plain), "predictor": best_holdout_l1(leaned)}
+        prior_choice["kept"] = prior_choice["predictor"] < prior_choice["off"]
+        result = leaned if prior_choice["kept"] else plain
+        if log:
+            log(f"prior: {'the predictor' if prior_choice['kept'] else 'none'} (held-out L1 {prior_choice['off']:.4f} without the "
+                f"predictor's prior, {prior_choice['predictor']:.4f} with it)")
+    else:
+        result = fit_dam(samples, opts, frames_for_adversarial=frames, checkpoint_path=checkpoint_path, progress=progress, log=log,
+                         remove_checkpoint=False, held_frames=held, prior=prior, init_model=init)
     normals = choose_normal_refine(result.model, views, opts, log=log, progress=refine_progress)
     spatial = choose_spatial(normals.model, views, opts, log=log, heldout_model=normals.heldout_model)
-    return FitOutcome(result, normals, spatial, held, prior_s, len(samples), time.perf_counter() - t_all)
+    return FitOutcome(result, normals, spatial, held, prior_s, len(samples), time.perf_counter() - t_all, prior_choice)
+
+
+def best_holdout_l1(result: FitResult) -> float:
+    """The lowest held-out cost a fit's history records (the one its stopping rule kept); inf for
+    a fit without held-out evaluations."""
+    return min((h["holdout_l1"] for h in result.history), default=float("inf"))

@@ -24,29 +24,12 @@ import numpy as np
 import torch
 
 from bench.common import BENCH, REPO, RESULTS, command_line, log, machine_info
+from tests.export.test_blender import sphere_pixels  # the test's closed-form sphere: the same reference pixels
 
 DRIVER = REPO / "tests" / "export" / "blender_driver.py"
 BLENDER_PYTHON = REPO / ".venv-blender" / "bin" / "python"
 REQUIREMENTS = REPO / "tests" / "blender.txt"
 SPHERE_CAMERA = {"location": [0.8, -2.6, 1.2], "target": [0.0, 0.0, 0.0], "lens_mm": 50.0}
-
-
-def sphere_pixels(world_from_cam: np.ndarray, n: int, lens_mm: float, min_cos: float = 0.05):
-    """Per pixel centre of an n x n Blender camera (36 mm sensor width) whose ray meets the unit
-    sphere at the origin (more than ``min_cos`` from grazing): (mask (n, n), world normals (M, 3),
-    view directions toward the camera (M, 3))."""
-    m = np.asarray(world_from_cam, np.float64)
-    f = lens_mm / 36.0 * n
-    j, i = np.meshgrid(np.arange(n) + 0.5, np.arange(n) + 0.5)
-    d = np.stack([(j - n / 2) / f, (n / 2 - i) / f, -np.ones_like(j)], -1) @ m[:3, :3].T
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    o = m[:3, 3]
-    b = d @ o
-    disc = b * b - (o @ o - 1)
-    p = o + (-b - np.sqrt(np.maximum(disc, 0)))[..., None] * d
-    normal = p / np.linalg.norm(p, axis=-1, keepdims=True)
-    mask = (disc > 0) & (np.sum(normal * -d, -1) > min_cos)
-    return mask, normal[mask], -d[mask]
 
 
 def run_blender(jobs: list[dict], work: Path) -> list[dict]:

@@ -31,6 +31,8 @@ import numpy as np
 from bench.common import BENCH, CACHE, RESULTS, command_line, log, machine_info, shared_data_dir
 
 RESULT = RESULTS / "real_defaults.json"
+HISTORY_MARK = "## Notes"
+"""everything from this heading on is hand-written and survives a rerun"""
 REPORT = BENCH / "real_defaults.md"
 WORK = CACHE / "real_defaults"
 
@@ -46,7 +48,8 @@ def capture_sources(data: Path) -> dict[str, dict]:
                  "poses": real / "mold_gold_cape" / "poses_bounds.npy", "kind": "real photos, glossy gold"},
         "blob": {"photos": samples / "photos_blob" / "images", "masks": samples / "photos_blob" / "masks",
                  "poses": samples / "photos_blob" / "transforms.json", "kind": "rendered photos, printed texture"},
-        "fox": {"photos": real / "fox", "masks": None, "poses": None, "kind": "real phone photos, no masks"},
+        "fox": {"photos": real / "fox" / "images", "masks": None, "poses": real / "fox" / "transforms.json",
+                "kind": "real phone photos, no masks"},
     }
 
 
@@ -138,26 +141,38 @@ def methods() -> dict[str, dict]:
         "fit": plain,
         "fit + prior": {**plain, "prior": "predictor"},
         "predict": {"predict": True},
-        "auto, spread hold-out": {**old, "normal_refine": "auto", "spatial": "auto"},
+        "predict --refine-steps auto": {"predict": True, "refine": "auto"},
+        "auto with the spread hold-out": {**old, "normal_refine": "auto", "spatial": "auto"},
         "defaults": {},
-        "defaults + prior": {"prior": "predictor"},
+        "defaults without the prior": {"prior": "off"},
+        "defaults + prior always": {"prior": "predictor"},
         "refine + albedo": {**plain, "normal_refine": "on", "spatial": "albedo"},
     }
 
 
-def run_method(name: str, change: dict, train, test) -> dict:
+def run_method(name: str, change: dict, train, test, base=None) -> dict:
     """Fit (or predict) on ``train``; mean DSSIM on ``test``; wall seconds."""
     from damcap.appearance.evaluate import evaluate_split
     from damcap.appearance.fit import FitOptions
     from damcap.appearance.fit_views import fit_views
     from damcap.appearance.hyper.predict import predict_views
 
+    base = base or FitOptions()
     t0 = time.perf_counter()
     record: dict = {}
     if change.get("predict"):
         model = predict_views(train)
+        if change.get("refine") == "auto":  # what predict's advice points to: refinement judged on the held-out arc
+            from damcap.appearance.fit import held_out
+            from damcap.appearance.hyper.predict import PredictOptions, refine_auto
+            from damcap.appearance.views import samples_of
+
+            po = PredictOptions()
+            model, auto = refine_auto(model, samples_of(train), max_steps=po.refine_max_steps, patience_steps=po.refine_patience,
+                                      learning_rate=po.refine_learning_rate, held=held_out(train, FitOptions()))
+            record = {"refine_steps_used": auto.steps_used}
     else:
-        opts = replace(FitOptions(), **change)
+        opts = replace(base, **change)
         out = fit_views(train, opts, log=log)
         model = out.model
         record = {"best_step": out.result.best_step, "held_out": [train[k].name for k in out.held],
@@ -176,32 +191,46 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--train-views", type=int, default=10)
     ap.add_argument("--gap-deg", type=float, default=15.0)
     ap.add_argument("--fresh", action="store_true", help="rebuild the captures and drop earlier rows")
+    ap.add_argument("--capture", action="append", default=[], metavar="NAME=DIR",
+                    help="an existing capture folder instead of --captures (repeatable)")
+    ap.add_argument("--steps", type=int, default=None, help="fit steps (default: FitOptions')")
+    ap.add_argument("--refine-steps", type=int, default=None, help="normal refinement steps (default: FitOptions')")
+    ap.add_argument("--out", type=Path, default=None, help="write real_defaults.json and .md here instead of bench/")
     args = ap.parse_args(argv)
 
     import torch
 
     from damcap.appearance.baselines import rm_plus_plus
     from damcap.appearance.evaluate import score_view
-    from damcap.appearance.fit import camera_directions
+    from damcap.appearance.fit import FitOptions, camera_directions
     from damcap.appearance.views import load_views
     from damcap.common.capture_folder import read_capture
 
     torch.set_num_threads(2)
     data = shared_data_dir()
     sources = capture_sources(data)
-    prev = json.loads(RESULT.read_text()) if RESULT.is_file() and not args.fresh else {}
+    result, report = (RESULT, REPORT) if args.out is None else (args.out / RESULT.name, args.out / REPORT.name)
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+    base = FitOptions()
+    if args.steps is not None:
+        base = replace(base, steps=args.steps)
+    if args.refine_steps is not None:
+        base = replace(base, normal_refine_steps=args.refine_steps)
+    given = dict(c.split("=", 1) for c in args.capture)
+    jobs = [(n, g) for n in args.captures.split(",") if n and not given for g in args.geometries.split(",")
+            if not (sources[n]["masks"] is None and g == "visual-hull")] + [(n, "given") for n in given]
+    prev = json.loads(result.read_text()) if result.is_file() and not args.fresh else {}
     rows: list[dict] = prev.get("rows", [])
     splits: dict = prev.get("splits", {})
     wanted = [m for m in args.methods.split(",") if m]
     unknown = set(wanted) - set(methods())
     if unknown:
         sys.exit(f"unknown methods {sorted(unknown)}; known: {list(methods())}")
-    for name in args.captures.split(","):
-        src = sources[name]
-        for geometry in args.geometries.split(","):
-            if src["masks"] is None and geometry == "visual-hull":
-                continue
-            cap_dir = build_capture(name, src, geometry, args.size, args.fresh)
+    for name, geometry in jobs:
+        if True:
+            src = sources.get(name, {"kind": "given capture folder"})
+            cap_dir = Path(given[name]) if name in given else build_capture(name, src, geometry, args.size, args.fresh)
             cap = read_capture(cap_dir)
             views = load_views(cap, "all")
             dirs = camera_directions(views)
@@ -214,31 +243,59 @@ def main(argv: list[str] | None = None) -> int:
             key = f"{name}/{geometry}"
             rmpp = float(np.mean([s for t, p in zip(test, rm_plus_plus(train, test)) if (s := score_view(t, p)) is not None]))
             splits[key] = {"train": [v.name for v in train], "test": len(test), "rm++": rmpp, "kind": src["kind"], "split": split,
-                           "capture": str(cap_dir.relative_to(BENCH.parent)), "size": args.size}
+                           "capture": str(cap_dir), "size": args.size}
             log(f"{key}: {len(train)} train, {len(test)} novel views; RM++ {rmpp:.4f}")
             for m in wanted:
-                row = {"capture": name, "geometry": geometry, **run_method(m, methods()[m], train, test)}
+                row = {"capture": name, "geometry": geometry, **run_method(m, methods()[m], train, test, base)}
                 row["x_rmpp"] = row["novel_dssim"] / rmpp
                 log(f"{key} {m}: novel DSSIM {row['novel_dssim']:.4f} (x{row['x_rmpp']:.2f} RM++), {row['seconds']:.1f} s")
                 rows = [r for r in rows if (r["capture"], r["geometry"], r["method"]) != (name, geometry, m)] + [row]
                 res = {"command": command_line("real_defaults", argv if argv is not None else sys.argv[1:]), "machine": machine_info(),
                        "splits": splits, "rows": rows}
-                RESULT.write_text(json.dumps(res, indent=1, default=float))
-    write_report(json.loads(RESULT.read_text()))
+                result.write_text(json.dumps(res, indent=1, default=float))
+    write_report(json.loads(result.read_text()), report)
     return 0
 
 
-def write_report(res: dict) -> None:
+AUTO_GEOMETRY = {"cape": "dense", "studio": "visual-hull", "blob": "visual-hull", "fox": "dense"}
+"""what ``damcap reconstruct --geometry auto`` chose on each capture at 256 px (photo consistency;
+the reconstruct lines are quoted in the report's notes)"""
+
+
+def summary_table(by: dict, auto_geometry: dict) -> list[str]:
+    """Per capture: the old defaults, the new defaults and the best method found (any geometry),
+    on the geometry ``--geometry auto`` chooses."""
+    out = ["## Summary", "",
+           "On the geometry `--geometry auto` chooses; *best* is the lowest novel-view DSSIM of any method on either geometry.", "",
+           "| capture | auto's geometry | old defaults | new defaults | best (method, geometry) | new / best | x RM++ (new) | seconds (old / new) |",
+           "|---|---|---:|---:|---|---:|---:|---|"]
+    for cap in dict.fromkeys(c for c, _ in by):
+        geo = auto_geometry.get(cap, AUTO_GEOMETRY.get(cap, "given"))
+        rows = {r["method"]: r for r in by.get((cap, geo), [])}
+        if "defaults" not in rows or "fit (old default)" not in rows:
+            continue
+        best = min((r for (c, _), rs in by.items() if c == cap for r in rs), key=lambda r: r["novel_dssim"])
+        old, new = rows["fit (old default)"], rows["defaults"]
+        out.append(f"| {cap} | {geo} | {old['novel_dssim']:.4f} | {new['novel_dssim']:.4f} | {best['novel_dssim']:.4f} ({best['method']}, "
+                   f"{best['geometry']}) | {new['novel_dssim'] / best['novel_dssim']:.3f} | {new['x_rmpp']:.2f} | "
+                   f"{old['seconds']:.0f} / {new['seconds']:.0f} |")
+    return out + [""]
+
+
+def write_report(res: dict, report: Path = REPORT) -> None:
     """bench/real_defaults.md from the results (generated tables above the history marker)."""
     lines = ["# Defaults on objects damcap was not tuned on, judged on held-out camera rings", "",
              "Question: do `damcap fit`'s defaults take its best path on captures it was never tuned on? Each capture is split by "
              "camera rings (`bench.real_defaults.ring_split`): train on one elevation band, score the mean DSSIM on every camera more "
              "than 15 deg above or below it (novel views), beside RM++ on the same views. Seconds: the whole fit path "
              "(prediction, fit, refinement, albedo), wall clock on the machine below.", "",
-             f"Command: `{res['command']}`", "", f"Machine: {res['machine'].get('cpu', '')}, {res['machine'].get('date_utc', '')}", ""]
-    by = {}
+             f"Command (last run; rows accumulate over runs): `{res['command']}`", "",
+             f"Machine: {res['machine'].get('cpu_model', '')}, {res['machine'].get('nproc', '')} cores, "
+             f"{res['machine'].get('date_utc', '')}", ""]
+    by: dict = {}
     for r in res["rows"]:
         by.setdefault((r["capture"], r["geometry"]), []).append(r)
+    lines += summary_table(by, res.get("auto_geometry", {}))
     for (cap, geo), rs in by.items():
         sp = res["splits"][f"{cap}/{geo}"]
         held = "a 90 deg arc of the ring held out" if sp.get("split") == "arc" else "other rings held out"
@@ -252,7 +309,10 @@ def write_report(res: dict) -> None:
                 kept.append(f"albedo {'kept' if r['spatial']['kept'] else 'not kept'}")
             lines.append(f"| {r['method']} | {r['novel_dssim']:.4f} | {r['x_rmpp']:.2f} | {r['seconds']:.0f} | {', '.join(kept)} |")
         lines.append("")
-    REPORT.write_text("\n".join(lines) + "\n")
+    keep = ""
+    if report.is_file() and HISTORY_MARK in report.read_text():
+        keep = report.read_text()[report.read_text().index(HISTORY_MARK):]
+    report.write_text("\n".join(lines) + "\n" + (("\n" + keep) if keep else ""))
 
 
 if __name__ == "__main__":

@@ -16,7 +16,7 @@ def views(sample_capture):
 
 
 def test_plain_fit_records_the_held_out_arc(views):
-    opts = FitOptions(steps=60, eval_every=30, checkpoint_every=0, normal_refine="off", spatial="off")
+    opts = FitOptions(steps=60, eval_every=30, checkpoint_every=0, normal_refine="off", spatial="off", prior="off")
     out = fit_views(views, opts)
     assert out.held == held_out(views, opts) and len(out.held) == 2
     rec = out.record(views)
@@ -49,3 +49,21 @@ def test_the_predictor_prior_starts_from_the_prediction_without_the_held_out_vie
     held_names = {views[k].name for k in out.held}
     assert seen["names"] and not held_names & set(seen["names"])
     assert out.result.history[0]["step"] == 0 and out.prior_seconds > 0
+
+
+def test_prior_auto_keeps_the_fit_whose_held_out_views_score_better(views):
+    from dataclasses import replace
+
+    from damcap.appearance.fit_views import best_holdout_l1
+
+    base = FitOptions(steps=40, eval_every=20, checkpoint_every=0, normal_refine="off", spatial="off", prior_samples=2048)
+    out = fit_views(views, replace(base, prior="auto"))
+    choice = out.prior_choice
+    assert set(choice) == {"off", "predictor", "kept"} and choice["kept"] is (choice["predictor"] < choice["off"])
+    # the kept one is the fit the same options give alone
+    alone = fit_views(views, replace(base, prior="predictor" if choice["kept"] else "off"))
+    assert best_holdout_l1(alone.result) == min(choice["off"], choice["predictor"])
+    assert out.record(views)["prior_choice"] == choice
+    # nothing held out: nothing to judge on, the plain fit
+    none = fit_views(views, replace(base, prior="auto", holdout_views=0))
+    assert none.prior_choice == {} and none.prior_seconds == 0.0

@@ -44,7 +44,7 @@ import os as _os
 
 # OpenMP's worker threads sleep at a barrier instead of spinning (unless the user set the policy):
 # with torch on both cores of a 2-core machine that another job shares, spinning made a 200-step fit
-# take 166 s instead of 4.6 s (docs/model.md, "Speed on a shared machine"). Set before torch loads.
+# take 166 s instead of 4.6 s (docs/model.md, "Speed and memory"). Set before torch loads.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import importlib

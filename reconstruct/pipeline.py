@@ -41,6 +41,7 @@ import numpy as np
 from damcap.common.atomic import atomic_path, cut_short_error, fsync_path, write_json_atomic
 from damcap.common.capture_folder import FRAME_BYTES_PER_PIXEL, Capture, Intrinsics, write_transforms
 from damcap.common.errors import DamcapError
+from damcap.common.cameras import up_direction
 from damcap.common.validate import COUNT, COUNT_OR_ZERO, FRACTION, MAX_IMAGE_SIDE, check_ranges, in_range, require_memory, require_resolution
 from damcap.common.version import package_version
 
@@ -48,6 +49,7 @@ from damcap.reconstruct.geometry import UNBOUNDED_HULL, GeometryInputs, Geometry
 from damcap.reconstruct.normalize import normalization_transform, recentre_transform, similarity_scale, transform_points, transform_world_from_cam
 from damcap.reconstruct.dense import DenseOptions, dense_geometry
 from damcap.reconstruct.photo_consistency import photo_consistency, prefer_dense
+from damcap.reconstruct.split import camera_split
 from damcap.reconstruct.frames import FramePhoto, write_frames
 from damcap.reconstruct.normalize import transform_mesh_similarity
 from damcap.reconstruct.photos import exposure_factors, list_photos, match_masks, read_mask, read_photo_radiance, verify_photos
@@ -59,7 +61,7 @@ from damcap.reconstruct.colmap.register import SfmOptions, StageProgress, masked
 from damcap.reconstruct.selfcheck import SelfCheck, SelfCheckOptions, observation_stats, self_check
 from damcap.reconstruct.undistort import pinhole_for, resample_to_pinhole
 
-SplitKind = Literal["consecutive", "spread"]
+SplitKind = Literal["consecutive", "spread", "rings"]
 ClippedPolicy = Literal["auto", "drop", "keep"]
 WORK_FOLDER = "reconstruction"
 
@@ -104,7 +106,10 @@ class ReconstructOptions:
     """frames in the train split (the rest are test)"""
     split: SplitKind = "consecutive"
     """how the train frames are chosen: 'consecutive' (in file order from ``split_start``, as the
-    paper) or 'spread' (evenly spaced)"""
+    paper), 'spread' (evenly spaced) or 'rings' (one ring of cameras trains, spread in azimuth;
+    the cameras more than 15 deg above or below it are the test split, or with one ring the arc
+    opposite the first camera; the training ring's other cameras are in neither split:
+    reconstruct/split.py)"""
     split_start: int = field(default=0, metadata=COUNT_OR_ZERO)
     """first train frame of a consecutive split"""
     min_registered: int = field(default=3, metadata={**COUNT, "cli_panel": "advanced"})
@@ -155,8 +160,8 @@ class ReconstructOptions:
         require_memory(float(voxels) ** 3 * 8, f"--voxels {voxels} (a {voxels}^3 grid)")
         require_resolution(self.capture_size, self.capture_size, FRAME_BYTES_PER_PIXEL * self.supersample ** 2,
                            f"--capture-size {self.capture_size} with --supersample {self.supersample}: a frame")
-        if self.split not in ("consecutive", "spread"):
-            raise DamcapError(f"--split must be consecutive or spread, got {self.split!r}")
+        if self.split not in ("consecutive", "spread", "rings"):
+            raise DamcapError(f"--split must be consecutive, spread or rings, got {self.split!r}")
         if self.dtype not in ("half", "float"):
             raise DamcapError(f"--dtype must be half or float, got {self.dtype!r}")
         for owner, name, allowed in ((self, "mask_features", ("auto", "always", "never")), (self, "self_check", ("drop", "warn", "off")),
@@ -909,7 +914,14 @@ def _reconstruct_staged(photos_dir: Path, out: Path, staged: Path, opts: Reconst
         raise DamcapError(f"{out}: only {len(frames)} frame sees the geometry; a capture needs at least 2")
 
     # split, stale files, transforms.json
-    train_idx, test_idx = split_indices(len(frames), opts.train_views, opts.split, opts.split_start % len(frames))
+    if opts.split == "rings":  # the object's centre is the origin here (recentred on the geometry)
+        world_from_cams = np.stack([f.world_from_cam for f in frames])
+        centres = world_from_cams[:, :3, 3]
+        directions = centres / np.maximum(np.linalg.norm(centres, axis=1, keepdims=True), 1e-12)
+        train_idx, test_idx = camera_split(directions, up_direction(world_from_cams), min(opts.train_views, len(frames) - 1))
+        train_idx = sorted(train_idx)
+    else:
+        train_idx, test_idx = split_indices(len(frames), opts.train_views, opts.split, opts.split_start % len(frames))
     seconds["total"] = time.perf_counter() - t_all
     report = ReconstructReport(
         photos=len(names), registered=len(reg.photos) + len(left_out), unregistered=dict(reg.unregistered), frames=len(frames),

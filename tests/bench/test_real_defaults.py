@@ -1,22 +1,11 @@
-"""bench.real_defaults at tiny sizes: the ring and arc splits, and every method scored on a given capture."""
+"""bench.real_defaults at tiny sizes: every method scored on a given capture, split by its cameras."""
 
 from __future__ import annotations
 
 import json
 
-import numpy as np
-
 from bench import real_defaults
 from damcap.synth.closed_form import ClosedFormOptions, make_closed_form_capture
-
-
-def test_ring_split_trains_on_one_band_and_tests_the_others():
-    a = np.arange(10) * 2 * np.pi / 10
-    ring = lambda e: np.stack([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.full(10, np.sin(e))], 1)  # noqa: E731
-    dirs = np.concatenate([ring(np.radians(10)), ring(np.radians(45)), ring(np.radians(45.5))[:3]])
-    train, test = real_defaults.ring_split(dirs, np.array([0, 0, 1.0]), 5)
-    assert all(i >= 10 for i in train) and len(train) == 5  # the fuller band (45 deg) trains
-    assert test == list(range(10))  # the 10 deg ring is 35 deg away
 
 
 def test_study_scores_each_method_on_a_given_capture(tmp_path, is_dssim):

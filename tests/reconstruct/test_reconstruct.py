@@ -533,3 +533,23 @@ def test_registration_advice_follows_the_masks_given():
     reg.unregistered = dict(reasons)
     kept = _masked_tried(CheckedCameras(reg, [], None, None, "whole photos"), "features inside the masks gave no more photos that agree")
     assert WHOLE_PHOTOS_HINT not in kept.reg.unregistered["b.jpg"] and "gave no more photos" in kept.reg.unregistered["b.jpg"]
+
+
+def test_split_rings_trains_on_one_ring_and_tests_the_other(tmp_path):
+    """The bundled studio photos: two rings of 12 cameras at 15 and 45 deg. --split rings trains on
+    one ring (10 of its 12, spread in azimuth) and tests on the whole other ring."""
+    root = Path(__file__).resolve().parents[2] / "samples" / "photos_studio"
+    out = tmp_path / "cap"
+    opts = ReconstructOptions(capture_size=32, train_views=10, split="rings", geometry=GeometryOptions(mode="visual-hull"))
+    reconstruct_capture(root / "images", out, opts, masks_dir=root / "masks", poses=str(root / "transforms.json"))
+    cap = read_capture(out)
+    assert len(cap.train_filenames) == 10 and len(cap.test_filenames) == 12
+    up = cap.up_world
+    elevation = {f.file_path: float(np.degrees(np.arcsin(f.camera_centre_world @ up / np.linalg.norm(f.camera_centre_world))))
+                 for f in cap.frames}
+    train_el = [elevation[f] for f in cap.train_filenames]
+    test_el = [elevation[f] for f in cap.test_filenames]
+    assert max(train_el) - min(train_el) < 10 and max(test_el) - min(test_el) < 10  # one ring each
+    assert abs(np.mean(train_el) - np.mean(test_el)) > 20  # 15 and 45 deg apart by 30
+    with pytest.raises(DamcapError, match="--split must be consecutive, spread or rings"):
+        replace(opts, split="ring").validate()

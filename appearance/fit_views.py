@@ -18,6 +18,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
+from damcap.common.errors import DamcapError
+
 from damcap.appearance.fit import FitOptions, FitResult, TrainingFrame, adversarial_frames, fit_dam, held_out
 from damcap.appearance.normal_fit import NormalRefineDecision, choose_normal_refine
 from damcap.appearance.prior import prior_samples
@@ -80,14 +82,22 @@ def fit_views(views: list[ViewData], opts: FitOptions, *, checkpoint_path: str |
     samples = samples_of(views)
     held = held_out(views, opts)
     frames: list[TrainingFrame] | None = adversarial_frames(views, samples, opts)
-    prior, init, prior_s = None, None, 0.0
+    prior, init, prior_s, predicted = None, None, 0.0, None
     if opts.prior == "auto" and not held:  # nothing to judge the prior on: the plain fit
         opts = replace(opts, prior="off")
     if opts.prior in ("predictor", "auto"):
         from damcap.appearance.hyper.predict import predict_views
 
         t0 = time.perf_counter()
-        predicted = predict_views([v for k, v in enumerate(views) if k not in held], device=opts.device)
+        try:
+            predicted = predict_views([v for k, v in enumerate(views) if k not in held], device=opts.device)
+        except DamcapError as e:
+            if opts.prior != "auto":
+                raise
+            if log:
+                log(f"prior: none (the predictor could not predict from these views: {e})")
+            predicted, opts = None, replace(opts, prior="off")
+    if predicted is not None:
         if predicted.arch == opts.architecture:  # start from the prediction itself (the fit keeps its radiance scale)
             init = predicted
         scale = predicted.radiance_scale if init is not None else radiance_scale_of(samples.radiance_lin, samples.weight)

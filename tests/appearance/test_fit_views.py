@@ -67,3 +67,19 @@ def test_prior_auto_keeps_the_fit_whose_held_out_views_score_better(views):
     # nothing held out: nothing to judge on, the plain fit
     none = fit_views(views, replace(base, prior="auto", holdout_views=0))
     assert none.prior_choice == {} and none.prior_seconds == 0.0
+
+
+def test_prior_auto_falls_back_to_the_plain_fit_when_the_predictor_cannot_predict(views, monkeypatch):
+    import damcap.appearance.hyper.predict as predict
+    from damcap.common.errors import DamcapError
+
+    def refuse(*a, **k):
+        raise DamcapError("no view with foreground")
+
+    monkeypatch.setattr(predict, "predict_views", refuse)
+    said = []
+    base = FitOptions(steps=20, eval_every=20, checkpoint_every=0, normal_refine="off", spatial="off")
+    out = fit_views(views, base, log=said.append)
+    assert out.prior_choice == {} and any(m.startswith("prior: none (the predictor could not predict") for m in said)
+    with pytest.raises(DamcapError, match="no view with foreground"):  # asked for explicitly: refused
+        fit_views(views, FitOptions(**{**base.__dict__, "prior": "predictor"}))

@@ -92,7 +92,8 @@ def prior_samples(prior: DeepAppearanceMap, samples: PixelSamples, encoding: Enc
     gen = torch.Generator().manual_seed(seed)
     n = len(samples)
     if n == 0 or count == 0:
-        return PriorSamples(torch.zeros(0, 3 * len(encoding)), torch.zeros(0, 3), torch.zeros(0))
+        none = torch.zeros(0, 3)
+        return PriorSamples(encode_inputs(none, none, encoding), none, torch.zeros(0))
     normal = samples.normal_world[torch.randint(0, n, (count,), generator=gen)].float()
     view = hemisphere_view_dirs(normal, gen)
     target = prior(view, normal) / radiance_scale

@@ -168,31 +168,30 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         sys.exit(f"unknown methods {sorted(unknown)}; known: {list(methods())}")
     for name, geometry in jobs:
-        if True:
-            src = sources.get(name, {"kind": "given capture folder"})
-            cap_dir = Path(given[name]) if name in given else build_capture(name, src, geometry, args.size, args.fresh)
-            cap = read_capture(cap_dir)
-            views = load_views(cap, "all")
-            dirs = camera_directions(views)
-            train_idx, test_idx = ring_split(dirs, cap.up_world, args.train_views, gap_deg=args.gap_deg)
-            split = "rings"
-            if not test_idx:  # one ring of cameras: hold out an arc of it
-                train_idx, test_idx = arc_split(dirs, cap.up_world, args.train_views)
-                split = "arc"
-            train, test = [views[k] for k in train_idx], [views[k] for k in test_idx]
-            key = f"{name}/{geometry}"
-            rmpp = float(np.mean([s for t, p in zip(test, rm_plus_plus(train, test)) if (s := score_view(t, p)) is not None]))
-            splits[key] = {"train": [v.name for v in train], "test": len(test), "rm++": rmpp, "kind": src["kind"], "split": split,
-                           "capture": str(cap_dir), "size": args.size}
-            log(f"{key}: {len(train)} train, {len(test)} novel views; RM++ {rmpp:.4f}")
-            for m in wanted:
-                row = {"capture": name, "geometry": geometry, **run_method(m, methods()[m], train, test, base)}
-                row["x_rmpp"] = row["novel_dssim"] / rmpp
-                log(f"{key} {m}: novel DSSIM {row['novel_dssim']:.4f} (x{row['x_rmpp']:.2f} RM++), {row['seconds']:.1f} s")
-                rows = [r for r in rows if (r["capture"], r["geometry"], r["method"]) != (name, geometry, m)] + [row]
-                res = {"command": command_line("real_defaults", argv if argv is not None else sys.argv[1:]), "machine": machine_info(),
-                       "splits": splits, "rows": rows}
-                result.write_text(json.dumps(res, indent=1, default=float))
+        src = sources.get(name, {"kind": "given capture folder"})
+        cap_dir = Path(given[name]) if name in given else build_capture(name, src, geometry, args.size, args.fresh)
+        cap = read_capture(cap_dir)
+        views = load_views(cap, "all")
+        dirs = camera_directions(views)
+        train_idx, test_idx = ring_split(dirs, cap.up_world, args.train_views, gap_deg=args.gap_deg)
+        split = "rings"
+        if not test_idx:  # one ring of cameras: hold out an arc of it
+            train_idx, test_idx = arc_split(dirs, cap.up_world, args.train_views)
+            split = "arc"
+        train, test = [views[k] for k in train_idx], [views[k] for k in test_idx]
+        key = f"{name}/{geometry}"
+        rmpp = float(np.mean([s for t, p in zip(test, rm_plus_plus(train, test)) if (s := score_view(t, p)) is not None]))
+        splits[key] = {"train": [v.name for v in train], "test": len(test), "rm++": rmpp, "kind": src["kind"], "split": split,
+                       "capture": str(cap_dir), "size": args.size}
+        log(f"{key}: {len(train)} train, {len(test)} novel views; RM++ {rmpp:.4f}")
+        for m in wanted:
+            row = {"capture": name, "geometry": geometry, **run_method(m, methods()[m], train, test, base)}
+            row["x_rmpp"] = row["novel_dssim"] / rmpp
+            log(f"{key} {m}: novel DSSIM {row['novel_dssim']:.4f} (x{row['x_rmpp']:.2f} RM++), {row['seconds']:.1f} s")
+            rows = [r for r in rows if (r["capture"], r["geometry"], r["method"]) != (name, geometry, m)] + [row]
+            res = {"command": command_line("real_defaults", argv if argv is not None else sys.argv[1:]), "machine": machine_info(),
+                   "splits": splits, "rows": rows}
+            result.write_text(json.dumps(res, indent=1, default=float))
     write_report(json.loads(result.read_text()), report)
     return 0
 

@@ -40,7 +40,6 @@ def test_the_predictor_prior_starts_from_the_prediction_without_the_held_out_vie
     monkeypatch.setattr(predict, "predict_views", spy)
     opts = FitOptions(steps=50, eval_every=25, checkpoint_every=0, prior="predictor", activation="leaky_relu", prior_samples=4096,
                       normal_refine="off", spatial="off")
-    opts = FitOptions(**{**opts.__dict__, "width": 32, "depth": 4})
     from damcap.appearance.hyper.file import load_predictor, predictor_path
 
     arch = load_predictor(predictor_path(None))[0].arch.dam

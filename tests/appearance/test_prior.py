@@ -68,7 +68,6 @@ def test_the_prior_decides_where_the_data_say_nothing():
     const = DeepAppearanceMap(DamArchitecture(width=8, depth=2), 1.0)
     with torch.no_grad():
         const.weights_flat.zero_()
-        const.weights_flat[-3:] = 0.0
     p = prior_samples(const, s, "nr", radiance_scale=1.0, count=4000, sigma=0.25, seed=0)
     p.target[:] = 0.25  # the prior's answer
     with_prior = fit_dam(s, opts, prior=p).model

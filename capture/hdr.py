@@ -116,13 +116,15 @@ class HdrResult:
 # --------------------------------------------------------------------------------------------
 
 def read_ldr_codes(path: str | os.PathLike) -> tuple[np.ndarray, int]:
-    """Integer code values of an 8- or 16-bit image (JPEG, PNG, TIFF), as RGB.
+    """Integer code values of an 8- or 16-bit image (JPEG, PNG, TIFF), as RGB, turned upright by
+    its EXIF Orientation (:func:`damcap.common.exr.upright`; a phone's portrait photo is stored
+    sideways with Orientation 6), as a viewer shows it.
 
     Args:
         path: the image file.
 
     Returns:
-        codes: (H, W, 3) uint8 or uint16 (grey is repeated, alpha dropped).
+        codes: (H, W, 3) uint8 or uint16 (grey is repeated, alpha dropped), upright.
         max_code: 255 or 65535.
 
     Raises:
@@ -130,7 +132,7 @@ def read_ldr_codes(path: str | os.PathLike) -> tuple[np.ndarray, int]:
     """
     import OpenImageIO as oiio
 
-    from damcap.common.exr import check_header_size
+    from damcap.common.exr import check_header_size, upright
 
     path = Path(path)
     if not path.is_file():
@@ -148,6 +150,7 @@ def read_ldr_codes(path: str | os.PathLike) -> tuple[np.ndarray, int]:
         check_header_size(path, spec.width, spec.height, spec.nchannels, 2)
         pixels = inp.read_image(0, 0, 0, spec.nchannels, fmt)
         err = inp.geterror()
+        orientation = spec.get_int_attribute("Orientation", 1)
     finally:
         inp.close()
     if pixels is None or err:
@@ -155,7 +158,7 @@ def read_ldr_codes(path: str | os.PathLike) -> tuple[np.ndarray, int]:
     codes = np.asarray(pixels).reshape(spec.height, spec.width, spec.nchannels)
     if codes.shape[2] in (1, 2):
         codes = np.repeat(codes[..., :1], 3, axis=2)
-    return np.ascontiguousarray(codes[..., :3]), (255 if fmt == "uint8" else 65535)
+    return upright(np.ascontiguousarray(codes[..., :3]), orientation), (255 if fmt == "uint8" else 65535)
 
 
 def code_levels(codes: np.ndarray, max_code: int) -> tuple[np.ndarray, int]:

@@ -62,9 +62,64 @@ def check_header_size(path: str | os.PathLike, width: int, height: int, channels
     require_memory(float(w) * h * (c * bytes_per_value * 2 + working_bytes_per_pixel), f"an image of {w}x{h} pixels, {c} channels", path)
 
 
+#: EXIF Orientation (tag 0x0112) -> how the stored (H, W) pixels are shown upright: 1 as stored,
+#: 2 mirrored left-right, 3 turned 180 degrees, 4 mirrored top-bottom, 5 transposed, 6 turned 90
+#: degrees clockwise (a phone's portrait photo), 7 transposed across the other diagonal, 8 turned
+#: 90 degrees counter-clockwise. 5 to 8 swap width and height.
+EXIF_ORIENTATIONS = (1, 2, 3, 4, 5, 6, 7, 8)
+
+
+def exif_orientation(value: Any) -> int:
+    """An EXIF Orientation value as one of 1..8; anything else (absent, 0, 9, text) is 1, as viewers read it.
+
+    >>> exif_orientation(6), exif_orientation(None), exif_orientation(42)
+    (6, 1, 1)
+    """
+    try:
+        o = int(value)
+    except (TypeError, ValueError):
+        return 1
+    return o if o in EXIF_ORIENTATIONS else 1
+
+
+def upright(pixels: np.ndarray, orientation: int) -> np.ndarray:
+    """Stored pixels turned upright, as a viewer shows them (OpenImageIO's ``ImageBufAlgo.reorient``).
+
+    Args:
+        pixels: (H, W) or (H, W, C) array, as stored in the file.
+        orientation: its EXIF Orientation, 1..8 (:data:`EXIF_ORIENTATIONS`; others count as 1).
+
+    Returns:
+        (H', W'[, C]) contiguous array, (W, H) swapped for 5 to 8; the input itself for 1.
+
+    >>> upright(np.array([[1, 2, 3], [4, 5, 6]]), 6).tolist()
+    [[4, 1], [5, 2], [6, 3]]
+    >>> upright(np.array([[1, 2, 3], [4, 5, 6]]), 2).tolist()
+    [[3, 2, 1], [6, 5, 4]]
+    """
+    o = exif_orientation(orientation)
+    if o == 1:
+        return pixels
+    a = np.asarray(pixels)
+    a = {2: lambda: a[:, ::-1], 3: lambda: a[::-1, ::-1], 4: lambda: a[::-1],
+         5: lambda: a.swapaxes(0, 1), 6: lambda: np.rot90(a, -1), 7: lambda: np.rot90(a, 2).swapaxes(0, 1),
+         8: lambda: np.rot90(a, 1)}[o]()
+    return np.ascontiguousarray(a)
+
+
+def upright_size(width: int, height: int, orientation: int) -> tuple[int, int]:
+    """(width, height) of an image stored ``width`` x ``height`` once turned upright by its EXIF Orientation.
+
+    >>> upright_size(4032, 3024, 6), upright_size(4032, 3024, 3)
+    ((3024, 4032), (4032, 3024))
+    """
+    return (height, width) if exif_orientation(orientation) >= 5 else (width, height)
+
+
 def image_header(path: str | os.PathLike) -> tuple[int, int, int, int]:
-    """(width, height, channels, EXIF orientation) of an image, from its header only (no pixel
-    is decoded); orientation 1 when the file has none (5 to 8: stored turned by 90 degrees).
+    """(width, height, channels, EXIF orientation) of an image as stored, from its header only (no
+    pixel is decoded); orientation 1 when the file has none (5 to 8: stored turned by 90 degrees,
+    :func:`upright_size` gives the size a viewer shows).
 
     Raises:
         DamcapError: missing, or not an image OpenImageIO reads.
@@ -82,7 +137,7 @@ def image_header(path: str | os.PathLike) -> tuple[int, int, int, int]:
                 inp.close()
     if inp is None:
         raise DamcapError(f"{path}: cannot read image ({_one_line(_oiio().geterror() or chr(10).join(printed), path)})")
-    return spec.width, spec.height, spec.nchannels, orientation if 1 <= orientation <= 8 else 1
+    return spec.width, spec.height, spec.nchannels, exif_orientation(orientation)
 
 
 def read_exr(path: str | os.PathLike) -> tuple[np.ndarray, tuple[str, ...]]:
@@ -231,7 +286,8 @@ def write_png(path: str | os.PathLike, pixels_u8: np.ndarray) -> None:
 
 
 def read_image_u8(path: str | os.PathLike, working_bytes_per_pixel: int = 0) -> np.ndarray:
-    """Read an 8-bit display image (PNG/JPEG) as (H, W, C) uint8, alpha unassociated (as stored).
+    """Read an 8-bit display image (PNG/JPEG/TIFF) as (H, W, C) uint8, alpha unassociated (as
+    stored), turned upright by its EXIF Orientation (:func:`upright`), as a viewer shows it.
 
     ``working_bytes_per_pixel``: what the caller makes of each pixel (:func:`check_header_size`),
     refused with the decode, before it."""
@@ -248,6 +304,7 @@ def read_image_u8(path: str | os.PathLike, working_bytes_per_pixel: int = 0) -> 
                 check_header_size(path, spec.width, spec.height, spec.nchannels, 1, working_bytes_per_pixel)
                 px = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
                 err = inp.geterror()  # a truncated JPEG/PNG reads with gray filler and an error here
+                orientation = spec.get_int_attribute("Orientation", 1)
             finally:
                 inp.close()
     if inp is None:
@@ -255,4 +312,4 @@ def read_image_u8(path: str | os.PathLike, working_bytes_per_pixel: int = 0) -> 
     if px is None or err:
         raise DamcapError(f"{path}: cannot read pixels, the file is damaged or truncated "
                           f"({_one_line(err or chr(10).join(printed) or 'no data', path)})")
-    return np.asarray(px, np.uint8).reshape(spec.height, spec.width, spec.nchannels)
+    return upright(np.asarray(px, np.uint8).reshape(spec.height, spec.width, spec.nchannels), orientation)

@@ -20,9 +20,15 @@ Photos are the files of one folder, all of one kind (:func:`photo_kind`):
 A folder mixing kinds is refused: an sRGB-decoded JPEG, a RAW file (1 = the sensor's white level)
 and a merged EXR (1 = the middle code of a recovered response) have no common scale.
 
+Photos and masks are read upright, as a viewer shows them: a display photo or mask with an EXIF
+Orientation other than 1 (a phone's portrait photo is stored sideways with 6) is turned by it
+(:func:`damcap.common.exr.upright`), so sizes, cameras, frames and masks are all in the upright
+frame; RAW files are turned by LibRaw's flip as decoded.
+
 Masks (optional) are grey images with the same base name (``IMG_5881.JPG`` <-> ``IMG_5881.png``,
-or COLMAP's ``IMG_5881.JPG.png``), white = object. COLMAP reads only display images well, so
-linear and RAW photos are registered through 8-bit proxies (:func:`write_registration_proxies`).
+or COLMAP's ``IMG_5881.JPG.png``), white = object. COLMAP reads only display images well, and
+them as stored, so linear and RAW photos, and display photos stored turned, are registered through
+8-bit upright proxies (:func:`write_registration_proxies`).
 Everything that touches a file is here; the math is in small pure functions.
 """
 
@@ -31,6 +37,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Literal
@@ -253,13 +260,19 @@ def _raw_size(path: Path) -> tuple[int, int]:
 
 
 def image_size(path: str | os.PathLike) -> tuple[int, int]:
-    """(width, height) of a photo in pixels (header only; RAW files as decoded, upright)."""
+    """(width, height) of a photo in pixels, upright (header only): display photos turned by their
+    EXIF Orientation (:func:`damcap.common.exr.upright_size`), RAW files as decoded; linear files
+    as stored."""
+    from damcap.common.exr import exif_orientation, upright_size
+
     path = Path(path)
     if not path.is_file():
         raise DamcapError(f"{path}: file not found")
     if path.suffix.lower() in RAW_EXTENSIONS:
         return _raw_size(path)
-    w, h, _ = _spec_attributes(path)
+    w, h, attrs = _spec_attributes(path)
+    if path.suffix.lower() in DISPLAY_SUFFIXES:
+        return upright_size(w, h, exif_orientation(attrs.get("Orientation", 1)))
     return w, h
 
 
@@ -365,27 +378,15 @@ def verify_photos(folder: str | os.PathLike, names: list[str],
         DamcapError: the first unreadable or truncated photo, named (as ``damcap hdr`` and
             ``damcap linearize`` refuse it).
     """
-    from damcap.common.exr import image_header
-
     folder = Path(folder)
     display = [n for n in names if photo_kind(n) == "display"]
     empty: list[tuple[str, str]] = []
-    turned: dict[str, int] = {}
     for k, name in enumerate(display):
         if progress:
             progress("checking photos", k, len(display))
-        if (orientation := image_header(folder / name)[3]) != 1:
-            turned[name] = orientation
         codes = _read_display_codes(folder / name)
         if (why := display_photo_signal(codes)) is not None:
             empty.append((name, why))
-    if turned:
-        import warnings
-
-        first = sorted(turned)[0]
-        warnings.warn(f"{folder / first}: {len(turned)} of {len(display)} photos carry an EXIF Orientation other than upright "
-                      f"({turned[first]} here, as phones store portrait photos); damcap uses their pixels as stored, so their "
-                      f"frames (and any masks) are as stored, not as a viewer shows them", stacklevel=2)
     if progress and display:
         progress("checking photos", len(display), len(display))
     if display and len(empty) == len(display):
@@ -413,7 +414,7 @@ def display_photo_signal(codes: np.ndarray) -> str | None:
 
 
 def _read_display_codes(path: Path) -> np.ndarray:
-    """(H, W, 3) uint8/uint16 codes of a display photo (:func:`damcap.capture.hdr.read_ldr_codes`),
+    """(H, W, 3) uint8/uint16 codes of a display photo, upright (:func:`damcap.capture.hdr.read_ldr_codes`),
     with what libpng prints itself on a damaged PNG caught (the error names the file instead)."""
     from damcap.capture.hdr import read_ldr_codes
     from damcap.common.native_stderr import native_stderr_caught
@@ -424,7 +425,7 @@ def _read_display_codes(path: Path) -> np.ndarray:
 
 
 def read_photo_u8(path: str | os.PathLike) -> np.ndarray:
-    """A display photo as (H, W, 3) uint8 (grey expanded, alpha dropped; 16-bit scaled down)."""
+    """A display photo as (H, W, 3) uint8, upright (grey expanded, alpha dropped; 16-bit scaled down)."""
     from damcap.common.exr import read_image_u8
 
     px = read_image_u8(path)
@@ -532,21 +533,21 @@ def read_photo_linear(path: str | os.PathLike, factor: float, reference: float,
 
 
 def read_mask(path: str | os.PathLike, size: tuple[int, int] | None = None, photo_name: str = "") -> np.ndarray:
-    """A mask file as (H, W) float32 in [0, 1].
+    """A mask file as (H, W) float32 in [0, 1], upright (turned by its own EXIF Orientation, if any).
 
     Args:
         path: mask image.
-        size: (width, height) it must have (the photo's), or None.
+        size: (width, height) it must have (the photo's, upright: :func:`image_size`), or None.
         photo_name: the photo the mask belongs to, named in the size error.
 
     Raises:
-        DamcapError: unreadable, or a size different from the photo's.
+        DamcapError: unreadable, or an upright size different from the photo's.
     """
-    from damcap.common.exr import image_header, read_image_u8
+    from damcap.common.exr import image_header, read_image_u8, upright_size
 
     if size is not None:  # from the header: a mask of another size is refused before it is decoded
-        w, h, _, _ = image_header(path)
-        _check_mask_size(path, (w, h), tuple(size), photo_name)
+        w, h, _, orientation = image_header(path)
+        _check_mask_size(path, upright_size(w, h, orientation), tuple(size), photo_name)
     m = mask_to_unit(read_image_u8(path, working_bytes_per_pixel=MASK_WORKING_BYTES))
     if size is not None:
         _check_mask_size(path, (m.shape[1], m.shape[0]), tuple(size), photo_name)
@@ -562,10 +563,9 @@ def _check_mask_size(path: str | os.PathLike, mask: tuple[int, int], photo: tupl
         return
     of = f"its photo {photo_name + ' ' if photo_name else ''}is {photo[0]}x{photo[1]}"
     if mask == photo[::-1] and mask[0] != mask[1]:
-        raise DamcapError(f"{path}: mask is {mask[0]}x{mask[1]} but {of} (stored on its side): the photo and its mask "
-                          f"are turned by 90 degrees to each other, as when a phone's portrait photo is stored sideways "
-                          f"with an EXIF Orientation tag and the mask drawn upright; save the photo's pixels upright "
-                          f"(exiftran -ai, mogrify -auto-orient) or turn the mask to the photo as stored")
+        raise DamcapError(f"{path}: mask is {mask[0]}x{mask[1]} but {of}, both upright as a viewer shows them (EXIF "
+                          f"Orientation applied): the mask is turned by 90 degrees to its photo; draw or turn the mask "
+                          f"to the photo as a viewer shows it")
     raise DamcapError(f"{path}: mask is {mask[0]}x{mask[1]} but {of}; masks must match the photos' size")
 
 
@@ -582,15 +582,64 @@ def proxy_name(photo_name: str) -> str:
     return f"{Path(photo_name).stem}.png"
 
 
+def turned_photos(folder: str | os.PathLike, names: list[str]) -> dict[str, int]:
+    """The display photos stored turned: name -> EXIF Orientation (2..8), from their headers."""
+    from damcap.common.exr import image_header
+
+    folder = Path(folder)
+    out = {}
+    for n in names:
+        if photo_kind(n) == "display" and (o := image_header(folder / n)[3]) != 1:
+            out[n] = o
+    return out
+
+
+def needs_registration_proxies(folder: str | os.PathLike, names: list[str]) -> bool:
+    """Whether COLMAP must read proxies (:func:`write_registration_proxies`) instead of the photos:
+    linear or RAW photos, or display photos of which some are stored turned (COLMAP reads pixels as
+    stored, ignoring EXIF Orientation)."""
+    return photo_set_kind(names, folder) != "display" or bool(turned_photos(folder, names))
+
+
+#: header attributes a display photo's upright proxy keeps: what COLMAP's focal-length prior reads
+#: (in 35 mm terms, or in mm with the camera's make and model or the focal plane's resolution)
+PROXY_EXIF = ("Make", "Model", "Exif:FocalLength", "Exif:FocalLengthIn35mmFilm", "Exif:FocalPlaneXResolution",
+              "Exif:FocalPlaneYResolution", "Exif:FocalPlaneResolutionUnit")
+
+
+def proxy_exif(path: str | os.PathLike) -> dict[str, str | int | float]:
+    """The header attributes of a display photo its upright proxy carries (:data:`PROXY_EXIF`;
+    numbers and text only), so that COLMAP's focal-length prior, computed from the EXIF focal length
+    and the image's diagonal, is the one the photo gives (a turn keeps the diagonal)."""
+    _, _, attrs = _spec_attributes(Path(path))
+    return {k: v for k, v in attrs.items() if k in PROXY_EXIF and isinstance(v, (str, int, float))}
+
+
+def _link(target: Path, source: Path) -> None:
+    """``target`` made a symbolic link to ``source`` (a copy where links cannot be made), atomically."""
+    from damcap.common.atomic import atomic_path
+
+    with atomic_path(target, keep_name=True) as tmp:  # a fresh name in a staging folder: nothing there yet
+        try:
+            os.symlink(source.resolve(), tmp)
+        except OSError:
+            shutil.copyfile(source, tmp)
+
+
 def write_registration_proxies(photos_dir: str | os.PathLike, names: list[str], proxy_dir: str | os.PathLike,
                                progress: Callable[[str, int, int], None] | None = None) -> dict[str, str]:
-    """8-bit proxies of linear or RAW photos for COLMAP, which reads display images only.
+    """8-bit upright proxies for COLMAP, which reads display images only, and those as stored.
 
-    COLMAP's reader would clamp linear floats to 8 bits without a display encoding and cannot
-    decode RAW files, so each photo is decoded to linear radiance (:func:`read_photo_radiance`)
-    and written as :func:`proxy_srgb_u8` PNG under its base name. Same pixel grid as the photo,
-    so cameras and keypoints are the photo's. A proxy is written again only when its photo's size
-    or modification time changed (``proxy_dir/manifest.json``); the encoding is deterministic.
+    Linear and RAW photos: COLMAP's reader would clamp linear floats to 8 bits without a display
+    encoding and cannot decode RAW files, so each photo is decoded to linear radiance
+    (:func:`read_photo_radiance`) and written as :func:`proxy_srgb_u8` PNG under its base name.
+    Display photos stored turned (EXIF Orientation other than 1, :func:`turned_photos`): COLMAP
+    ignores the tag, so each is written upright (:func:`read_photo_u8`) as PNG under its base name,
+    with its EXIF focal length, make and model (:func:`proxy_exif`); the other display photos are
+    linked under their own names (copied where links cannot be made). Same pixel grid as the photo
+    as damcap reads it (upright), so cameras and keypoints are the photo's. A proxy is written again
+    only when its photo's size or modification time changed (``proxy_dir/manifest.json``); the
+    encoding is deterministic.
 
     Args:
         photos_dir: the photo folder (read only).
@@ -605,7 +654,7 @@ def write_registration_proxies(photos_dir: str | os.PathLike, names: list[str], 
         DamcapError: an unreadable photo (named).
     """
     from damcap.common.atomic import write_json_atomic
-    from damcap.common.exr import write_png
+    from damcap.common.exr import write_image_u8, write_png
 
     photos_dir, proxy_dir = Path(photos_dir), Path(proxy_dir)
     proxy_dir.mkdir(parents=True, exist_ok=True)
@@ -615,15 +664,24 @@ def write_registration_proxies(photos_dir: str | os.PathLike, names: list[str], 
         manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
     except (OSError, json.JSONDecodeError):
         manifest = {}
+    turned = turned_photos(photos_dir, names)
     out: dict[str, str] = {}
     for k, name in enumerate(names):
         progress("registration proxies", k, len(names))
         st = (photos_dir / name).stat()
-        key = {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "version": PROXY_VERSION, "percentile": PROXY_PERCENTILE}
-        target = proxy_dir / proxy_name(name)
+        key: dict[str, Any] = {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "version": PROXY_VERSION, "percentile": PROXY_PERCENTILE}
+        display = photo_kind(name) == "display"
+        if display:
+            key = {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "version": PROXY_VERSION,
+                   "upright_from": turned[name] if name in turned else "linked"}
+        target = proxy_dir / (name if display and name not in turned else proxy_name(name))
         if manifest.get(name) != key or not target.is_file():
-            rad = read_photo_radiance(photos_dir / name, 1.0, 1.0).radiance_lin
-            write_png(target, proxy_srgb_u8(rad))
+            if not display:
+                write_png(target, proxy_srgb_u8(read_photo_radiance(photos_dir / name, 1.0, 1.0).radiance_lin))
+            elif name in turned:
+                write_image_u8(target, read_photo_u8(photos_dir / name), proxy_exif(photos_dir / name))
+            else:
+                _link(target, photos_dir / name)
             manifest[name] = key
             write_json_atomic(manifest_path, manifest)
         out[name] = target.name

@@ -272,8 +272,9 @@ def _save_mesh(path: Path, mesh: Mesh) -> None:
 
 @dataclass
 class RegistrationImages:
-    """The images COLMAP reads for a photo set: the photos themselves (8-bit), or 8-bit proxies of
-    linear and RAW photos in the work folder (same base names, same pixel grid)."""
+    """The images COLMAP reads for a photo set: the photos themselves (8-bit, stored upright), or
+    8-bit upright proxies in the work folder of linear and RAW photos and of 8-bit photos stored
+    turned (EXIF Orientation; the others linked), same base names, same pixel grid as damcap reads."""
 
     folder: Path
     """where the images are"""
@@ -313,9 +314,9 @@ def renamed_registration(reg: Registration, names: dict[str, str]) -> Registrati
 
 
 def _registration_images(photos_dir: Path, names: list[str], work: Path, progress: StageProgress) -> RegistrationImages:
-    from damcap.reconstruct.photos import file_digests, photo_set_kind, write_registration_proxies
+    from damcap.reconstruct.photos import file_digests, needs_registration_proxies, write_registration_proxies
 
-    if photo_set_kind(names, photos_dir) == "display":
+    if not needs_registration_proxies(photos_dir, names):  # 8-bit photos, all stored upright
         return RegistrationImages(photos_dir, {n: n for n in names}, None)
     proxy_dir = work / "proxies"
     by_photo = write_registration_proxies(photos_dir, names, proxy_dir, progress)

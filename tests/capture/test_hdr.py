@@ -206,6 +206,39 @@ def test_half_output_beyond_range_is_refused(tmp_path):
     assert not (tmp_path / "o.exr").exists()
 
 
+def test_a_bracket_shot_in_portrait_merges_upright(tmp_path):
+    """Frames stored sideways with EXIF Orientation 6 (a phone held upright), one of them 8 (turned
+    the other way) and one stored upright: read upright, they merge to exactly the map of the
+    upright bracket. A 16-bit TIFF stored turned reads upright too."""
+    import OpenImageIO as oiio
+
+    from damcap.common.exr import write_image_u8
+
+    radiance = _smooth_radiance(h=32, w=24, seed=2)  # portrait: 24 wide, 32 high
+    times = [0.05, 0.5, 5.0]
+    codes = np.stack([np.round(np.clip(radiance * t * 0.2, 0, 1) ** (1 / 2.2) * 255).astype(np.uint8) for t in times])
+    opts = HdrOptions(exposures_s=times, response="srgb")
+    want = merge_bracket_files(write_png_bracket(tmp_path / "upright", codes), opts)
+    turned = []
+    for j, (img, tag) in enumerate(zip(codes, (6, 8, 1))):
+        turned.append(tmp_path / "turned" / f"frame_{j}.png")
+        stored = {6: np.rot90(img, 1), 8: np.rot90(img, -1), 1: img}[tag]  # 6: shown turned clockwise, stored counter-clockwise
+        write_image_u8(turned[-1], np.ascontiguousarray(stored), {"Orientation": tag})
+    assert read_ldr_codes(turned[0])[0].shape == (32, 24, 3)
+    got = merge_bracket_files(turned, opts)
+    np.testing.assert_array_equal(got.radiance_lin, want.radiance_lin)
+    np.testing.assert_array_equal(got.clipped, want.clipped)
+    deep = (np.arange(6 * 4 * 3).reshape(6, 4, 3) * 1000).astype(np.uint16)
+    out = oiio.ImageOutput.create(str(tmp_path / "deep.tif"))
+    spec = oiio.ImageSpec(6, 4, 3, "uint16")  # stored 6 wide, 4 high: turned counter-clockwise for Orientation 6
+    spec.attribute("Orientation", 6)
+    assert out.open(str(tmp_path / "deep.tif"), spec) and out.write_image(np.ascontiguousarray(np.rot90(deep, 1)))
+    out.close()
+    back, max_code = read_ldr_codes(tmp_path / "deep.tif")
+    assert max_code == 65535
+    np.testing.assert_array_equal(back, deep)
+
+
 # --------------------------------------------------------------------------------------------
 # Bad input
 # --------------------------------------------------------------------------------------------

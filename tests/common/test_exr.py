@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from damcap.common.errors import DamcapError
-from damcap.common.exr import read_exr, read_exr_channels, read_image_u8, write_exr, write_image_u8, write_png
+from damcap.common.exr import (image_header, read_exr, read_exr_channels, read_image_u8, upright, upright_size, write_exr,
+                               write_image_u8, write_png)
 
 
 def _ramp(h: int = 5, w: int = 7, c: int = 3) -> np.ndarray:
@@ -111,6 +112,46 @@ def test_u8_png_round_trip_of_a_2d_image(tmp_path, shape):
     grey = (np.arange(np.prod(shape)).reshape(shape) * 11).astype(np.uint8)
     write_png(tmp_path / "g.png", grey)
     np.testing.assert_array_equal(read_image_u8(tmp_path / "g.png")[..., 0], grey)
+
+
+def stored_turned(upright_px: np.ndarray, orientation: int) -> np.ndarray:
+    """The (H, W, ...) pixels a camera stores for an upright picture with this EXIF Orientation,
+    written out from the EXIF definitions (not from :func:`upright`, which they check)."""
+    a = upright_px
+    return np.ascontiguousarray({1: a, 2: a[:, ::-1], 3: a[::-1, ::-1], 4: a[::-1], 5: a.swapaxes(0, 1),
+                                 6: np.rot90(a, 1),  # shown turned 90 degrees clockwise: stored counter-clockwise
+                                 7: a[::-1, ::-1].swapaxes(0, 1), 8: np.rot90(a, -1)}[orientation])
+
+
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_upright_turns_as_openimageio_reorients(orientation):
+    """Every EXIF Orientation, mirrored ones included, against OpenImageIO's own ImageBufAlgo.reorient."""
+    import OpenImageIO as oiio
+
+    stored = np.random.default_rng(orientation).integers(0, 256, (3, 5, 2), dtype=np.uint8)
+    spec = oiio.ImageSpec(5, 3, 2, "uint8")
+    spec.attribute("Orientation", orientation)
+    buf = oiio.ImageBuf(spec)
+    buf.set_pixels(oiio.ROI(), stored)
+    want = oiio.ImageBufAlgo.reorient(buf).get_pixels(oiio.UINT8)
+    got = upright(stored, orientation)
+    np.testing.assert_array_equal(got, want)
+    assert (got.shape[1], got.shape[0]) == upright_size(5, 3, orientation)
+    np.testing.assert_array_equal(upright(stored_turned(got, orientation), orientation), got)
+
+
+@pytest.mark.parametrize("orientation, suffix", [(6, ".png"), (5, ".png"), (7, ".tif"), (8, ".png"), (3, ".png"), (2, ".tif")])
+def test_an_image_stored_turned_reads_as_the_upright_original(tmp_path, orientation, suffix):
+    """A portrait picture stored sideways (6, as phones do), mirrored (5, 7, 2) or turned 180 degrees:
+    the reader gives the upright original's pixels exactly; the header still says how it is stored."""
+    original = np.random.default_rng(0).integers(0, 256, (6, 4, 3), dtype=np.uint8)  # 4 wide, 6 high
+    path = tmp_path / f"turned{suffix}"
+    write_image_u8(path, stored_turned(original, orientation), {"Orientation": orientation})
+    np.testing.assert_array_equal(read_image_u8(path), original)
+    w, h, _, tag = image_header(path)
+    assert tag == orientation and upright_size(w, h, tag) == (4, 6)
+    write_image_u8(tmp_path / "odd.png", original, {"Orientation": 9})  # not an orientation: as stored
+    np.testing.assert_array_equal(read_image_u8(tmp_path / "odd.png"), original)
 
 
 _WRITE_CUT_SHORT = r"""

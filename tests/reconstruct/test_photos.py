@@ -16,6 +16,7 @@ import json
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -589,15 +590,108 @@ def test_a_huge_mask_is_refused_from_its_header_before_decoding(tmp_path, monkey
         read_mask(tmp_path / "m.png")
 
 
-def test_a_photo_stored_sideways_and_its_upright_mask_are_refused_in_one_line(tmp_path):
-    """A phone's portrait photo stored sideways (EXIF Orientation 6) with a mask drawn upright: one
-    line saying they are turned to each other; the photo set itself says it carries the tag."""
-    from damcap.reconstruct.photos import read_mask, verify_photos
+def _stored_turned(upright_px: np.ndarray, orientation: int) -> np.ndarray:
+    """What a camera stores for upright pixels and this EXIF Orientation (6: the picture shown turned
+    90 degrees clockwise is stored turned counter-clockwise; 7: transposed across the other diagonal)."""
+    return np.ascontiguousarray({6: np.rot90(upright_px, 1), 7: upright_px[::-1, ::-1].swapaxes(0, 1)}[orientation])
 
-    write_image_u8(tmp_path / "IMG_1.jpg", np.random.default_rng(0).integers(0, 256, (32, 48, 3), dtype=np.uint8), {"Orientation": 6})
-    write_image_u8(tmp_path / "IMG_1.png", np.full((48, 32), 255, np.uint8))  # upright: 32 wide, 48 high
-    with pytest.raises(DamcapError, match=r"IMG_1.png: mask is 32x48 but its photo IMG_1.jpg is 48x32 \(stored on its side\): "
-                                          r"the photo and its mask are turned by 90 degrees"):
-        read_mask(tmp_path / "IMG_1.png", (48, 32), "IMG_1.jpg")
-    with pytest.warns(UserWarning, match=r"IMG_1.jpg: 1 of 1 photos carry an EXIF Orientation other than upright \(6 here"):
-        verify_photos(tmp_path, ["IMG_1.jpg"])
+
+def test_a_photo_stored_sideways_is_read_upright_with_its_upright_mask(tmp_path):
+    """A phone's portrait photo stored sideways (EXIF Orientation 6): its size, pixels and radiance
+    are upright, a mask drawn on it as a viewer shows it is accepted and aligned (also one stored
+    turned with its own tag, 7: mirrored), the photo check warns of nothing; a mask drawn on the
+    sideways pixels is refused in one line."""
+    import warnings
+
+    from damcap.reconstruct.photos import image_size, read_mask, read_photo_u8, verify_photos
+
+    rng = np.random.default_rng(0)
+    photo = rng.integers(0, 256, (48, 32, 3), dtype=np.uint8)  # upright: 32 wide, 48 high
+    write_image_u8(tmp_path / "IMG_1.png", _stored_turned(photo, 6), {"Orientation": 6})
+    mask = np.zeros((48, 32), np.uint8)
+    mask[5:20, 3:10] = 255  # the object, top left as a viewer shows the photo
+    write_image_u8(tmp_path / "upright.png", mask)
+    write_image_u8(tmp_path / "tagged.png", _stored_turned(mask, 7), {"Orientation": 7})
+    assert image_size(tmp_path / "IMG_1.png") == (32, 48)
+    np.testing.assert_array_equal(read_photo_u8(tmp_path / "IMG_1.png"), photo)
+    np.testing.assert_array_equal(read_ldr_codes(tmp_path / "IMG_1.png")[0], photo)
+    for m in ("upright.png", "tagged.png"):
+        np.testing.assert_array_equal(read_mask(tmp_path / m, (32, 48), "IMG_1.png"), mask / 255.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        verify_photos(tmp_path, ["IMG_1.png"])
+    write_image_u8(tmp_path / "sideways.png", _stored_turned(mask, 6))  # drawn on the stored pixels, no tag
+    with pytest.raises(DamcapError, match=r"sideways.png: mask is 48x32 but its photo IMG_1.png is 32x48, both upright as a "
+                                          r"viewer shows them \(EXIF Orientation applied\): the mask is turned by 90 degrees") as e:
+        read_mask(tmp_path / "sideways.png", (32, 48), "IMG_1.png")
+    assert "\n" not in str(e.value)
+
+
+def test_photos_stored_turned_reach_colmap_as_upright_proxies(tmp_path):
+    """COLMAP reads pixels as stored: a set where some 8-bit photos are stored turned is registered
+    through proxies: the turned photos written upright (with the EXIF focal length, so COLMAP's
+    camera prior is the photo's: 26 mm in 35 mm terms, on the image's diagonal), the others linked; a
+    rerun writes nothing again. A set stored upright is read by COLMAP as it is."""
+    from damcap.reconstruct.colmap.database import import_pycolmap
+    from damcap.reconstruct.photos import needs_registration_proxies, read_photo_u8, write_registration_proxies
+
+    photos = tmp_path / "photos"
+    rng = np.random.default_rng(1)
+    upright_px = {n: rng.integers(0, 256, (48, 32, 3), dtype=np.uint8) for n in ("a.jpg", "b.jpg", "c.png")}
+    exif = {"Make": "Phone", "Model": "P1", "Exif:FocalLength": 4.2, "Exif:FocalLengthIn35mmFilm": 26}
+    for n, tag in (("a.jpg", 1), ("b.jpg", 6), ("c.png", 7)):
+        write_image_u8(photos / n, _stored_turned(upright_px[n], tag) if tag != 1 else upright_px[n], {**exif, "Orientation": tag})
+    names = ["a.jpg", "b.jpg", "c.png"]
+    assert not needs_registration_proxies(photos, ["a.jpg"]) and needs_registration_proxies(photos, names)
+    proxies = tmp_path / "proxies"
+    by_photo = write_registration_proxies(photos, names, proxies)
+    assert by_photo == {"a.jpg": "a.jpg", "b.jpg": "b.png", "c.png": "c.png"}
+    assert (proxies / "a.jpg").read_bytes() == (photos / "a.jpg").read_bytes()
+    np.testing.assert_array_equal(read_photo_u8(proxies / "c.png"), upright_px["c.png"])  # lossless
+    np.testing.assert_array_equal(read_photo_u8(proxies / "b.png"), read_photo_u8(photos / "b.jpg"))
+    pycolmap = import_pycolmap()
+
+    def colmap_cameras(folder: Path, images: list[str]) -> dict[str, Any]:
+        db_path = tmp_path / f"{folder.name}.db"
+        pycolmap.Database.open(str(db_path)).close()
+        pycolmap.import_images(str(db_path), str(folder), camera_mode=pycolmap.CameraMode.PER_IMAGE, image_names=images,
+                               options=pycolmap.ImageReaderOptions())
+        db = pycolmap.Database.open(str(db_path))
+        try:
+            return {im.name: db.read_camera(im.camera_id) for im in db.read_all_images()}
+        finally:
+            db.close()
+
+    as_stored = colmap_cameras(photos, ["b.jpg"])["b.jpg"]  # COLMAP on the photo itself: sideways
+    assert (as_stored.width, as_stored.height) == (48, 32) and as_stored.has_prior_focal_length
+    assert as_stored.params[0] == pytest.approx(48 * 26 / 36, rel=1e-3)  # 26 mm in 35 mm terms
+    for name, cam in colmap_cameras(proxies, list(by_photo.values())).items():
+        assert (cam.width, cam.height) == (32, 48) and cam.has_prior_focal_length, name
+        assert cam.params[0] == as_stored.params[0], name
+    stamps = {p.name: p.lstat().st_mtime_ns for p in proxies.iterdir()}
+    assert write_registration_proxies(photos, names, proxies) == by_photo
+    assert {p.name: p.lstat().st_mtime_ns for p in proxies.iterdir()} == stamps
+
+
+def test_a_set_with_photos_stored_turned_gives_the_frames_of_the_upright_photos(scene, jpeg_frames, tmp_path):
+    """Two of the JPEGs stored turned, as lossless PNGs with their EXIF exposure (Orientation 6, and 7:
+    mirrored), one mask stored turned with its own tag: reconstruct makes the same upright frames,
+    pixel for pixel, as from the photos stored upright."""
+    photos, masks = tmp_path / "images", tmp_path / "masks"
+    shutil.copytree(scene.images, photos)
+    shutil.copytree(scene.root / "masks", masks)
+    for k, tag in ((1, 6), (4, 7)):
+        stem, e = f"IMG_{k:04d}", scene.exposures[k]
+        jpeg = photos / f"{stem}.jpg"
+        exif = {"ExposureTime": float(e.time_s), "FNumber": float(e.f_number), "Exif:PhotographicSensitivity": int(round(e.iso))}
+        write_image_u8(photos / f"{stem}.png", _stored_turned(read_ldr_codes(jpeg)[0], tag), {**exif, "Orientation": tag})
+        jpeg.unlink()
+    mask = read_ldr_codes(masks / "IMG_0004.png")[0][..., 0]
+    write_image_u8(masks / "IMG_0004.png", _stored_turned(mask, 6), {"Orientation": 6})
+    cap, _ = reconstruct_capture(photos, tmp_path / "capture", _options(scene), masks_dir=masks,
+                                 poses=str(scene.root / "transforms.json"))
+    frames = {Path(f.extra["photo"]).stem: read_frame(cap, f) for f in cap.frames}
+    assert sorted(frames) == sorted(jpeg_frames) and {Path(f.extra["photo"]).name for f in cap.frames} >= {"IMG_0001.png", "IMG_0004.png"}
+    for stem, ref in jpeg_frames.items():
+        np.testing.assert_array_equal(frames[stem].coverage, ref.coverage)
+        np.testing.assert_allclose(frames[stem].radiance_lin, ref.radiance_lin, rtol=FLOAT_RTOL, atol=1e-7)

@@ -142,6 +142,14 @@ def _ratio_medians(frames: dict[str, FrameData], reference: dict[str, np.ndarray
     return np.array(out)
 
 
+def _stored_turned(upright_px: np.ndarray, orientation: int) -> np.ndarray:
+    """What a camera stores for upright pixels and this EXIF Orientation (6: the picture shown turned
+    90 degrees clockwise is stored turned counter-clockwise; 8: the other way; 7: transposed across
+    the other diagonal, its own inverse). Written from the EXIF definitions, not from the reader's code."""
+    return np.ascontiguousarray({6: np.rot90(upright_px, 1), 8: np.rot90(upright_px, -1),
+                                 7: upright_px[::-1, ::-1].swapaxes(0, 1)}[orientation])
+
+
 # ---- listing and pure functions ----------------------------------------------------------------
 
 def test_photo_kinds_listing_and_masks(tmp_path):
@@ -483,13 +491,24 @@ def test_damcap_linearize_output_goes_straight_into_damcap_reconstruct(scene, jp
 def test_sfm_registers_linear_exrs_through_8bit_proxies(tmp_path):
     """No poses: COLMAP registers the EXRs through sRGB proxies in the work folder (same base
     names), the cameras agree with the truth, and a rerun reuses every stage, also after the
-    proxies were written again (they are deterministic)."""
+    proxies were written again (they are deterministic). Two of the photos linearized were stored
+    turned (EXIF Orientation 6 and 8, lossless PNGs), one mask too (7): they are read upright and
+    register as well as the others."""
     from damcap.reconstruct.normalize import rotation_agreement_deg
     from damcap.common.capture_folder import read_capture
 
     n = 16
     cams = orbit_cameras(n, 3.2, (25.0,), jitter_deg=4, seed=0)
-    names = write_photo_set(tmp_path, bumpy_blob(subdivisions=5), cams, default_intrinsics(256), exposure_series(n, 0))
+    exposures = exposure_series(n, 0)
+    names = write_photo_set(tmp_path, bumpy_blob(subdivisions=5), cams, default_intrinsics(256), exposures)
+    for k, tag in ((3, 6), (10, 8)):
+        jpeg, e = tmp_path / "images" / names[k], exposures[k]
+        write_image_u8(jpeg.with_suffix(".png"), _stored_turned(read_ldr_codes(jpeg)[0], tag),
+                       {"ExposureTime": float(e.time_s), "FNumber": float(e.f_number),
+                        "Exif:PhotographicSensitivity": int(round(e.iso)), "Orientation": tag})
+        jpeg.unlink()
+    mask = tmp_path / "masks" / Path(names[5]).with_suffix(".png").name
+    write_image_u8(mask, _stored_turned(read_ldr_codes(mask)[0], 7), {"Orientation": 7})
     linearize_files(linearize_list(tmp_path / "images"), tmp_path / "linear", LinearizeOptions())
     opts = ReconstructOptions(capture_size=64, geometry=GeometryOptions(voxels=48), dense=DenseOptions(image_size=64, depth_planes=32),
                               train_views=3, supersample=1)
@@ -590,10 +609,6 @@ def test_a_huge_mask_is_refused_from_its_header_before_decoding(tmp_path, monkey
         read_mask(tmp_path / "m.png")
 
 
-def _stored_turned(upright_px: np.ndarray, orientation: int) -> np.ndarray:
-    """What a camera stores for upright pixels and this EXIF Orientation (6: the picture shown turned
-    90 degrees clockwise is stored turned counter-clockwise; 7: transposed across the other diagonal)."""
-    return np.ascontiguousarray({6: np.rot90(upright_px, 1), 7: upright_px[::-1, ::-1].swapaxes(0, 1)}[orientation])
 
 
 def test_a_photo_stored_sideways_is_read_upright_with_its_upright_mask(tmp_path):

@@ -38,6 +38,10 @@ COLORSPACES: tuple[str, ...] = ("lin_rec709", "acescg")
 #: bytes per pixel a frame needs in memory (radiance, geometry, weights and derived float32
 #: buffers, with copies): what bounds the resolution transforms.json may state
 FRAME_BYTES_PER_PIXEL = 4 * 64
+#: largest transforms.json read, bytes: refused from its size, before parsing (a 182 MB one took
+#: 35 s and 1.2 GB to parse and refuse). 32 MiB holds about 60,000 frames of reconstruct's ~520
+#: bytes each, far beyond a capture's hundreds
+MAX_TRANSFORMS_BYTES = 32 * 2 ** 20
 
 Split = Literal["train", "test", "all"]
 
@@ -252,7 +256,7 @@ def read_capture(root: str | os.PathLike, *, check_files: bool = True) -> Captur
     path = root / "transforms.json"
     if not path.is_file():
         raise DamcapError(f"{path}: not found; a capture folder needs a transforms.json")
-    doc = load_json_file(path, "transforms.json")
+    doc = load_json_file(path, "transforms.json", MAX_TRANSFORMS_BYTES)
     if not isinstance(doc, dict):
         raise DamcapError(f"{path}: expected a JSON object at the top level")
     version = doc.get("damcap_version", FORMAT_VERSION)

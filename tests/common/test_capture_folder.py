@@ -208,6 +208,25 @@ class TestHostileTransforms:
             read_capture(capture_copy)
         assert time.perf_counter() - t0 < 2.0
 
+    def test_a_transforms_json_over_the_bound_is_refused_from_its_size(self, capture_copy):
+        """Refused before it is parsed: one line naming the file, its size and the bound (a
+        sparse file: its size is all the reader may look at)."""
+        import time
+
+        from damcap.common.capture_folder import MAX_TRANSFORMS_BYTES
+
+        tj = capture_copy / "transforms.json"
+        with open(tj, "r+b") as f:
+            f.truncate(MAX_TRANSFORMS_BYTES + 2 ** 20)
+        t0 = time.perf_counter()
+        with pytest.raises(DamcapError, match=r"transforms\.json: transforms\.json is 33\.0 MiB, larger than the 32 MiB damcap reads"):
+            read_capture(capture_copy)
+        assert time.perf_counter() - t0 < 0.5
+        with open(tj, "r+b") as f:
+            f.truncate(MAX_TRANSFORMS_BYTES)  # at the bound it is parsed (and refused as the JSON it is: NUL padding)
+        with pytest.raises(DamcapError, match="invalid JSON"):
+            read_capture(capture_copy)
+
     @pytest.mark.parametrize("value", [0, -2, 2.0, True])
     def test_bad_material_counts(self, capture_copy, value):
         self._edit(capture_copy, lambda d: d.update(materials=value))

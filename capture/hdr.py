@@ -389,6 +389,10 @@ def merge_bracket_files(files: Sequence[str | os.PathLike], opts: HdrOptions | N
 def write_hdr(path: str | os.PathLike, result: HdrResult, opts: HdrOptions) -> Path:
     """Write the merged map as an EXR (R, G, B, clipped) and the record ``<path>.json`` beside it.
 
+    Both are complete on disk before either replaces an earlier pair: the record is staged, the
+    EXR written and renamed into place, then the record renamed beside it (only a kill between
+    these two back-to-back renames leaves the new EXR beside the earlier record).
+
     EXR header attributes: ``damcap:colorspace``, ``damcap:exposures`` (JSON: file, time_s, iso,
     f_number, factor), ``damcap:reference_exposure``, ``damcap:clipped_pixels``, ``damcap:version``.
 
@@ -398,7 +402,7 @@ def write_hdr(path: str | os.PathLike, result: HdrResult, opts: HdrOptions) -> P
     Raises:
         DamcapError: half storage asked for values beyond 65504 (the message names --dtype float).
     """
-    from damcap.common.atomic import write_json_atomic
+    from damcap.common.atomic import atomic_path
     from damcap.common.exr import CLIPPED_CHANNEL, write_exr
     from damcap.common.version import package_version
 
@@ -410,13 +414,6 @@ def write_hdr(path: str | os.PathLike, result: HdrResult, opts: HdrOptions) -> P
     records = [{"file": Path(f).name, **e.to_json(), "factor": float(h)}
                for f, e, h in zip(result.files, result.exposures, result.exposure_factors)]
     pixels = np.concatenate([result.radiance_lin, result.clipped[..., None].astype(np.float32)], axis=-1)
-    write_exr(path, pixels, ("R", "G", "B", CLIPPED_CHANNEL), dtype=opts.dtype, attributes={
-        "damcap:colorspace": result.colorspace,
-        "damcap:exposures": json.dumps(records),
-        "damcap:reference_exposure": float(result.reference_exposure),
-        "damcap:clipped_pixels": int(result.clipped.sum()),
-        "damcap:version": package_version(),
-    })
     record = {
         "damcap_package_version": package_version(),
         "command": "hdr",
@@ -433,7 +430,15 @@ def write_hdr(path: str | os.PathLike, result: HdrResult, opts: HdrOptions) -> P
                                "log_response": result.response.log_response.round(6).tolist(),
                                "level_weight": result.response.level_weight.round(6).tolist()}
     side = hdr_record_path(path)
-    write_json_atomic(side, record)
+    with atomic_path(side) as staged_record:  # staged first, renamed right after the EXR
+        staged_record.write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
+        write_exr(path, pixels, ("R", "G", "B", CLIPPED_CHANNEL), dtype=opts.dtype, attributes={
+            "damcap:colorspace": result.colorspace,
+            "damcap:exposures": json.dumps(records),
+            "damcap:reference_exposure": float(result.reference_exposure),
+            "damcap:clipped_pixels": int(result.clipped.sum()),
+            "damcap:version": package_version(),
+        })
     return side
 
 

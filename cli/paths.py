@@ -51,7 +51,7 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Callable, Iterable, Iterator, Literal, Optional, Sequence
 
-from damcap.common.atomic import fsync_path
+from damcap.common.atomic import fsync_path, pause_point
 from damcap.common.errors import DamcapError
 
 Kind = Literal["file", "folder"]
@@ -194,6 +194,7 @@ def check_paths(inputs: Iterable[Optional[os.PathLike | str]], outputs: Iterable
         r = _resolve(o.path)
         if held is not None and r.name not in ("", ".", "..") and r.with_name(f".{r.name}.lock") in held:
             remove_leftovers(o)
+            pause_point(r.with_name(f".{r.name}.lock"))  # test hook (common/atomic.py): a no-op unless a kill test asks
 
 
 # --------------------------------------------------------------------------------------------
@@ -480,6 +481,7 @@ def staged_folder(out: Path, replace: bool = False) -> Iterator[Path]:
         files = sorted(p for p in stage.rglob("*") if p.is_file())
         for p in files:
             fsync_path(p)
+        pause_point(out)  # test hook (common/atomic.py): a no-op unless a kill test asks
         if replace and out.is_dir():
             old = Path(tempfile.mkdtemp(prefix=f".{out.name}.replaced-", dir=out.parent))
             os.rename(out, old / out.name)

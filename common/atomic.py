@@ -1,4 +1,8 @@
-"""Atomic file writes: write next to the target, fsync it, rename it over the target, fsync the folder."""
+"""Atomic file writes: write next to the target, fsync it, rename it over the target, fsync the folder.
+
+One test hook lives here, :func:`pause_point`: with ``DAMCAP_TEST_PAUSE_AT`` unset (always, outside
+the kill tests of tests/fuzz/test_kill_matrix.py) it does nothing.
+"""
 
 from __future__ import annotations
 
@@ -30,8 +34,41 @@ def fsync_path(path: str | os.PathLike) -> None:
         os.close(fd)
 
 
+#: the test hook's environment variable (read by :func:`pause_point` only): ``NAME`` or ``NAME#K``
+PAUSE_ENV = "DAMCAP_TEST_PAUSE_AT"
+_pause_counts: dict[str, int] = {}
+
+
+def pause_point(path: str | os.PathLike) -> None:
+    """Test hook: stop this process for good at a named moment, so that a test can kill it there.
+
+    The moments are: an output locked (``path``: its lock file, ``.m.dam.lock``), a staged file
+    about to be renamed onto ``path``, a staged folder about to move into ``path``. With
+    ``DAMCAP_TEST_PAUSE_AT=NAME[#K]`` the K-th (default first) moment whose ``path``'s name
+    matches the shell pattern ``NAME`` prints one stderr line ``damcap test hook: paused before
+    PATH`` and sleeps until the process is killed. Unset, it returns at once and changes nothing.
+    """
+    spec = os.environ.get(PAUSE_ENV)
+    if not spec:
+        return
+    import fnmatch
+    import sys
+    import time
+
+    pattern, _, k = spec.partition("#")
+    if not fnmatch.fnmatchcase(Path(path).name, pattern):
+        return
+    _pause_counts[pattern] = _pause_counts.get(pattern, 0) + 1
+    if _pause_counts[pattern] == int(k or 1):
+        sys.stderr.write(f"damcap test hook: paused before {path}\n")
+        sys.stderr.flush()
+        while True:
+            time.sleep(60)
+
+
 def _replace_durably(staged: Path, path: Path) -> None:
     fsync_path(staged)
+    pause_point(path)
     os.replace(staged, path)
     fsync_path(path.parent)
 

@@ -38,7 +38,7 @@ from typing import Any, Callable, Literal, get_args
 
 import numpy as np
 
-from damcap.common.atomic import atomic_path, cut_short_error, fsync_path, write_json_atomic
+from damcap.common.atomic import atomic_path, cut_short_error, fsync_path, pause_point, write_json_atomic
 from damcap.common.capture_folder import FRAME_BYTES_PER_PIXEL, Capture, Intrinsics, write_transforms
 from damcap.common.errors import DamcapError
 from damcap.common.cameras import up_direction
@@ -772,6 +772,9 @@ FRAMES_REPLACED = "frames.previous"
 """the work folder's subfolder where an earlier capture's frames wait, for an instant, while the new ones move in"""
 CAPTURE_PARTS = ("images", "geometry")
 """the capture's folders that a run replaces whole (with transforms.json)"""
+WORK_PARTS = ("mesh.ply", "report.json")
+"""the work folder's files that describe the capture in place (its mesh, its report): staged with
+the frames and replaced with them, so a killed rerun never leaves the earlier capture a new mesh"""
 
 
 def _staged_frames(work: Path, out: Path, log: Callable[[str], None]) -> Path:
@@ -785,6 +788,9 @@ def _staged_frames(work: Path, out: Path, log: Callable[[str], None]) -> Path:
                     if (out / part).is_dir():
                         shutil.rmtree(out / part)
                     os.replace(previous / part, out / part)
+            for part in WORK_PARTS:
+                if (previous / part).exists():
+                    os.replace(previous / part, work / part)
             log(f"restored: the earlier capture in {out}, which an interrupted run was replacing")
         shutil.rmtree(previous)
     staged = work / FRAMES_STAGED
@@ -796,9 +802,11 @@ def _staged_frames(work: Path, out: Path, log: Callable[[str], None]) -> Path:
 
 
 def _commit_frames(out: Path, staged: Path, capture: Capture) -> None:
-    """Replace the capture in ``out`` (if any) by the complete one in ``staged``: the earlier
-    capture stays usable until this moment; its transforms.json goes first, the new one comes last."""
+    """Replace the capture in ``out`` (if any) by the complete one in ``staged`` (frames, and the
+    :data:`WORK_PARTS` for the work folder): the earlier capture stays usable until this moment;
+    its transforms.json goes first, the new one comes last."""
     write_transforms(replace(capture, root=staged))
+    pause_point(out)  # test hook (common/atomic.py): a no-op unless a kill test asks
     previous = staged.parent / FRAMES_REPLACED
     previous.mkdir()
     if (out / "transforms.json").exists():
@@ -808,6 +816,13 @@ def _commit_frames(out: Path, staged: Path, capture: Capture) -> None:
             os.rename(out / part, previous / part)
         if (staged / part).exists():
             os.rename(staged / part, out / part)
+    work = staged.parent
+    for part in WORK_PARTS:
+        if (work / part).exists():
+            os.rename(work / part, previous / part)
+        if (staged / part).exists():
+            os.rename(staged / part, work / part)
+    fsync_path(work)
     os.rename(staged / "transforms.json", out / "transforms.json")
     fsync_path(out)
     shutil.rmtree(previous)
@@ -898,7 +913,8 @@ def _reconstruct_staged(photos_dir: Path, out: Path, staged: Path, opts: Reconst
     factors, exposures, reference, lin_note = exposure_factors([photos_dir / p.name for p in reg.photos], opts.ignore_exposure,
                                                                tone_curve)
     log(f"linearisation: {lin_note}")
-    scene = _scene(reg, targets, mask_px, opts, work, progress, log, seconds, photos_dir, log_response)
+    # the mesh is staged: it moves into the work folder with the frames (_commit_frames)
+    scene = _scene(reg, targets, mask_px, opts, staged, progress, log, seconds, photos_dir, log_response)
 
     t0 = time.perf_counter()
     photos = [FramePhoto(p.name, photos_dir / p.name, p.camera, tgt, float(factors[k]), exposures[k].to_json() or None,
@@ -946,7 +962,7 @@ def _reconstruct_staged(photos_dir: Path, out: Path, staged: Path, opts: Reconst
     }
     capture = Capture(root=out, frames=frames, train_filenames=report.train, test_filenames=report.test,
                       colorspace="lin_rec709", extra={"damcap_source": source})
-    write_json_atomic(work / "report.json", _jsonable(asdict(report)))
+    write_json_atomic(staged / "report.json", _jsonable(asdict(report)))
     _commit_frames(out, staged, capture)
     return capture, report
 

@@ -107,7 +107,8 @@ def damcap_fork(args, *, timeout: float = TIMEOUT_S, memory: int | None = MEMORY
         memory: address space the child may add (RLIMIT_AS); MemoryError beyond it.
         fsize: largest file the child may write (RLIMIT_FSIZE, SIGXFSZ ignored: a full disk).
         signal_when: ``(predicate, signum[, signum...])``: once ``predicate()`` is true, the parent
-            sends the signals (Ctrl-C / SIGTERM in the middle of a run).
+            sends the signals (Ctrl-C / SIGTERM in the middle of a run); a string as the predicate:
+            once the child's stderr holds it (``PAUSED``: the test hook of common/atomic.py).
     """
     args = [str(a) for a in args]
     with tempfile.TemporaryDirectory(prefix="damcap-fuzz-") as td:
@@ -162,7 +163,7 @@ def damcap_fork(args, *, timeout: float = TIMEOUT_S, memory: int | None = MEMORY
             if signal_when is not None and not sent:
                 pred, *sigs = signal_when
                 try:
-                    ready = pred()
+                    ready = pred in err_p.read_text(errors="replace") if isinstance(pred, str) else pred()
                 except Exception:  # noqa: BLE001
                     ready = False
                 if ready:

@@ -289,9 +289,12 @@ def test_a_run_killed_while_replacing_the_capture_puts_the_earlier_one_back(tmp_
     (out / "geometry" / "a.exr").write_bytes(b"g")
     (out / "images").mkdir()  # the new run's, already moved in
     (out / "images" / "b.exr").write_bytes(b"b")
+    (previous / "mesh.ply").write_bytes(b"earlier mesh")  # the work folder's mesh goes with its capture
+    (out / "reconstruction" / "mesh.ply").write_bytes(b"new mesh")
     lines: list[str] = []
     staged = _staged_frames(out / "reconstruction", out, lines.append)
     assert sorted(str(p.relative_to(out)) for p in out.rglob("*.exr")) == ["geometry/a.exr", "images/a.exr"]
+    assert (out / "reconstruction" / "mesh.ply").read_bytes() == b"earlier mesh"
     assert (out / "images" / "a.exr").read_bytes() == b"a" and (out / "transforms.json").read_text() == "{}"
     assert staged.is_dir() and not any(staged.iterdir()) and not previous.exists()
     assert lines and lines[0].startswith("restored: the earlier capture")

@@ -55,7 +55,7 @@ def segment(
     if auto:
         chosen = choose_materials(train, test, base, max_materials=choice.max_materials, margin=choice.margin, min_gain=choice.min_gain,
                                   restarts=choice.restarts, min_share=choice.min_share, target_dssim=choice.target_dssim,
-                                  progress=progress_bar(total, "segment"))
+                                  progress=progress_bar(total, "segment"), run_log=typer.echo)
         model, curve, reason = chosen.model, chosen.curve, chosen.reason
         for row in curve:
             runs = ", ".join(f"{e:.4f}" for e in row["restarts"])
@@ -63,7 +63,7 @@ def segment(
                        f"material shares {', '.join(f'{x:.2f}' for x in row['shares'])}")
         typer.echo(f"chose n = {model.materials}: {reason}")
     else:
-        model = segment_materials(train, base, progress=progress_bar(total, "segment"))
+        model = segment_materials(train, base, progress=progress_bar(total, "segment"), log=typer.echo)
         curve = [{"materials": model.materials, "heldout_dssim": novel_view_dssim(model, test) if test else None, "seconds": model.seconds}]
     resolved = replace(base, materials=model.materials)
     provenance = {"damcap_package_version": package_version(), "options": asdict(resolved), "capture": str(capture.resolve())}
@@ -72,7 +72,8 @@ def segment(
     with staged_folder(output, replace=True) as stage:  # everything moves into OUTPUT together, at the end
         save_segmentation_folder(stage, model, train, names, colorspace=cap.colorspace, provenance=provenance, up_world=cap.up_world,
                                  summary={"auto": auto, "choice": asdict(choice), "reason": reason, "curve": curve,
-                                          "history": model.history, "seconds": model.seconds})
+                                          "history": model.history, "seconds": model.seconds,
+                                          "prior": model.prior_choice or None})
     typer.echo(f"wrote {model.materials} materials to {output} (material_*.dam, weights/*.exr, preview/*.png and their legend "
                f"preview/{legend_stem(names)}.png and .json, segmenter.safetensors)")
 

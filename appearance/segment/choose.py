@@ -74,7 +74,7 @@ def choose_materials(train: list[ViewData], heldout: list[ViewData], opts: Segme
                      margin: float = ChooseOptions.margin, min_gain: float = ChooseOptions.min_gain, restarts: int = ChooseOptions.restarts,
                      min_share: float = ChooseOptions.min_share, target_dssim: float | None = None,
                      progress: Callable[[int, int, dict[str, float]], None] | None = None,
-                     log: Callable[[str], None] | None = None) -> MaterialChoice:
+                     log: Callable[[str], None] | None = None, run_log: Callable[[str], None] | None = None) -> MaterialChoice:
     """The smallest n whose held-out error stops improving: n is kept when n + 1 materials lower
     the held-out DSSIM by less than ``margin`` (relative) or less than ``min_gain`` (absolute),
     or when ``max_materials`` is reached.
@@ -100,6 +100,7 @@ def choose_materials(train: list[ViewData], heldout: list[ViewData], opts: Segme
         min_share: smallest share of the training pixels a material must win.
         target_dssim: stop at the first n that reaches this held-out DSSIM instead.
         log: called with one line per n tried.
+        run_log: each run's one-line messages (the predictor's prior: :func:`.train.segment_materials`).
     """
     if not heldout:
         raise DamcapError("--materials auto needs held-out views (a non-empty test split)")
@@ -113,7 +114,7 @@ def choose_materials(train: list[ViewData], heldout: list[ViewData], opts: Segme
     for n in range(1, max_materials + 1):
         runs = []
         for r in range(restarts):
-            model = segment_materials(train, SegmentOptions(**{**asdict(opts), "materials": n, "seed": opts.seed + r}), progress)
+            model = segment_materials(train, SegmentOptions(**{**asdict(opts), "materials": n, "seed": opts.seed + r}), progress, run_log)
             runs.append((novel_view_dssim(model, heldout, seen_only=True), model))
         err, model = min(runs, key=lambda t: t[0])
         shares = material_shares(model, train)

@@ -88,6 +88,9 @@ class SegmentationModel:
     seconds: float = 0.0
     has_psi: bool = True
     """False for the k-means baseline: its weights always come from the geometry"""
+    prior_choice: dict = field(default_factory=dict)
+    """the predictor's prior (``SegmentOptions.prior``): the mode, whether it was used, and for
+    'auto' the held-out scores and the mode kept"""
 
     @property
     def materials(self) -> int:

@@ -14,6 +14,7 @@ MAX_SEGMENT_MATERIALS = 16
 
 
 InitColour = Literal["pixel", "darkest-view"]
+PriorMode = Literal["off", "predictor", "auto"]
 
 
 BRIGHT_FRACTION = 0.02
@@ -71,6 +72,24 @@ class SegmentOptions:
     """DAM hidden layers"""
     encoding: Encoding = field(default="nr", metadata={"cli_panel": "advanced"})
     """DAM input encoding (see DamArchitecture)"""
+    prior: PriorMode = field(default="off", metadata={"cli_what": "prior"})
+    """a prior on each material's DAM: 'off', 'predictor' (each material's DAM starts from the
+    shipped predictor's prediction for the pixels first assigned to it, and that prediction pulls
+    it where those pixels constrain it least: appearance/segment/prior.py) or 'auto' (segment
+    without and with it on the training views but an arc of held-out ones, keep the mode whose
+    held-out views score the lower DSSIM, then segment all views with it)"""
+    prior_dam_weight: float = field(default=1.0, metadata=in_range(0, 1e6, cli_panel="advanced"))
+    """--prior predictor: weight of the prediction's cost against the data cost (both L1 of
+    radiance / scale; each material's weighted by its share of the pixels)"""
+    prior_sigma: float = field(default=0.25, metadata=in_range(0, 10, lo_open=True, cli_panel="advanced"))
+    """--prior predictor: distance in the DAM's input encoding over which a material's pixels take
+    over from its prediction (a sample that far from every pixel of the material has weight 0.63)"""
+    prior_samples: int = field(default=32768, metadata={**COUNT, "cli_panel": "advanced"})
+    """--prior predictor: (view, normal) samples per material, drawn once over its pixels' normals
+    and their hemispheres"""
+    prior_holdout_views: int = field(default=2, metadata={**COUNT, "cli_panel": "advanced"})
+    """--prior auto: training views held out to decide (an arc of neighbouring cameras farthest
+    from the others, as fit's --holdout arc)"""
     seed: int = field(default=0, metadata=SEED)
     """seeds k-means, initialisation and sampling"""
     device: str = "cpu"
@@ -85,6 +104,8 @@ class SegmentOptions:
         self.architecture  # DAM width and depth within their bounds
         if self.init_colour not in get_args(InitColour):
             raise DamcapError(f"--init-colour must be one of {', '.join(get_args(InitColour))}, got {self.init_colour!r}")
+        if self.prior not in get_args(PriorMode):
+            raise DamcapError(f"--prior must be one of {', '.join(get_args(PriorMode))}, got {self.prior!r}")
 
     @property
     def architecture(self) -> DamArchitecture:

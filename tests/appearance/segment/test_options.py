@@ -36,6 +36,9 @@ def test_options_json_round_trip():
     (dict(colour_floor=0.0), "--colour-floor must be a finite number in (0, 0.02], got 0.0"),
     (dict(colour_floor=0.5), "--colour-floor must be a finite number in (0, 0.02], got 0.5"),
     (dict(illumination_degree=3), "--illumination-degree must be an integer in [0, 2], got 3"),
+    (dict(prior="always"), "--prior must be one of off, predictor, auto, got 'always'"),
+    (dict(prior_sigma=0.0), "--prior-sigma must be a finite number in (0, 10], got 0.0"),
+    (dict(prior_dam_weight=-1.0), "--prior-dam-weight must be a finite number in [0, 1000000], got -1.0"),
 ])
 def test_each_bad_value_is_named(change, message):
     with pytest.raises(DamcapError) as e:

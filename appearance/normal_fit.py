@@ -108,7 +108,8 @@ def probe_steps(steps: int) -> int:
 
 def choose_normal_refine(model: DeepAppearanceMap, views: list[ViewData], opts: FitOptions,
                          log: Callable[[str], None] | None = None,
-                         progress: Callable[[int, float], None] | None = None) -> NormalRefineDecision:
+                         progress: Callable[[int, float], None] | None = None,
+                         held: list[int] | None = None) -> NormalRefineDecision:
     """Apply ``opts.normal_refine`` to a fitted DAM (see the module docstring).
 
     Args:
@@ -118,6 +119,7 @@ def choose_normal_refine(model: DeepAppearanceMap, views: list[ViewData], opts: 
             makes 'on' refine without the held-out views as well).
         log: one line per decision.
         progress: progress(step, loss) after each refinement step (each refinement restarts at 1).
+        held: the held-out views' indices (default: :func:`.fit.held_out` of ``views``).
 
     Raises:
         DamcapError: 'auto' without held-out training views; no foreground.
@@ -129,7 +131,7 @@ def choose_normal_refine(model: DeepAppearanceMap, views: list[ViewData], opts: 
     footprint = training_footprint(views)
     voxel = opts.normal_refine_voxel_px * footprint
     scores: dict[str, float] = {}
-    held = held_out(views, opts)
+    held = held_out(views, opts) if held is None else held
     probe = None
     if opts.normal_refine == "auto" or (opts.spatial == "auto" and held):
         if not held:

@@ -123,7 +123,8 @@ def mean_dssim(model: DeepAppearanceMap, views: list[ViewData]) -> float:
 
 
 def choose_spatial(model: DeepAppearanceMap, views: list[ViewData], opts: FitOptions,
-                   log: Callable[[str], None] | None = None, heldout_model: DeepAppearanceMap | None = None) -> SpatialDecision:
+                   log: Callable[[str], None] | None = None, heldout_model: DeepAppearanceMap | None = None,
+                   held: list[int] | None = None) -> SpatialDecision:
     """Apply ``opts.spatial`` to a fitted DAM (see the module docstring).
 
     Args:
@@ -135,6 +136,7 @@ def choose_spatial(model: DeepAppearanceMap, views: list[ViewData], opts: FitOpt
         heldout_model: 'auto' decides with this model in place of ``model``: one whose normal
             field was refined without the held-out views
             (:attr:`.normal_fit.NormalRefineDecision.heldout_model`), so that they stay held out.
+        held: the held-out views' indices (default: :func:`.fit.held_out` of ``views``).
 
     Raises:
         DamcapError: 'auto' without held-out training views; no foreground.
@@ -147,7 +149,7 @@ def choose_spatial(model: DeepAppearanceMap, views: list[ViewData], opts: FitOpt
     voxel = opts.spatial_voxel_px * footprint
     scores: dict[str, float] = {}
     if opts.spatial == "auto":
-        held = held_out(views, opts)
+        held = held_out(views, opts) if held is None else held
         if not held:
             raise DamcapError(f"--spatial auto decides on held-out training views: use --holdout-views >= 1 and at least 3 train views "
                               f"(got {opts.holdout_views} and {len(views)}), or --spatial albedo")

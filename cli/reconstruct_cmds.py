@@ -11,7 +11,7 @@ from damcap.cli.app import command, stage_progress
 from damcap.cli.paths import check_paths, folder_out, on_interrupt
 
 if TYPE_CHECKING:
-    from damcap.reconstruct.pipeline import ReconstructOptions
+    from damcap.reconstruct.pipeline import GeometryJudge, ReconstructOptions
 
 
 @command(opts="damcap.reconstruct.pipeline:ReconstructOptions")
@@ -54,8 +54,9 @@ def reconstruct(
 
     # what it picked and why are report lines (stdout): stderr carries only the one error line of a refusal
     with on_interrupt(kept):
+        judge = held_out_judge() if opts.auto_judge == "held-out" else None
         capture, report = reconstruct_capture(photos, output, opts, masks_dir=masks, poses=poses, progress=stage_progress(),
-                                              log=typer.echo, explicit=given)
+                                              log=typer.echo, explicit=given, judge=judge)
     reg = report.registration
     line = f"cameras: {report.registered}/{report.photos} photos ({reg.get('source')})"
     if reg.get("source") == "sfm":
@@ -70,6 +71,25 @@ def reconstruct(
     typer.echo(f"geometry: {report.geometry_mode} ({report.geometry_reason})")
     typer.echo(f"wrote {report.frames} frames to {output} (train {len(report.train)}, test {len(report.test)}; "
                f"{len(report.dropped)} dropped, {len(report.unregistered)} unregistered) in {report.seconds.get('total', 0):.1f} s")
+
+
+def held_out_judge() -> GeometryJudge:
+    """``--geometry auto``'s judge between two geometries (``--auto-judge held-out``): the train
+    views both captures hold, a fit on each (:func:`damcap.appearance.fit_views.judge_fit`), the same views held out
+    (:func:`damcap.appearance.fit_views.judge_geometries`)."""
+    from damcap.reconstruct.pipeline import GeometryJudgement
+
+    def judge(captures: dict[str, Path]) -> GeometryJudgement:
+        from damcap.appearance.fit_views import judge_fit, judge_geometries
+        from damcap.appearance.views import load_views
+        from damcap.common.capture_folder import read_capture
+
+        views = {g: load_views(read_capture(p), "train") for g, p in captures.items()}
+        both = set.intersection(*({v.name for v in vs} for vs in views.values()))  # a frame one geometry missed trains neither
+        verdict = judge_geometries({g: [v for v in vs if v.name in both] for g, vs in views.items()}, judge_fit())
+        return GeometryJudgement(verdict.chosen, verdict.why(), verdict.record())
+
+    return judge
 
 
 def principal_point_line(pp: dict) -> str:

@@ -39,7 +39,7 @@ from typing import Any, Callable, Literal, get_args
 import numpy as np
 
 from damcap.common.atomic import atomic_path, cut_short_error, fsync_path, pause_point, write_json_atomic
-from damcap.common.capture_folder import FRAME_BYTES_PER_PIXEL, Capture, Intrinsics, write_transforms
+from damcap.common.capture_folder import FRAME_BYTES_PER_PIXEL, Capture, Frame, Intrinsics, write_transforms
 from damcap.common.errors import DamcapError
 from damcap.common.cameras import up_direction
 from damcap.common.validate import COUNT, COUNT_OR_ZERO, FRACTION, MAX_IMAGE_SIDE, check_ranges, in_range, require_memory, require_resolution
@@ -80,6 +80,11 @@ class ReconstructOptions:
     """auto: also build the dense geometry when the object is not a sphere, and keep it when the
     photos agree better through it (reconstruct/photo_consistency.py). --no-auto-dense saves its
     time (about 70 s on the 119-photo cape at 256 px)."""
+    auto_judge: Literal["held-out", "photo-consistency"] = field(default="held-out", metadata={"cli_panel": "advanced"})
+    """auto, with both geometries built: what chooses between them. 'held-out' fits the DAM (fit's
+    defaults without the prior) to each geometry's train views, the same views held out, and
+    keeps photo consistency's choice unless the other lowers the held-out DSSIM by 2 %
+    (bench/geometry_judge.md); 'photo-consistency' alone saves those two fits"""
     auto_dense_margin: float = field(default=0.02, metadata=in_range(0, 2, cli_panel="advanced"))
     """auto: the dense geometry is kept when its photo consistency (mean NCC of neighbouring
     photos warped through the surface, over the object's pixels) beats the other geometry's by at
@@ -162,6 +167,8 @@ class ReconstructOptions:
                            f"--capture-size {self.capture_size} with --supersample {self.supersample}: a frame")
         if self.split not in ("consecutive", "spread", "rings"):
             raise DamcapError(f"--split must be consecutive, spread or rings, got {self.split!r}")
+        if self.auto_judge not in ("held-out", "photo-consistency"):
+            raise DamcapError(f"--auto-judge must be held-out or photo-consistency, got {self.auto_judge!r}")
         if self.dtype not in ("half", "float"):
             raise DamcapError(f"--dtype must be half or float, got {self.dtype!r}")
         for owner, name, allowed in ((self, "mask_features", ("auto", "always", "never")), (self, "self_check", ("drop", "warn", "off")),
@@ -690,40 +697,43 @@ def _stereo_photos(reg: Registration, targets: list[Intrinsics], photos_dir: Pat
 
 
 def _scene(reg: Registration, targets: list[Intrinsics], mask_px: list[np.ndarray] | None, opts: ReconstructOptions,
-           work: Path, progress: StageProgress, log: Callable[[str], None], seconds: dict[str, float], photos_dir: Path,
-           log_response: np.ndarray | None) -> NormalisedScene:
-    """Steps 3 and 5: normalise the scene, build the geometry, centre it on its bounding sphere,
-    and keep the mesh in the work folder."""
+           progress: StageProgress, log: Callable[[str], None], seconds: dict[str, float], photos_dir: Path,
+           log_response: np.ndarray | None) -> list[NormalisedScene]:
+    """Steps 3 and 5: normalise the scene, build the geometry, centre it on its bounding sphere.
+    Under ``--geometry auto`` with both built, the geometry photo consistency did not keep comes
+    second (a judge on held-out views may still take it: :func:`_judged`)."""
     norm_from_world = normalization_transform(reg.world_from_cams, reg.points_world if len(reg.points_world) else None)
     cams = transform_world_from_cam(norm_from_world, reg.world_from_cams)
     points = transform_points(norm_from_world, reg.points_world) if len(reg.points_world) else np.zeros((0, 3))
     t0 = time.perf_counter()
     progress("geometry", 0, 1)
-    geo: GeometryResult  # its reason is in the report
+    geos: list[GeometryResult]  # their reasons are in the report
     mode = parse_mode(opts.geometry.mode)[0]
     if mode == "dense":
         inputs = GeometryInputs(cams, targets, mask_px, points, reg.points_seen_from,
                                 _stereo_photos(reg, targets, photos_dir, log_response, progress))
-        geo = dense_geometry(inputs, opts.dense, progress)
+        geos = [dense_geometry(inputs, opts.dense, progress)]
     else:
-        geo = build_geometry(GeometryInputs(cams, targets, mask_px, points, reg.points_seen_from), opts.geometry,
-                             norm_from_world)
-        if mode == "auto" and opts.auto_dense and geo.mode != "sphere":
-            geo = _auto_dense(geo, GeometryInputs(cams, targets, mask_px, points, reg.points_seen_from,
-                                                  _stereo_photos(reg, targets, photos_dir, log_response, progress)), opts, progress, log)
-    if geo.mode == "visual-hull" and geo.stats.get("touches_box"):
-        log(f"warning: {UNBOUNDED_HULL}; photos that hold the whole object close it, or use --geometry dense or mesh:FILE")
+        geos = [build_geometry(GeometryInputs(cams, targets, mask_px, points, reg.points_seen_from), opts.geometry,
+                               norm_from_world)]
+        if mode == "auto" and opts.auto_dense and geos[0].mode != "sphere":
+            geos = _auto_dense(geos[0], GeometryInputs(cams, targets, mask_px, points, reg.points_seen_from,
+                                                       _stereo_photos(reg, targets, photos_dir, log_response, progress)),
+                               opts, progress, log)
+    progress("geometry", 1, 1)
+    seconds["geometry"] = time.perf_counter() - t0
+    return [_placed(geo, norm_from_world, cams) for geo in geos]
+
+
+def _placed(geo: GeometryResult, norm_from_world: np.ndarray, cams: np.ndarray) -> NormalisedScene:
+    """The scene with ``geo`` centred on its bounding sphere (``norm_from_world`` and the cameras
+    moved with it)."""
     recentre = recentre_transform(geo.mesh.vertices)
-    norm_from_world = recentre @ norm_from_world
-    cams = transform_world_from_cam(recentre, cams)
-    mesh = transform_mesh_similarity(geo.mesh, recentre)
     sphere = None
     if geo.sphere is not None:
         sphere = (transform_points(recentre, geo.sphere[0][None])[0], geo.sphere[1] * similarity_scale(recentre))
-    _save_mesh(work / "mesh.ply", mesh)
-    progress("geometry", 1, 1)
-    seconds["geometry"] = time.perf_counter() - t0
-    return NormalisedScene(norm_from_world, cams, mesh, sphere, geo)
+    return NormalisedScene(recentre @ norm_from_world, transform_world_from_cam(recentre, cams),
+                           transform_mesh_similarity(geo.mesh, recentre), sphere, geo)
 
 
 def dense_margin(base: GeometryResult, margin: float) -> float:
@@ -735,17 +745,18 @@ def dense_margin(base: GeometryResult, margin: float) -> float:
 
 
 def _auto_dense(base: GeometryResult, inputs: GeometryInputs, opts: ReconstructOptions, progress: StageProgress,
-                log: Callable[[str], None]) -> GeometryResult:
-    """``--geometry auto`` past the sphere test: build the dense geometry too and keep whichever
-    the photos agree with better (:func:`.photo_consistency.prefer_dense`); say which and why.
-    A dense build that fails (too little texture) leaves the base geometry, with the reason."""
+                log: Callable[[str], None]) -> list[GeometryResult]:
+    """``--geometry auto`` past the sphere test: build the dense geometry too and put first
+    whichever the photos agree with better (:func:`.photo_consistency.prefer_dense`), with why;
+    the other comes second. A dense build that fails (too little texture) leaves the base
+    geometry alone, with the reason."""
     t0 = time.perf_counter()
     try:
         dense = dense_geometry(inputs, opts.dense, progress)
     except DamcapError as e:
         log(f"geometry: kept the {base.mode}; the dense geometry could not be built ({e})")
         base.stats["auto_dense"] = {"built": False, "why": str(e)}
-        return base
+        return [base]
     scores = {g.mode: photo_consistency(g.mesh, inputs.world_from_cams, inputs.intrinsics, inputs.images or [], inputs.masks)
               for g in (base, dense)}
     b, d = scores[base.mode], scores["dense"]
@@ -763,7 +774,84 @@ def _auto_dense(base: GeometryResult, inputs: GeometryInputs, opts: ReconstructO
     reason = (f"auto: dense multi-view stereo, since the photos agree with it {'about as well as or better' if unbounded else 'better'} "
               f"than with the {base.mode} ({why})" if keep_dense else f"{base.reason}; the dense geometry was not kept ({why})")
     chosen.stats["auto_dense"] = record
-    return GeometryResult(chosen.mesh, chosen.mode, reason, chosen.sphere, chosen.stats)
+    other = base if keep_dense else dense
+    other.stats["auto_dense"] = record
+    other_reason = (f"auto: dense multi-view stereo ({why})" if not keep_dense
+                    else f"{base.reason} ({why})")
+    return [GeometryResult(chosen.mesh, chosen.mode, reason, chosen.sphere, chosen.stats),
+            GeometryResult(other.mesh, other.mode, other_reason, other.sphere, other.stats)]
+
+
+@dataclass
+class GeometryJudgement:
+    """What a :data:`GeometryJudge` decided."""
+
+    chosen: str
+    """the geometry mode kept (one of the candidates')"""
+    why: str
+    """one line: the scores it went by"""
+    record: dict[str, Any] = field(default_factory=dict)
+    """kept in the capture's geometry statistics (``auto_dense.held_out``)"""
+
+
+GeometryJudge = Callable[[dict[str, Path]], GeometryJudgement]
+"""geometry mode -> a complete capture folder with that geometry (the first: photo consistency's
+choice) -> the judgement. Reconstruct cannot fit appearance itself (it comes before appearance),
+so the command passes one in."""
+
+CANDIDATE_FRAMES = "frames.candidate"
+"""the work folder's subfolder where ``--geometry auto`` writes the second geometry's capture for the judge"""
+
+
+def _judged(scenes: list[NormalisedScene], first: tuple[list[Frame], dict[str, str], list[str]], staged: Path, work: Path,
+            frames_in: Callable[[Path, NormalisedScene, Callable[[str], None]], tuple[list[Frame], dict[str, str]]],
+            capture_of: Callable[[Path, NormalisedScene, list[Frame], dict[str, str]], tuple[Capture, ReconstructReport]],
+            judge: GeometryJudge, log: Callable[[str], None]) -> tuple[NormalisedScene, list[Frame], dict[str, str], list[str]]:
+    """``--geometry auto`` with two geometries: write the second's capture beside the first's
+    (already in ``staged``: its frames, dropped photos and what writing them said), let ``judge``
+    choose, and leave the chosen one's frames in ``staged``.
+
+    Returns:
+        the chosen scene (its geometry's reason and statistics say why), its frames, dropped
+        photos and what writing its frames said.
+    """
+    scene, other = scenes[0], scenes[1]
+    candidate = work / CANDIDATE_FRAMES
+    if candidate.exists():
+        shutil.rmtree(candidate)
+    candidate.mkdir()
+    try:
+        said: list[str] = []
+        try:
+            second = (*frames_in(candidate, other, said.append), said)
+        except DamcapError as e:
+            log(f"geometry: the {other.geometry.mode} was not judged ({e})")
+            return scene, *first
+        write_transforms(capture_of(staged, scene, *first[:2])[0])
+        write_transforms(capture_of(candidate, other, *second[:2])[0])
+        log(f"geometry: judging the {scene.geometry.mode} and the {other.geometry.mode} by fits on held-out views")
+        try:
+            verdict = judge({scene.geometry.mode: staged, other.geometry.mode: candidate})
+        except DamcapError as e:
+            log(f"geometry: kept the {scene.geometry.mode}, not judged on held-out views ({e})")
+            return scene, *first
+        finally:
+            os.remove(staged / "transforms.json")
+        keep_other = verdict.chosen == other.geometry.mode
+        if keep_other:
+            shutil.rmtree(staged)
+            os.replace(candidate, staged)
+            scene, frames = other, second
+        else:
+            frames = first
+        geo = scene.geometry
+        geo.stats["auto_dense"] = {**geo.stats.get("auto_dense", {}), "chosen": geo.mode, "held_out": verdict.record}
+        reason = (f"auto: {'dense multi-view stereo' if geo.mode == 'dense' else geo.mode}, kept on held-out views: {verdict.why}"
+                  if keep_other else f"{geo.reason}; held-out views agree: {verdict.why}")
+        return replace(scene, geometry=replace(geo, reason=reason)), *frames
+    finally:
+        if candidate.exists():
+            shutil.rmtree(candidate)
 
 
 FRAMES_STAGED = "frames.next"
@@ -793,10 +881,11 @@ def _staged_frames(work: Path, out: Path, log: Callable[[str], None]) -> Path:
                     os.replace(previous / part, work / part)
             log(f"restored: the earlier capture in {out}, which an interrupted run was replacing")
         shutil.rmtree(previous)
+    for left in (work / FRAMES_STAGED, work / CANDIDATE_FRAMES):
+        if left.exists():
+            shutil.rmtree(left)
+            log(f"removed: the frames an interrupted run left in {left}")
     staged = work / FRAMES_STAGED
-    if staged.exists():
-        shutil.rmtree(staged)
-        log(f"removed: the frames an interrupted run left in {staged}")
     staged.mkdir()
     return staged
 
@@ -832,7 +921,7 @@ def _commit_frames(out: Path, staged: Path, capture: Capture) -> None:
 def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, opts: ReconstructOptions = ReconstructOptions(),
                         masks_dir: str | os.PathLike | None = None, poses: str | None = None,
                         progress: StageProgress | None = None, log: Callable[[str], None] | None = None,
-                        explicit: frozenset[str] = frozenset()) -> tuple[Capture, ReconstructReport]:
+                        explicit: frozenset[str] = frozenset(), judge: GeometryJudge | None = None) -> tuple[Capture, ReconstructReport]:
     """Run the whole reconstruction (see the module docstring).
 
     Args:
@@ -846,6 +935,9 @@ def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, o
         log: one-line messages (what auto picked and why, dropped photos).
         explicit: names of the options the user set (``train_views``, ``split_start``): a split
             the photos cannot give is refused for these, clamped for defaults.
+        judge: under ``--geometry auto`` with two geometries built, what chooses between their
+            capture folders (:data:`GeometryJudge`; ``damcap reconstruct`` passes a fit judged on
+            held-out views); None: photo consistency alone.
 
     Returns:
         the capture (as written) and a report.
@@ -873,7 +965,7 @@ def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, o
     _prepare_output(out, [photos_dir] + ([Path(masks_dir)] if masks_dir is not None else []))
     try:
         return _reconstruct_into(photos_dir, out, opts, names, masks, object_fraction, masks_dir, poses, known, log_response,
-                                 tone_curve, progress, log, seconds, t_all)
+                                 tone_curve, progress, log, seconds, t_all, judge)
     except DamcapError:
         # a folder this run made is removed, unless it holds a registration a rerun resumes from
         if created and not any((out / WORK_FOLDER / sub).exists() for sub in ("sfm", "sfm-masked")):
@@ -884,14 +976,14 @@ def reconstruct_capture(photos_dir: str | os.PathLike, out: str | os.PathLike, o
 def _reconstruct_into(photos_dir: Path, out: Path, opts: ReconstructOptions, names: list[str], masks: dict[str, Path] | None,
                       object_fraction: float | None, masks_dir: str | os.PathLike | None, poses: str | None, known: Registration | None,
                       log_response: np.ndarray | None, tone_curve: str, progress: StageProgress, log: Callable[[str], None],
-                      seconds: dict[str, float], t_all: float) -> tuple[Capture, ReconstructReport]:
+                      seconds: dict[str, float], t_all: float, judge: GeometryJudge | None) -> tuple[Capture, ReconstructReport]:
     """Steps 2 to 7 into the prepared output folder (:func:`reconstruct_capture`)."""
     work = out / WORK_FOLDER
     work.mkdir(exist_ok=True)
     staged = _staged_frames(work, out, log)
     try:
         return _reconstruct_staged(photos_dir, out, staged, opts, names, masks, object_fraction, masks_dir, poses, known, log_response,
-                                   tone_curve, progress, log, seconds, t_all)
+                                   tone_curve, progress, log, seconds, t_all, judge)
     finally:
         if staged.exists():  # a failed or interrupted run: the earlier capture, if any, is as it was
             shutil.rmtree(staged, ignore_errors=True)
@@ -901,7 +993,7 @@ def _reconstruct_staged(photos_dir: Path, out: Path, staged: Path, opts: Reconst
                         masks: dict[str, Path] | None, object_fraction: float | None, masks_dir: str | os.PathLike | None,
                         poses: str | None, known: Registration | None, log_response: np.ndarray | None, tone_curve: str,
                         progress: StageProgress, log: Callable[[str], None], seconds: dict[str, float],
-                        t_all: float) -> tuple[Capture, ReconstructReport]:
+                        t_all: float, judge: GeometryJudge | None) -> tuple[Capture, ReconstructReport]:
     """:func:`_reconstruct_into` with the frames written into ``staged`` and moved into ``out`` at the end."""
     work = out / WORK_FOLDER
     chosen, candidates = _choose_cameras(photos_dir, names, work, opts, masks, object_fraction, known, progress, log, seconds)
@@ -913,55 +1005,71 @@ def _reconstruct_staged(photos_dir: Path, out: Path, staged: Path, opts: Reconst
     factors, exposures, reference, lin_note = exposure_factors([photos_dir / p.name for p in reg.photos], opts.ignore_exposure,
                                                                tone_curve)
     log(f"linearisation: {lin_note}")
-    # the mesh is staged: it moves into the work folder with the frames (_commit_frames)
-    scene = _scene(reg, targets, mask_px, opts, staged, progress, log, seconds, photos_dir, log_response)
+    scenes = _scene(reg, targets, mask_px, opts, progress, log, seconds, photos_dir, log_response)
 
     t0 = time.perf_counter()
     photos = [FramePhoto(p.name, photos_dir / p.name, p.camera, tgt, float(factors[k]), exposures[k].to_json() or None,
                          mask_px[k] if (mask_px is not None and opts.mask_coverage) else None)
               for k, (p, tgt) in enumerate(zip(reg.photos, targets))]
-    frames, dropped = write_frames(staged, photos, scene.world_from_cams, scene.mesh, scene.sphere, reference,
-                                   opts.supersample, opts.dtype, progress, log, log_response, opts.clipped)
-    dropped = {**left_out, **dropped}
+
+    def frames_in(folder: Path, scene: NormalisedScene, say: Callable[[str], None] = log) -> tuple[list[Frame], dict[str, str]]:
+        frames, dropped = write_frames(folder, photos, scene.world_from_cams, scene.mesh, scene.sphere, reference,
+                                       opts.supersample, opts.dtype, progress, say, log_response, opts.clipped)
+        if not frames:
+            raise DamcapError(f"{out}: no camera sees the geometry ({scene.geometry.reason}); check --geometry / the mesh's frame")
+        if len(frames) < 2:
+            raise DamcapError(f"{out}: only {len(frames)} frame sees the geometry; a capture needs at least 2")
+        return frames, {**left_out, **dropped}
+
+    def capture_of(root: Path, scene: NormalisedScene, frames: list[Frame], dropped: dict[str, str]) -> tuple[Capture, ReconstructReport]:
+        """The capture of ``frames`` in ``root`` (its split, report and provenance; nothing written)."""
+        geo = scene.geometry
+        if opts.split == "rings":  # the object's centre is the origin here (recentred on the geometry)
+            world_from_cams = np.stack([f.world_from_cam for f in frames])
+            centres = world_from_cams[:, :3, 3]
+            directions = centres / np.maximum(np.linalg.norm(centres, axis=1, keepdims=True), 1e-12)
+            train_idx, test_idx = camera_split(directions, up_direction(world_from_cams), min(opts.train_views, len(frames) - 1))
+            train_idx = sorted(train_idx)
+        else:
+            train_idx, test_idx = split_indices(len(frames), opts.train_views, opts.split, opts.split_start % len(frames))
+        seconds["total"] = time.perf_counter() - t_all
+        report = ReconstructReport(
+            photos=len(names), registered=len(reg.photos) + len(left_out), unregistered=dict(reg.unregistered), frames=len(frames),
+            dropped=dropped, geometry_mode=geo.mode, geometry_reason=geo.reason,
+            train=[frames[i].file_path for i in train_idx], test=[frames[i].file_path for i in test_idx],
+            registration={"source": reg.source, **{k: v for k, v in reg.stats.items() if k != "unregistered"},
+                          "features_used": chosen.features, "candidates": candidates},
+            seconds={k: round(v, 2) for k, v in seconds.items()}, linearisation=lin_note,
+            self_check=chosen.check.to_json() if chosen.check is not None else None, geometry_check=geo.stats.get("auto_dense"))
+        sphere = scene.sphere
+        source = {
+            "tool": "damcap reconstruct", "damcap_package_version": package_version(), "photos": str(photos_dir.resolve()),
+            "masks": str(Path(masks_dir).resolve()) if masks_dir is not None else None, "poses": poses,
+            "options": asdict(opts), "norm_from_input_world": scene.norm_from_world.tolist(),
+            "geometry": {"mode": geo.mode, "reason": geo.reason, "mesh": f"{WORK_FOLDER}/mesh.ply",
+                         **({"sphere_centre": sphere[0].tolist(), "sphere_radius": sphere[1]} if sphere else {}),
+                         "stats": _jsonable(geo.stats)},
+            "registration": _jsonable(report.registration), "self_check": _jsonable(report.self_check),
+            "unregistered": report.unregistered, "dropped": dropped,
+            "linearisation": lin_note, "reference_exposure": reference,
+        }
+        return Capture(root=root, frames=frames, train_filenames=report.train, test_filenames=report.test,
+                       colorspace="lin_rec709", extra={"damcap_source": source}), report
+
+    scene = scenes[0]
+    judged = len(scenes) > 1 and judge is not None
+    said: list[str] = []  # judged: what writing the frames says is said for the geometry kept
+    frames, dropped = frames_in(staged, scene, said.append if judged else log)
+    if judge is not None and judged:
+        scene, frames, dropped, said = _judged(scenes, (frames, dropped, said), staged, work, frames_in, capture_of, judge, log)
+        for line in said:
+            log(line)
     seconds["frames"] = time.perf_counter() - t0
     geo = scene.geometry
-    if not frames:
-        raise DamcapError(f"{out}: no camera sees the geometry ({geo.reason}); check --geometry / the mesh's frame")
-    if len(frames) < 2:
-        raise DamcapError(f"{out}: only {len(frames)} frame sees the geometry; a capture needs at least 2")
-
-    # split, stale files, transforms.json
-    if opts.split == "rings":  # the object's centre is the origin here (recentred on the geometry)
-        world_from_cams = np.stack([f.world_from_cam for f in frames])
-        centres = world_from_cams[:, :3, 3]
-        directions = centres / np.maximum(np.linalg.norm(centres, axis=1, keepdims=True), 1e-12)
-        train_idx, test_idx = camera_split(directions, up_direction(world_from_cams), min(opts.train_views, len(frames) - 1))
-        train_idx = sorted(train_idx)
-    else:
-        train_idx, test_idx = split_indices(len(frames), opts.train_views, opts.split, opts.split_start % len(frames))
-    seconds["total"] = time.perf_counter() - t_all
-    report = ReconstructReport(
-        photos=len(names), registered=len(reg.photos) + len(left_out), unregistered=dict(reg.unregistered), frames=len(frames),
-        dropped=dropped, geometry_mode=geo.mode, geometry_reason=geo.reason,
-        train=[frames[i].file_path for i in train_idx], test=[frames[i].file_path for i in test_idx],
-        registration={"source": reg.source, **{k: v for k, v in reg.stats.items() if k != "unregistered"},
-                      "features_used": chosen.features, "candidates": candidates},
-        seconds={k: round(v, 2) for k, v in seconds.items()}, linearisation=lin_note,
-        self_check=chosen.check.to_json() if chosen.check is not None else None, geometry_check=geo.stats.get("auto_dense"))
-    sphere = scene.sphere
-    source = {
-        "tool": "damcap reconstruct", "damcap_package_version": package_version(), "photos": str(photos_dir.resolve()),
-        "masks": str(Path(masks_dir).resolve()) if masks_dir is not None else None, "poses": poses,
-        "options": asdict(opts), "norm_from_input_world": scene.norm_from_world.tolist(),
-        "geometry": {"mode": geo.mode, "reason": geo.reason, "mesh": f"{WORK_FOLDER}/mesh.ply",
-                     **({"sphere_centre": sphere[0].tolist(), "sphere_radius": sphere[1]} if sphere else {}),
-                     "stats": _jsonable(geo.stats)},
-        "registration": _jsonable(report.registration), "self_check": _jsonable(report.self_check),
-        "unregistered": report.unregistered, "dropped": dropped,
-        "linearisation": lin_note, "reference_exposure": reference,
-    }
-    capture = Capture(root=out, frames=frames, train_filenames=report.train, test_filenames=report.test,
-                      colorspace="lin_rec709", extra={"damcap_source": source})
+    if geo.mode == "visual-hull" and geo.stats.get("touches_box"):
+        log(f"warning: {UNBOUNDED_HULL}; photos that hold the whole object close it, or use --geometry dense or mesh:FILE")
+    _save_mesh(staged / "mesh.ply", scene.mesh)  # staged: moves into the work folder with the frames (_commit_frames)
+    capture, report = capture_of(out, scene, frames, dropped)
     write_json_atomic(staged / "report.json", _jsonable(asdict(report)))
     _commit_frames(out, staged, capture)
     return capture, report

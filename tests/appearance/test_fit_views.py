@@ -82,3 +82,40 @@ def test_prior_auto_falls_back_to_the_plain_fit_when_the_predictor_cannot_predic
     assert out.prior_choice == {} and any(m.startswith("prior: none (the predictor could not predict") for m in said)
     with pytest.raises(DamcapError, match="no view with foreground"):  # asked for explicitly: refused
         fit_views(views, FitOptions(**{**base.__dict__, "prior": "predictor"}))
+
+
+def _with_tilted_normals(views, degrees: float, seed: int = 0):
+    """The same views with every normal tilted by ``degrees`` about a random axis per pixel (a
+    worse geometry of the same photos)."""
+    import dataclasses
+
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for v in views:
+        n = v.data.normal_world.astype(np.float64)
+        axis = rng.normal(size=n.shape)
+        axis -= (axis * n).sum(-1, keepdims=True) * n  # perpendicular to the normal
+        axis /= np.maximum(np.linalg.norm(axis, axis=-1, keepdims=True), 1e-12)
+        t = np.radians(degrees)
+        tilted = (np.cos(t) * n + np.sin(t) * axis).astype(np.float32)
+        out.append(dataclasses.replace(v, data=dataclasses.replace(v.data, normal_world=tilted)))
+    return out
+
+
+def test_the_geometry_judge_keeps_the_geometry_a_fit_generalises_from(views):
+    """Two 'geometries' of the same views, one with every normal tilted by 35 deg at random: the
+    judge holds out the same views for both and takes the true one even when it comes second;
+    with the true one first, the tilted one does not win. Views that differ are refused."""
+    from damcap.appearance.fit_views import judge_geometries
+    from damcap.common.errors import DamcapError
+
+    opts = FitOptions(steps=80, eval_every=40, checkpoint_every=0, normal_refine="off", spatial="off", prior="off")
+    wrong = _with_tilted_normals(views, 35.0)
+    verdict = judge_geometries({"tilted": wrong, "true": views}, opts)
+    assert verdict.chosen == "true" and verdict.heldout_dssim["true"] < 0.9 * verdict.heldout_dssim["tilted"], verdict
+    assert verdict.held_views == [views[k].name for k in held_out(views, opts)]
+    assert judge_geometries({"true": views, "tilted": wrong}, opts).chosen == "true"
+    with pytest.raises(DamcapError, match="same views"):
+        judge_geometries({"a": views, "b": views[1:]}, opts)

@@ -58,12 +58,15 @@ def scene(tmp_path_factory) -> dict:
 def sfm_capture(scene, tmp_path_factory) -> tuple[Path, object]:
     """Photos + masks -> capture through COLMAP registration (the expensive step, run once)."""
     out = tmp_path_factory.mktemp("sfm") / "capture"
-    code = main([
-        "reconstruct", str(scene["root"] / "images"), "-o", str(out), "--masks", str(scene["root"] / "masks"),
-        "--capture-size", "96", "--voxels", "64", "--train-views", "5", "--supersample", "2", *SMALL_DENSE_FLAGS,
-    ])
-    assert code == 0
+    assert main(sfm_command(scene, out)) == 0
     return out
+
+
+def sfm_command(scene: dict, out: Path) -> list[str]:
+    """``damcap reconstruct`` at its defaults (``--geometry auto``, its held-out judge) on the
+    scene's photos and masks, small."""
+    return ["reconstruct", str(scene["root"] / "images"), "-o", str(out), "--masks", str(scene["root"] / "masks"),
+            "--capture-size", "96", "--voxels", "64", "--train-views", "5", "--supersample", "2", *SMALL_DENSE_FLAGS]
 
 
 def _gt_alignment(capture, scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -135,12 +138,20 @@ def test_sfm_capture_normals_and_radiance_against_the_truth(sfm_capture, scene):
 
 @pytest.mark.slow
 def test_rerun_reuses_the_registration(sfm_capture, scene):
+    """The same command again: the registration is resumed, and the geometry judge (two seeded
+    fits) makes the same choice, so the cameras are the same."""
     before = json.loads((sfm_capture / "transforms.json").read_text())
-    _, report = reconstruct_capture(scene["root"] / "images", sfm_capture, ReconstructOptions(**FAST),  # type: ignore[arg-type]
-                                    masks_dir=scene["root"] / "masks")
-    assert report.registration["resumed"] == ["features", "matches", "mapping"]
+    assert "held-out DSSIM visual-hull" in before["damcap_source"]["geometry"]["reason"]  # the command's judge ran
+    assert main(sfm_command(scene, sfm_capture)) == 0
+    report = json.loads((sfm_capture / "reconstruction" / "report.json").read_text())
+    assert report["registration"]["resumed"] == ["features", "matches", "mapping"]
     after = json.loads((sfm_capture / "transforms.json").read_text())
-    assert np.allclose(before["frames"][3]["transform_matrix"], after["frames"][3]["transform_matrix"])
+    assert after["damcap_source"]["geometry"]["mode"] == before["damcap_source"]["geometry"]["mode"]
+
+    def registered(t: dict) -> np.ndarray:  # frame 3's camera in the registration's world (the capture recentres on its geometry)
+        return np.linalg.inv(np.array(t["damcap_source"]["norm_from_input_world"])) @ np.array(t["frames"][3]["transform_matrix"])
+
+    assert np.allclose(registered(before), registered(after), atol=1e-6)
 
 
 @pytest.mark.slow
@@ -189,7 +200,7 @@ def test_rendered_turntable_and_orbit_sets_register_correctly_by_default(motion,
     make_photo_set(photos, PhotoSetOptions(views=views, size=size, motion=motion, room=True, jitter_deg=2.0))
     out = tmp_path / "capture"
     assert main(["reconstruct", str(photos / "images"), "-o", str(out), "--masks", str(photos / "masks"), "--capture-size", "64",
-                 "--voxels", "48", "--supersample", "1", "--train-views", "5", *SMALL_DENSE_FLAGS]) == 0
+                 "--voxels", "48", "--supersample", "1", "--train-views", "5", *SMALL_DENSE_FLAGS, "--auto-judge", "photo-consistency"]) == 0
     cap = read_capture(out)
     src = cap.extra["damcap_source"]
     assert len(cap.frames) == views and src["self_check"]["verdict"] == "consistent"
@@ -444,22 +455,38 @@ def test_old_flags_fill_the_nested_options(monkeypatch, tmp_path):
 
 
 @pytest.mark.slow
-def test_auto_builds_the_dense_surface_too_and_keeps_the_one_the_photos_agree_with(scene, tmp_path):
+def test_auto_builds_the_dense_surface_too_and_a_judge_chooses_between_them(scene, tmp_path):
     """``--geometry auto`` past the sphere test: the visual hull and the dense surface are both
-    scored by photo consistency, the report says which was kept and why, and the rule's choice
-    is the one ``prefer_dense`` makes from the recorded scores. Without it, the hull alone."""
+    scored by photo consistency, in the order ``prefer_dense`` makes from the recorded scores,
+    then both are written as captures and the judge (here one that takes the second) decides;
+    the report says which was kept and why. Without the dense build, the hull alone."""
     from damcap.reconstruct.photo_consistency import Consistency, prefer_dense
 
+    from damcap.common.capture_folder import read_capture
+    from damcap.reconstruct.pipeline import CANDIDATE_FRAMES, WORK_FOLDER, GeometryJudgement
+
     common = dict(masks_dir=scene["root"] / "masks", poses=str(scene["root"] / "transforms.json"))
+    seen: dict = {}
+
+    def judge(captures):  # takes the geometry photo consistency put second: reconstruct must follow it
+        seen.update({g: read_capture(p) for g, p in captures.items()})
+        return GeometryJudgement(list(captures)[1], "as the test asks", {"by": "test"})
+
     cap, report = reconstruct_capture(scene["root"] / "images", tmp_path / "auto",
-                                      ReconstructOptions(**{**FAST, "dense": DenseOptions(image_size=96)}), **common)  # type: ignore[arg-type]
+                                      ReconstructOptions(**{**FAST, "dense": DenseOptions(image_size=96)}), **common,  # type: ignore[arg-type]
+                                      judge=judge)
     check = report.geometry_check
     assert check is not None and check["built"] and set(check["photo_consistency"]) == {"visual-hull", "dense"}
     scores = {k: Consistency(**v) for k, v in check["photo_consistency"].items()}
     assert all(s.pairs > 0 and 0 < s.ncc <= 1 for s in scores.values())
     want = "dense" if prefer_dense(scores["visual-hull"], scores["dense"], check["margin"]) else "visual-hull"
-    assert report.geometry_mode == check["chosen"] == want and "photo consistency" in report.geometry_reason
-    assert inspect_capture(tmp_path / "auto").problems == []
+    other = {"dense": "visual-hull", "visual-hull": "dense"}[want]
+    # the judge got both geometries as complete captures of the same photos, photo consistency's choice first
+    assert list(seen) == [want, other] and [f.name for f in seen[want].frames] == [f.name for f in seen[other].frames]
+    assert seen[want].extra["damcap_source"]["geometry"]["mode"] == want and seen[other].extra["damcap_source"]["geometry"]["mode"] == other
+    assert report.geometry_mode == check["chosen"] == other and "kept on held-out views: as the test asks" in report.geometry_reason
+    assert check["held_out"] == {"by": "test"} and read_capture(tmp_path / "auto").extra["damcap_source"]["geometry"]["mode"] == other
+    assert inspect_capture(tmp_path / "auto").problems == [] and not (tmp_path / "auto" / WORK_FOLDER / CANDIDATE_FRAMES).exists()
     _, plain = reconstruct_capture(scene["root"] / "images", tmp_path / "hull",
                                    ReconstructOptions(auto_dense=False, **FAST), **common)  # type: ignore[arg-type]
     assert plain.geometry_mode == "visual-hull" and plain.geometry_check is None

@@ -37,6 +37,7 @@ def fsync_path(path: str | os.PathLike) -> None:
 #: the test hook's environment variable (read by :func:`pause_point` only): ``NAME`` or ``NAME#K``
 PAUSE_ENV = "DAMCAP_TEST_PAUSE_AT"
 _pause_counts: dict[str, int] = {}
+_pause_stderr: dict[int, int] = {}  # by process: fd 2 as its first moment found it (a thread may redirect fd 2 later)
 
 
 def pause_point(path: str | os.PathLike) -> None:
@@ -52,16 +53,17 @@ def pause_point(path: str | os.PathLike) -> None:
     if not spec:
         return
     import fnmatch
-    import sys
     import time
 
+    if os.getpid() not in _pause_stderr:  # the first moment is an output's lock, before any native library redirects fd 2
+        _pause_stderr[os.getpid()] = os.dup(2)
     pattern, _, k = spec.partition("#")
     if not fnmatch.fnmatchcase(Path(path).name, pattern):
         return
-    _pause_counts[pattern] = _pause_counts.get(pattern, 0) + 1
-    if _pause_counts[pattern] == int(k or 1):
-        sys.stderr.write(f"damcap test hook: paused before {path}\n")
-        sys.stderr.flush()
+    key = f"{os.getpid()}:{pattern}"  # a forked child counts its own moments
+    _pause_counts[key] = _pause_counts.get(key, 0) + 1
+    if _pause_counts[key] == int(k or 1):
+        os.write(_pause_stderr[os.getpid()], f"damcap test hook: paused before {path}\n".encode())
         while True:
             time.sleep(60)
 

@@ -7,10 +7,15 @@ import contextlib
 import os
 import sys
 import tempfile
+import threading
 from typing import Iterator
 
 #: most characters of caught text kept (a library looping on a damaged file can print a lot)
 MAX_CAUGHT_CHARS = 64 * 1024
+#: one block at a time, across threads: file descriptor 2 is the process's, and two blocks that
+#: overlapped (reconstruct's frame writer verifying an EXR while the next photo is read) would
+#: restore it out of order and leave it on a deleted temporary file, losing every later stderr line
+_ONE_AT_A_TIME = threading.RLock()
 
 
 @contextlib.contextmanager
@@ -24,6 +29,13 @@ def native_stderr_caught() -> Iterator[list[str]]:
         a list that, after the block, holds the caught lines (stripped, empty lines dropped), for
         an error message to quote.
     """
+    with _ONE_AT_A_TIME:
+        with _caught() as lines:
+            yield lines
+
+
+@contextlib.contextmanager
+def _caught() -> Iterator[list[str]]:
     lines: list[str] = []
     try:
         sys.stderr.flush()

@@ -142,6 +142,12 @@ def _earlier_hdr(base: Path, case: Path) -> None:
         shutil.copy2(_EARLIER["hdr"] / name, case / name)
 
 
+def _reconstruct(base: Path, case: Path) -> list:
+    p = base / "photos"
+    return ["reconstruct", p / "images", "-o", case / "o", "--masks", p / "masks", "--poses", p / "transforms.json", "--geometry", "sphere",
+            "--capture-size", 24, "--train-views", 2, "--self-check", "off"]  # the check's time, not the staging's
+
+
 CF = ["--views", 4, "--train-views", 2, "--res", 16, "--env-grid", 4, "--supersample", 1]
 EARLY = ".o.lock"
 FILE_MOMENTS = {"early": ".o.dam.lock", "middle": "tmp", "late": "o.dam"}
@@ -149,10 +155,10 @@ FILE_MOMENTS = {"early": ".o.dam.lock", "middle": "tmp", "late": "o.dam"}
 WRITERS: dict[str, Writer] = {
     "closed-form": Writer(lambda b, c: ["closed-form", c / "o", *CF, "--seed", 2], ("o",),
                           {"early": EARLY, "middle": "*.exr#2", "late": "o"}, previous=_copy("cap")),
-    "reconstruct": Writer(lambda b, c: ["reconstruct", b / "photos" / "images", "-o", c / "o", "--masks", b / "photos" / "masks",
-                                        "--poses", b / "photos" / "transforms.json", "--geometry", "sphere", "--capture-size", 24,
-                                        "--train-views", 2, "--self-check", "off"], ("o",),  # the check's time, not the staging's
-                          {"early": EARLY, "middle": "*.exr#2", "late": "o"}, previous=_copy("rcap")),
+    "reconstruct": Writer(_reconstruct, ("o",), {"early": EARLY, "middle": "*.exr#2", "late": "o"}, previous=_copy("rcap")),
+    # into a new folder: a killed run may leave the folder with only its work folder, which the rerun resumes from
+    "reconstruct-new": Writer(_reconstruct, ("o",), {"early": EARLY, "middle": "*.exr#2", "late": "o"},
+                              resumable=lambda out: (out / "reconstruction").is_dir() and not (out / "transforms.json").exists()),
     "fit": Writer(lambda b, c: ["fit", b / "cap", "-o", c / "o.dam", "--steps", 8, "--batch-size", 64, "--holdout-views", 0,
                                 "--checkpoint-every", 2], ("o.dam",),
                   {"early": ".o.dam.lock", "middle": "o.dam.ckpt#2", "late": "o.dam"}, previous=_copy("m.dam", "o.dam"),

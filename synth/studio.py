@@ -17,6 +17,7 @@ written (the options recorded in ``.studio_partial.json`` must match).
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import os
 from dataclasses import asdict, dataclass, field, replace
@@ -25,7 +26,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from damcap.common.atomic import write_json_atomic
+from damcap.common.atomic import write_json_atomic, write_text_atomic
 from damcap.common.capture_folder import Intrinsics
 from damcap.common.colour import display_srgb8
 from damcap.common.errors import DamcapError
@@ -258,11 +259,15 @@ def make_studio_photos(out: str | os.PathLike, opts: StudioOptions, progress: Ca
     record_opts = json.dumps(asdict(opts), sort_keys=True)
     if marker.is_file() and marker.read_text() != record_opts:
         raise DamcapError(f"{out}: holds an interrupted synth-studio run with other options; choose a new folder or rerun those options")
-    if not marker.is_file() and out.exists() and any(out.iterdir()):
-        raise DamcapError(f"{out}: not empty; choose a new folder")
+    if not marker.is_file():
+        # a run killed while writing the marker left only its temporary file: the folder is still new
+        left = [p for p in out.iterdir() if not fnmatch.fnmatchcase(p.name, f".{marker.stem}.*.tmp{marker.suffix}")] \
+            if out.exists() else []
+        if left:
+            raise DamcapError(f"{out}: not empty; choose a new folder")
+        write_text_atomic(marker, record_opts)  # first, whole or not at all: a run killed after it leaves a folder its rerun resumes
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "masks").mkdir(parents=True, exist_ok=True)
-    marker.write_text(record_opts)
     mesh, normals, labels = studio_object(opts)
     names = opts.material_names()
     empty = [names[k] for k in range(len(names)) if not (labels == k).any()]

@@ -103,3 +103,26 @@ def test_an_interrupted_run_resumes_keeping_its_photos(inputs, tmp_path, monkeyp
     calls.clear()
     assert len(make_studio_photos(tmp_path / "set", opts)) == 3
     assert (tmp_path / "set" / "images" / "IMG_0000.jpg").read_bytes() == first  # kept, not rendered again
+
+
+def test_a_folder_left_by_a_run_killed_while_writing_its_marker_counts_as_new(inputs, tmp_path, monkeypatch):
+    """kill -9 inside the marker's atomic write leaves only its temporary file: the rerun starts
+    (the marker is the first thing written), where any other file makes the folder 'not empty'."""
+    import damcap.synth.mitsuba_render as mr
+
+    obj, env = inputs
+    opts = StudioOptions(object=obj, env=env, materials="gold", views=3, size=48, spp=4)
+    (tmp_path / "set").mkdir()
+    (tmp_path / "set" / f".{PARTIAL_MARKER[:-len('.json')]}.k1ll3d.tmp.json").write_text('{"half')
+
+    def stop(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(mr, "render_view", stop)
+    with pytest.raises(KeyboardInterrupt):
+        make_studio_photos(tmp_path / "set", opts)
+    assert json.loads((tmp_path / "set" / PARTIAL_MARKER).read_text())["views"] == 3
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    with pytest.raises(DamcapError, match="not empty"):
+        make_studio_photos(tmp_path / "other", opts)

@@ -12,7 +12,8 @@ from damcap.common.capture_folder import read_capture
 from damcap.synth.closed_form import ClosedFormOptions, make_closed_form_capture
 
 
-FAST = dict(steps=300, init_steps=150, batch_pixels=2048)
+FAST = dict(steps=300, init_steps=150, batch_pixels=2048, prior="off")
+"""short runs of the plain joint fit (the predictor's prior: test_prior.py)"""
 
 
 def _torus_capture(tmp_path_factory, materials: int):

@@ -16,7 +16,8 @@ from damcap.appearance.segment.prior import label_shares, material_views, prior_
 from damcap.appearance.segment.train import segment_materials
 from damcap.common.errors import DamcapError
 
-TINY = SegmentOptions(materials=2, steps=40, init_steps=10, batch_pixels=1024, psi_resolution=16, psi_channels=4, prior_samples=4096)
+TINY = SegmentOptions(materials=2, steps=40, init_steps=10, batch_pixels=1024, psi_resolution=16, psi_channels=4, prior_samples=4096,
+                      prior="off")
 
 
 def test_material_views_cover_only_the_material(two_materials):

@@ -44,7 +44,8 @@ def test_prior_weight_keeps_the_initial_labels(two_materials):
     agreement = {}
     for prior in (0.0, 50.0):  # a short initialisation: without the prior, the joint phase drifts away
         model = segment_materials(train, SegmentOptions(materials=2, steps=150, init_steps=20, batch_pixels=2048, prior_weight=prior,
-                                                        illumination_degree=0, init_colour="pixel"))  # starts from exactly `init`
+                                                        illumination_degree=0, init_colour="pixel",  # starts from exactly `init`
+                                                        prior="off"))  # DAMs from random weights, free to drift
         assert "prior_ce" in model.history[-1]
         pw = np.concatenate([model.weights_of(v)[fg] for v, fg in zip(train, fgs)])[bright]
         agreement[prior] = match_materials(pw, np.eye(2)[init])[1]

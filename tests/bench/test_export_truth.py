@@ -23,7 +23,7 @@ def test_an_exported_material_beats_a_constant_colour_against_the_truth(tmp_path
     make_studio_photos(photos, StudioOptions(object=str(data / "meshes" / "stanford-bunny.obj"), env=str(data / "envmaps" / "studio.hdr"),
                                              materials="gold", views=12, size=96, spp=16, seed=1))
     assert main(["reconstruct", str(photos / "images"), "-o", str(demo / "capture"), "--masks", str(photos / "masks"),
-                 "--poses", str(photos / "transforms.json")]) == 0
+                 "--poses", str(photos / "transforms.json"), "--auto-judge", "photo-consistency"]) == 0  # judged in tests/reconstruct
     assert main(["fit", str(demo / "capture"), "-o", str(demo / "model.dam"), "--steps", "600"]) == 0
     assert main(["shape", "torus", str(demo / "torus.obj")]) == 0
     assert main(["export", str(demo / "model.dam"), "--mesh", str(demo / "torus.obj"), "-o", str(demo / "export"),

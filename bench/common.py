@@ -59,6 +59,14 @@ def rows_not_rerun(prev: dict | None, new_rows: list[dict], key: Callable[[dict]
     return [{"command": prev.get("command"), "date_utc": prev["machine"]["date_utc"], **r} for r in prev.get("rows", []) if key(r) not in done]
 
 
+def write_report_keeping(report: Path, lines: list[str], mark: str) -> None:
+    """Write a study's generated report, keeping everything of the old one from its ``mark`` line
+    on (hand-written notes survive a rerun)."""
+    old = report.read_text() if report.is_file() else ""
+    keep = old[old.index(mark):] if mark in old else ""
+    report.write_text("\n".join(lines) + "\n" + (("\n" + keep) if keep else ""))
+
+
 def log(msg: str) -> None:
     print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
 

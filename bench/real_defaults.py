@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import BENCH, CACHE, RESULTS, command_line, log, machine_info, shared_data_dir
+from bench.common import BENCH, CACHE, RESULTS, command_line, log, machine_info, shared_data_dir, write_report_keeping
 
 RESULT = RESULTS / "real_defaults.json"
 HISTORY_MARK = "## Notes"
@@ -248,10 +248,7 @@ def write_report(res: dict, report: Path = REPORT) -> None:
                 kept.append(f"albedo {'kept' if r['spatial']['kept'] else 'not kept'}")
             lines.append(f"| {r['method']} | {r['novel_dssim']:.4f} | {r['x_rmpp']:.2f} | {r['seconds']:.0f} | {', '.join(kept)} |")
         lines.append("")
-    keep = ""
-    if report.is_file() and HISTORY_MARK in report.read_text():
-        keep = report.read_text()[report.read_text().index(HISTORY_MARK):]
-    report.write_text("\n".join(lines) + "\n" + (("\n" + keep) if keep else ""))
+    write_report_keeping(report, lines, HISTORY_MARK)
 
 
 if __name__ == "__main__":

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import BENCH, CACHE, RESULTS, command_line, log, machine_info, shared_data_dir
+from bench.common import BENCH, CACHE, RESULTS, command_line, log, machine_info, shared_data_dir, write_report_keeping
 
 RESULT = RESULTS / "segment_prior.json"
 REPORT = BENCH / "segment_prior.md"
@@ -198,10 +198,7 @@ def write_report(res: dict, report: Path = REPORT) -> None:
                                  f"{np.mean([r['novel_dssim'] for r in mr]):.4f} | {np.mean([r['x_rmpp'] for r in mr]):.2f} | "
                                  f"{np.mean([r['seconds'] for r in mr]):.0f} |")
         lines.append("")
-    keep = ""
-    if report.is_file() and HISTORY_MARK in report.read_text():
-        keep = report.read_text()[report.read_text().index(HISTORY_MARK):]
-    report.write_text("\n".join(lines) + "\n" + (("\n" + keep) if keep else ""))
+    write_report_keeping(report, lines, HISTORY_MARK)
 
 
 if __name__ == "__main__":

@@ -65,13 +65,14 @@ def main(argv: list[str] | None = None) -> int:
         order = [first] + [g for g in GEOMETRIES if g != first]
         folders = dict(zip(GEOMETRIES, map(Path, args.given))) if args.given else \
             {g: build_capture(name, sources[name], g, args.size, False) for g in order}
-        views = {g: load_views(read_capture(folders[g]), "all") for g in order}
+        caps = {g: read_capture(folders[g]) for g in order}
+        views = {g: load_views(cap, "all") for g, cap in caps.items()}
         base = views[first]
         dirs = camera_directions(base)
-        cap = read_capture(folders[first])
-        train_idx, test_idx = ring_split(dirs, cap.up_world, args.train_views, gap_deg=15.0)
+        up = caps[first].up_world
+        train_idx, test_idx = ring_split(dirs, up, args.train_views, gap_deg=15.0)
         if not test_idx:
-            train_idx, _ = arc_split(dirs, cap.up_world, args.train_views)
+            train_idx, _ = arc_split(dirs, up, args.train_views)
         names = [base[k].name for k in train_idx]
         train = {g: [next(v for v in vs if v.name == n) for n in names] for g, vs in views.items()}
         t0 = time.perf_counter()

@@ -1057,10 +1057,10 @@ def _reconstruct_staged(photos_dir: Path, out: Path, staged: Path, opts: Reconst
                        colorspace="lin_rec709", extra={"damcap_source": source}), report
 
     scene = scenes[0]
-    judged = len(scenes) > 1 and judge is not None
+    judge = judge if len(scenes) > 1 else None
     said: list[str] = []  # judged: what writing the frames says is said for the geometry kept
-    frames, dropped = frames_in(staged, scene, said.append if judged else log)
-    if judge is not None and judged:
+    frames, dropped = frames_in(staged, scene, log if judge is None else said.append)
+    if judge is not None:
         scene, frames, dropped, said = _judged(scenes, (frames, dropped, said), staged, work, frames_in, capture_of, judge, log)
         for line in said:
             log(line)

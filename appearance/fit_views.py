@@ -169,8 +169,7 @@ class GeometryScores:
 def judge_fit() -> FitOptions:
     """The fit :func:`judge_geometries` runs for ``reconstruct --geometry auto``: fit's defaults
     without the prior (its second fit) and with half the steps of the DAM and of the normal
-    refinement. On the cape, studio and blob captures it chose as the full defaults did
-    (bench/geometry_judge.md)."""
+    refinement (its choices and time against a plain fit: bench/geometry_judge.md)."""
     d = FitOptions()
     return replace(d, prior="off", steps=d.steps // 2, normal_refine_steps=d.normal_refine_steps // 2)
 

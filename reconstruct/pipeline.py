@@ -82,7 +82,7 @@ class ReconstructOptions:
     time (about 70 s on the 119-photo cape at 256 px)."""
     auto_judge: Literal["held-out", "photo-consistency"] = field(default="held-out", metadata={"cli_panel": "advanced"})
     """auto, with both geometries built: what chooses between them. 'held-out' fits the DAM (fit's
-    defaults without the prior) to each geometry's train views, the same views held out, and
+    defaults without the prior, half the steps) to each geometry's train views, the same views held out, and
     keeps photo consistency's choice unless the other lowers the held-out DSSIM by 2 %
     (bench/geometry_judge.md); 'photo-consistency' alone saves those two fits"""
     auto_dense_margin: float = field(default=0.02, metadata=in_range(0, 2, cli_panel="advanced"))

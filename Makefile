@@ -98,9 +98,10 @@ demo: venv
 	@echo "         $(DEMO_OUT)/blender/damcap_materials.py (run it in Blender: the pot with the 3 materials, rendered in Cycles)"
 
 # The suite on every core: pytest-xdist workers (CI has 2), each with torch on its share of the
-# cores (tests/conftest.py). --dist loadgroup --no-loadscope-reorder hands the tests out one at a
-# time, in collection order with the tests marked slow first (tests/conftest.py says why not by
-# group); the 25 slowest tests are listed at the end. `make test TEST_JOBS=0` runs it in one process.
+# cores (tests/conftest.py). --dist loadgroup --no-loadscope-reorder hands the tests out in
+# collection order, the tests marked slow and the modules with a module-scoped fixture first, each
+# such module as one unit (its fixture built once), every other test one at a time (tests/conftest.py's
+# pytest_xdist_make_scheduler); the 25 slowest tests are listed at the end. `make test TEST_JOBS=0` runs it in one process.
 TEST_JOBS ?= auto
 test: venv $(NS_READER)/.installed $(BLENDER_VENV)/.installed
 	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadgroup --no-loadscope-reorder --durations=25

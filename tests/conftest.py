@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -30,14 +32,49 @@ torch.set_num_threads(TORCH_THREADS)
 if XDIST_WORKERS:
     os.environ.setdefault("OMP_NUM_THREADS", str(TORCH_THREADS))
 
-def pytest_collection_modifyitems(config, items):
-    """The tests marked ``slow`` first: under pytest-xdist (make test) they are handed out before
-    the rest, so that no long test starts last while the other workers idle.
+#: a module-scoped fixture's definition in a test module's source
+MODULE_FIXTURE = re.compile(r"""fixture\(\s*scope\s*=\s*["']module["']""")
 
-    make test's ``--dist loadgroup`` hands out one test at a time: with pytest 9.2 and
-    pytest-xdist 3.8 an ``xdist_group`` is not applied (xdist renames ``item._nodeid``, which
-    pytest 9 no longer reads), so a module's fixtures may be built on each worker."""
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)  # stable: the order otherwise kept
+
+@functools.lru_cache(maxsize=None)
+def _shares_module_fixtures(module: Path) -> bool:
+    """Whether a test module defines a module-scoped fixture (its tests then run as one unit under
+    make test: :func:`pytest_xdist_make_scheduler`)."""
+    try:
+        return MODULE_FIXTURE.search(module.read_text(encoding="utf-8")) is not None
+    except OSError:
+        return False
+
+
+def pytest_collection_modifyitems(config, items):
+    """The tests marked ``slow``, and the modules whose tests share a module-scoped fixture, first:
+    under pytest-xdist (make test) they are handed out before the rest, so that no long test or
+    module starts last while the other workers idle; the many short tests after them fill the
+    workers up evenly."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None and not _shares_module_fixtures(item.path))  # stable
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """make test's ``--dist loadgroup``: the tests of a module that defines a module-scoped
+    fixture go to one worker together (so the fixture is built once), every other test on its own.
+
+    With pytest 9.2 and pytest-xdist 3.8 the ``xdist_group`` mark is not applied (xdist renames
+    ``item._nodeid``, which pytest 9 no longer reads), so loadgroup alone hands out one test at a
+    time: the tests of a module went to both workers, interleaved with other modules' tests and
+    their slow ones ahead of the rest, and a module's fixture was built on each worker, often
+    more than once (test_spatial_fit's three times in a make test run)."""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadGroupScheduling
+
+    root = config.rootpath
+
+    class ModuleFixtureScheduling(LoadGroupScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            module = nodeid.split("::", 1)[0]
+            return module if _shares_module_fixtures(root / module) else super()._split_scope(nodeid)
+
+    return ModuleFixtureScheduling(config, log)
 
 
 @pytest.fixture(autouse=True)

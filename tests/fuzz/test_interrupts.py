@@ -23,6 +23,10 @@ FIT = ["--steps", "400000", "--batch-size", "32", "--holdout-views", "0", "--che
 #: to damcap (a console start-up is not a fork)
 STARTED_S = 0.3
 
+#: what a fit says once it has decided not to resume a checkpoint (the second runs below are
+#: stopped as soon as they have said whether they resume: the fits themselves never end)
+AFRESH = "starting afresh"
+
 
 def _interrupted(work, sigs, *, wait_ckpt=True, capture=None):
     out = work / "o.dam"
@@ -50,7 +54,7 @@ def test_fit_interrupted_keeps_checkpoint_and_resumes(name, sigs, code, work):
         bad.append("no checkpoint kept")
     assert not bad, "; ".join(bad)
     # resumable: the same command again, stopped as soon as it has said it resumes
-    again = damcap_fork(["fit", cap, "-o", out, *FIT], timeout=8)
+    again = damcap_fork(["fit", cap, "-o", out, *FIT], timeout=30, signal_when=("resuming", signal.SIGKILL))
     assert "resum" in (again.err + again.out).lower(), f"second run did not resume: {(again.err + again.out)[-200:]!r}"
 
 
@@ -98,17 +102,17 @@ def test_checkpoint_of_another_capture_is_not_resumed(work):
     doc = transforms(other)
     doc["train_filenames"], doc["test_filenames"] = doc["test_filenames"], doc["train_filenames"]
     set_transforms(other, doc)
-    again = damcap_fork(["fit", other, "-o", out, *FIT], timeout=6)
+    again = damcap_fork(["fit", other, "-o", out, *FIT], timeout=30, signal_when=(AFRESH, signal.SIGKILL))
     said = (again.err + again.out).lower()
-    assert "resuming" not in said, f"resumed another capture's checkpoint: {said[-200:]!r}"
+    assert "resuming" not in said and AFRESH in said, f"resumed another capture's checkpoint: {said[-200:]!r}"
 
 
 def test_checkpoint_with_other_options_is_not_resumed(work):
     run, out, ckpt, _, cap = _interrupted(work, [signal.SIGINT])
     assert ckpt.is_file(), "setup: no checkpoint"
-    again = damcap_fork(["fit", cap, "-o", out, *FIT[:-6], "--width", "16", *FIT[-6:]], timeout=6)
+    again = damcap_fork(["fit", cap, "-o", out, *FIT[:-6], "--width", "16", *FIT[-6:]], timeout=30, signal_when=(AFRESH, signal.SIGKILL))
     said = (again.err + again.out).lower()
-    assert "resuming" not in said, f"resumed a checkpoint of other options: {said[-200:]!r}"
+    assert "resuming" not in said and AFRESH in said, f"resumed a checkpoint of other options: {said[-200:]!r}"
 
 
 def test_checkpoint_corrupt_is_refused_or_set_aside(work):

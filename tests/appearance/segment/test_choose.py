@@ -29,7 +29,9 @@ def test_auto_picks_two_materials_for_a_two_material_capture(two_materials):
     choice = choose_materials(train, test, SegmentOptions(**FAST), max_materials=3)
     assert choice.materials == 2, choice.curve
     assert choice.model.materials == 2 and "n = 3" in choice.reason
-    # the fewest materials that reach an accuracy asked for: 1 material cannot reach what 2 do
-    two = choice.curve[1]["heldout_dssim"]
-    target = choose_materials(train, test, SegmentOptions(**FAST), max_materials=3, target_dssim=1.001 * two)
-    assert target.materials == 2 and "fewest" in target.reason
+    # the fewest materials that reach an accuracy asked for: 1 material cannot reach what 2 do (one
+    # run per n is enough to show it: the first seed's, whose held-out errors the curve holds)
+    one, two = choice.curve[0]["restarts"][0], choice.curve[1]["restarts"][0]
+    assert two < one / 1.001, choice.curve
+    target = choose_materials(train, test, SegmentOptions(**FAST), max_materials=3, target_dssim=1.001 * two, restarts=1)
+    assert target.materials == 2 and "fewest" in target.reason and [c["restarts"] for c in target.curve] == [[one], [two]]

@@ -81,15 +81,14 @@ class FitOptions:
     to black on point-light captures"""
     encoding: Encoding = field(default="nr", metadata={"cli_what": "DAM input encoding"})
     """DAM input: 'vn' (paper), 'nr' (normal + mirrored view), 'vnr'"""
-    separable: bool = field(default=False, metadata={"cli_panel": "advanced"})
-    """DAM = softplus(f(N) + g(R)), two half-width branches (``DamArchitecture.separable``; an
-    even width, e.g. 44: 3168 weights). A novel view pairs normals and mirror directions that
-    the training views saw only apart, and the sum extrapolates to such pairs: novel-view
-    DSSIM / RM++ 0.24 / 0.14 on the closed-form sphere / torus (joint 32x4: 0.45 / 0.16) and 0.40
-    on seven training-part Mitsuba captures (0.47), while fitting the training views less
-    exactly (bench/dam_core.md, bench/synth.md). Not the default: on the real cape it gained
-    nothing (novel-view DSSIM 0.421 against 0.420, docs/evaluation.md), and the other benchmarks were
-    measured with the joint network"""
+    separable: bool = field(default=True, metadata={"cli_panel": "advanced"})
+    """DAM = softplus(f(N) + g(R)), two branches; off: the paper's joint DAM, for 'vn'/'vnr'.
+    ``DamArchitecture.separable``: encoding 'nr', an even width; 1728 weights at the default width 32, 3168 at 44. A novel
+    view pairs normals and mirror directions the training views saw only apart, and the sum
+    extrapolates to such pairs. Trained on one ring of cameras and scored on the others, it
+    beat the joint network on every capture of bench/real_defaults.md but the studio sample's
+    dense surface (real cape 0.267 against 0.268, fox 0.303 against 0.308, studio 0.294 against
+    0.321, blob 0.146 against 0.156); width 44 did worse than 32 on three of the four"""
     adversarial: bool = False
     """add the paper's adversarial cost (patch discriminator)"""
     adversarial_alpha: float = field(default=0.001, metadata=in_range(0, 1e6, cli_panel="advanced"))
@@ -195,6 +194,9 @@ class FitOptions:
             raise DamcapError(f"--prior must be one of {', '.join(PRIOR_MODES)}, got {self.prior!r}")
         if self.normal_refine not in NORMAL_REFINE_MODES:
             raise DamcapError(f"--normal-refine must be one of {', '.join(NORMAL_REFINE_MODES)}, got {self.normal_refine!r}")
+        if self.separable and (self.encoding != "nr" or self.width % 2):
+            raise DamcapError(f"a separable DAM (the default) needs --encoding nr and an even --width, got --encoding {self.encoding!r}, "
+                              f"--width {self.width}; add --no-separable for a joint DAM")
         self.architecture  # width and depth within DamArchitecture's bounds (named in its error)
 
     @property

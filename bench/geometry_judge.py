@@ -29,7 +29,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from bench.common import BENCH, RESULTS, command_line, log, machine_info, shared_data_dir
-from bench.real_defaults import AUTO_GEOMETRY, RESULT as DEFAULTS_RESULT, build_capture, capture_sources
+from bench.real_defaults import AUTO_GEOMETRY, RESULT as DEFAULTS_RESULT, build_capture, capture_sources, novel_split
 
 RESULT = RESULTS / "geometry_judge.json"
 REPORT = BENCH / "geometry_judge.md"
@@ -49,11 +49,10 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
-    from damcap.appearance.fit import FitOptions, camera_directions
+    from damcap.appearance.fit import FitOptions
     from damcap.appearance.fit_views import fit_views, judge_fit, judge_geometries
     from damcap.appearance.views import load_views
     from damcap.common.capture_folder import read_capture
-    from damcap.reconstruct.split import arc_split, ring_split
 
     torch.set_num_threads(2)
     sources = capture_sources(shared_data_dir())
@@ -68,11 +67,7 @@ def main(argv: list[str] | None = None) -> int:
         caps = {g: read_capture(folders[g]) for g in order}
         views = {g: load_views(cap, "all") for g, cap in caps.items()}
         base = views[first]
-        dirs = camera_directions(base)
-        up = caps[first].up_world
-        train_idx, test_idx = ring_split(dirs, up, args.train_views, gap_deg=15.0)
-        if not test_idx:
-            train_idx, _ = arc_split(dirs, up, args.train_views)
+        train_idx, _, _ = novel_split(caps[first], base, args.train_views)
         names = [base[k].name for k in train_idx]
         train = {g: [next(v for v in vs if v.name == n) for n in names] for g, vs in views.items()}
         t0 = time.perf_counter()

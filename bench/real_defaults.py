@@ -20,10 +20,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -71,10 +70,29 @@ def build_capture(name: str, src: dict, geometry: str, size: int, fresh: bool) -
     return out
 
 
+def novel_split(cap, views: list, train_views: int, gap_deg: float = 15.0) -> tuple[list[int], list[int], str]:
+    """The study's split of a capture's views: ``train_views`` on the fullest elevation band and
+    every camera more than ``gap_deg`` above or below it novel
+    (:func:`damcap.reconstruct.split.ring_split`, 'rings'); where all cameras lie on one ring, the
+    90-degree arc opposite camera 0 novel (:func:`~damcap.reconstruct.split.arc_split`, 'arc')."""
+    from damcap.appearance.fit import camera_directions
+    from damcap.reconstruct.split import arc_split, ring_split
+
+    dirs = camera_directions(views)
+    train_idx, test_idx = ring_split(dirs, cap.up_world, train_views, gap_deg=gap_deg)
+    if test_idx:
+        return train_idx, test_idx, "rings"
+    train_idx, test_idx = arc_split(dirs, cap.up_world, train_views)
+    return train_idx, test_idx, "arc"
+
+
 def methods() -> dict[str, dict]:
-    """method name -> FitOptions changes from the defaults (``predict``: the predictor alone)."""
-    plain = {"normal_refine": "off", "spatial": "off", "prior": "off"}
+    """method name -> FitOptions changes from the defaults (``predict``: the predictor alone).
+    *joint DAM* methods fit the paper's joint network (``--no-separable``), as every default did
+    before the separable DAM became one."""
+    plain = {"normal_refine": "off", "spatial": "off", "prior": "off", "separable": False}
     old = {**plain, "holdout": "spread"}
+    joint = {"separable": False}
     return {
         "fit (old default)": old,
         "fit": plain,
@@ -85,6 +103,13 @@ def methods() -> dict[str, dict]:
         "defaults": {},
         "defaults without the prior": {"prior": "off"},
         "defaults + prior always": {"prior": "predictor"},
+        "defaults --width 44": {"width": 44},
+        "joint DAM (the defaults before)": joint,
+        "joint DAM without the prior": {**joint, "prior": "off"},
+        "joint DAM + prior always": {**joint, "prior": "predictor"},
+        "joint DAM --encoding vn": {**joint, "encoding": "vn"},
+        "joint DAM --prior-weight 0.3": {**joint, "prior_weight": 0.3},
+        "joint DAM --prior-weight 3": {**joint, "prior_weight": 3.0},
         "refine + albedo": {**plain, "normal_refine": "on", "spatial": "albedo"},
     }
 
@@ -135,18 +160,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=None, help="fit steps (default: FitOptions')")
     ap.add_argument("--refine-steps", type=int, default=None, help="normal refinement steps (default: FitOptions')")
     ap.add_argument("--out", type=Path, default=None, help="write real_defaults.json and .md here instead of bench/")
+    ap.add_argument("--threads", type=int, default=2, help="torch threads (the seconds depend on it)")
     args = ap.parse_args(argv)
 
     import torch
 
     from damcap.appearance.baselines import rm_plus_plus
     from damcap.appearance.evaluate import score_view
-    from damcap.appearance.fit import FitOptions, camera_directions
+    from damcap.appearance.fit import FitOptions
     from damcap.appearance.views import load_views
-    from damcap.reconstruct.split import arc_split, ring_split
     from damcap.common.capture_folder import read_capture
 
-    torch.set_num_threads(2)
+    torch.set_num_threads(args.threads)
     data = shared_data_dir()
     sources = capture_sources(data)
     result, report = (RESULT, REPORT) if args.out is None else (args.out / RESULT.name, args.out / REPORT.name)
@@ -172,12 +197,7 @@ def main(argv: list[str] | None = None) -> int:
         cap_dir = Path(given[name]) if name in given else build_capture(name, src, geometry, args.size, args.fresh)
         cap = read_capture(cap_dir)
         views = load_views(cap, "all")
-        dirs = camera_directions(views)
-        train_idx, test_idx = ring_split(dirs, cap.up_world, args.train_views, gap_deg=args.gap_deg)
-        split = "rings"
-        if not test_idx:  # one ring of cameras: hold out an arc of it
-            train_idx, test_idx = arc_split(dirs, cap.up_world, args.train_views)
-            split = "arc"
+        train_idx, test_idx, split = novel_split(cap, views, args.train_views, args.gap_deg)
         train, test = [views[k] for k in train_idx], [views[k] for k in test_idx]
         key = f"{name}/{geometry}"
         rmpp = float(np.mean([s for t, p in zip(test, rm_plus_plus(train, test)) if (s := score_view(t, p)) is not None]))
@@ -202,12 +222,12 @@ the reconstruct lines are quoted in the report's notes)"""
 
 
 def summary_table(by: dict, auto_geometry: dict) -> list[str]:
-    """Per capture: the old defaults, the new defaults and the best method found (any geometry),
-    on the geometry ``--geometry auto`` chooses."""
+    """Per capture: the old defaults, the joint DAM's defaults before the separable one, the new
+    defaults and the best method found (any geometry), on the geometry ``--geometry auto`` chooses."""
     out = ["## Summary", "",
            "On the geometry `--geometry auto` chooses; *best* is the lowest novel-view DSSIM of any method on either geometry.", "",
-           "| capture | auto's geometry | old defaults | new defaults | best (method, geometry) | new / best | x RM++ (new) | seconds (old / new) |",
-           "|---|---|---:|---:|---|---:|---:|---|"]
+           "| capture | auto's geometry | old defaults | joint DAM | new defaults | best (method, geometry) | new / best | x RM++ (new) | seconds (old / new) |",
+           "|---|---|---:|---:|---:|---|---:|---:|---|"]
     for cap in dict.fromkeys(c for c, _ in by):
         geo = auto_geometry.get(cap, AUTO_GEOMETRY.get(cap, "given"))
         rows = {r["method"]: r for r in by.get((cap, geo), [])}
@@ -215,7 +235,9 @@ def summary_table(by: dict, auto_geometry: dict) -> list[str]:
             continue
         best = min((r for (c, _), rs in by.items() if c == cap for r in rs), key=lambda r: r["novel_dssim"])
         old, new = rows["fit (old default)"], rows["defaults"]
-        out.append(f"| {cap} | {geo} | {old['novel_dssim']:.4f} | {new['novel_dssim']:.4f} | {best['novel_dssim']:.4f} ({best['method']}, "
+        joint = rows.get("joint DAM (the defaults before)")
+        out.append(f"| {cap} | {geo} | {old['novel_dssim']:.4f} | {joint['novel_dssim'] if joint else float('nan'):.4f} | "
+                   f"{new['novel_dssim']:.4f} | {best['novel_dssim']:.4f} ({best['method']}, "
                    f"{best['geometry']}) | {new['novel_dssim'] / best['novel_dssim']:.3f} | {new['x_rmpp']:.2f} | "
                    f"{old['seconds']:.0f} / {new['seconds']:.0f} |")
     return out + [""]

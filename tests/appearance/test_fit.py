@@ -312,6 +312,7 @@ def test_cli_precision_weight_decay_quantile_and_separable(small_capture, tmp_pa
     assert load_file(out)["weights"].dtype == torch.float32
     model, meta = load_dam(out)
     assert model.weights_flat.dtype == torch.float32 and meta["provenance"]["options"]["precision"] == "bfloat16"
+    assert model.arch.separable and model.arch.num_weights == 1728  # the default DAM: separable, width 32
     code, _, err = run_cli(["fit", small_capture, "-o", tmp_path / "x.dam", "--precision", "fp8"], capsys)
     assert_one_line_error(code, err, "--precision", "'fp8'", "bfloat16")
     assert not (tmp_path / "x.dam").exists()
@@ -328,6 +329,13 @@ def test_cli_precision_weight_decay_quantile_and_separable(small_capture, tmp_pa
     code, _, err = run_cli(["fit", small_capture, "-o", tmp_path / "x.dam", "--separable", "--encoding", "vn"], capsys)
     assert_one_line_error(code, err, "separable", "'vn'")
     assert not (tmp_path / "x.dam").exists()
+    code, _, err = run_cli(["fit", small_capture, "-o", tmp_path / "x.dam", "--encoding", "vn"], capsys)  # separable by default
+    assert_one_line_error(code, err, "'vn'", "--no-separable")
+    assert not (tmp_path / "x.dam").exists()
+    code, _, err = run_cli(["fit", small_capture, "-o", out, "--steps", "30", "--no-separable", "--encoding", "vn"], capsys)
+    assert code == 0, err
+    model, _ = load_dam(out)
+    assert not model.arch.separable and model.arch.num_weights == 3360  # the paper's joint network
 
 
 def _half_lit_samples(n: int = 20000, seed: int = 0):

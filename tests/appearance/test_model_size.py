@@ -19,7 +19,7 @@ def train_views(small_capture):
 
 
 def test_a_loose_target_keeps_the_smallest_dam(train_views):
-    choice = fit_to_target(train_views, 0.99, FitOptions(steps=60, holdout_views=1, checkpoint_every=0))
+    choice = fit_to_target(train_views, 0.99, FitOptions(steps=60, holdout_views=1, checkpoint_every=0, separable=False))
     smallest = sizes_by_weight_count("nr")[0]
     assert choice.reached and (choice.width, choice.depth) == smallest[:2] and len(choice.tried) == 1
     assert choice.model.arch.num_weights == smallest[2]
@@ -52,7 +52,7 @@ def test_cli(small_capture, tmp_path):
     out = tmp_path / "m.dam"
     assert main(["fit", str(small_capture), "-o", str(out), "--target-dssim", "0.99", "--steps", "40", "--holdout-views", "1"]) == 0
     meta = load_dam(out)[1]
-    assert meta["provenance"]["target_reached"] and meta["provenance"]["sizes_tried"][0]["weights"] == 136
+    assert meta["provenance"]["target_reached"] and meta["provenance"]["sizes_tried"][0]["weights"] == sizes_by_weight_count("nr", separable=True)[0][2]  # separable by default
     assert main(["fit", str(small_capture), "-o", str(out), "--target-dssim", "0.5", "--width", "8"]) == 2
     assert main(["fit", str(small_capture), "-o", str(out), "--target-dssim", "0"]) == 2
 

@@ -64,7 +64,9 @@ def test_the_prior_decides_where_the_data_say_nothing():
     """Training pixels seen only from +z; a prior that answers 0.25 everywhere. Far from the
     training directions the fit follows the prior with it and not without it."""
     s = _samples()
-    opts = FitOptions(steps=300, width=16, depth=2, holdout_views=0, checkpoint_every=0, seed=0)
+    # the joint network: a separable one carries the data's f(N) + g(R) into the far directions and
+    # follows the prior less there (measured: 0.58 against 1.09 without the prior)
+    opts = FitOptions(steps=300, width=16, depth=2, holdout_views=0, checkpoint_every=0, seed=0, separable=False)
     const = DeepAppearanceMap(DamArchitecture(width=8, depth=2), 1.0)
     with torch.no_grad():
         const.weights_flat.zero_()

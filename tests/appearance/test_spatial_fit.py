@@ -84,7 +84,7 @@ def test_fit_command_writes_the_factor_and_refuses_it_with_a_target(small_captur
     from tests.conftest import assert_one_line_error, run_cli
 
     out = tmp_path / "m.dam"
-    code, _, err = run_cli(["fit", small_capture, "-o", out, "--steps", "60", "--spatial", "albedo"], capsys)
+    code, _, err = run_cli(["fit", small_capture, "-o", out, "--steps", "60", "--spatial", "albedo", "--normal-refine", "off"], capsys)
     assert code == 0 and "spatial factor: albedo texture of" in err, err
     model, meta = load_dam(out)
     assert model.spatial is not None and meta["format_version"] == 2

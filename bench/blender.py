@@ -42,15 +42,16 @@ def run_blender(jobs: list[dict], work: Path) -> list[dict]:
 
 
 def agreement(work: Path, n: int) -> list[dict]:
-    """The test's two models (+Y up and +Z up) on an exact sphere, n x n pixels, against damcap."""
+    """The test's models (+Y up, +Z up, and fit's default DAM +Y up) on an exact sphere, n x n pixels, against damcap."""
     from damcap.appearance.dam import DamArchitecture, DeepAppearanceMap
     from damcap.appearance.dam_file import save_dam
+    from damcap.appearance.fit import FitOptions
     from damcap.export.blender import blender_from_world, export_blender
     from damcap.export.turntable import OrbitOptions
 
     cases = {"yup": (DamArchitecture(width=16, depth=3, encoding="vnr", bias=True, activation="leaky_relu"), 2.5, [0.0, 1.0, 0.0]),
              "zup": (DamArchitecture(width=16, depth=2, encoding="nr", separable=True, activation="shifted_softplus"), 0.7, [0.0, 0.0, 1.0]),
-             "fit_default_yup": (DamArchitecture(width=32, depth=4, activation="shifted_softplus"), 1.0, [0.0, 1.0, 0.0])}
+             "fit_default_yup": (FitOptions().architecture, 1.0, [0.0, 1.0, 0.0])}
     jobs, models = [], {}
     for k, (name, (arch, scale, up)) in enumerate(cases.items()):
         g = torch.Generator().manual_seed(10 + k)

@@ -43,8 +43,24 @@ HELP_ALL = "--help-all"
 """``damcap CMD --help-all``: the command's help with its advanced options too"""
 
 
+def printable(text: str) -> str:
+    r"""``text`` with what UTF-8 cannot encode (lone surrogates: a file's undecodable bytes, as
+    Python hands them over) spelled as escapes, so that a message about a damaged file can be
+    written to any stderr.
+
+    >>> printable("channels R, G, \udc80")
+    'channels R, G, \\udc80'
+    """
+    return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+def _say(line: str) -> None:
+    """One line to stderr (:func:`printable`)."""
+    typer.echo(printable(line), err=True)
+
+
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    typer.echo(f"warning: {' '.join(str(message).split())}", err=True)
+    _say(f"warning: {' '.join(str(message).split())}")
 
 
 def _raise_terminated(signum, frame) -> None:
@@ -99,16 +115,16 @@ def main(argv: list[str] | None = None) -> int:
             rv = build_app(selected, show_all=show_all)(args=args, prog_name="damcap", standalone_mode=False)
         if isinstance(rv, int) and not isinstance(rv, bool) and rv != 0:  # typer returns 130 for a bare Ctrl-C
             if rv == 130:
-                typer.echo("interrupted", err=True)
+                _say("interrupted")
             return rv
     except Interrupted as e:
-        typer.echo(f"interrupted{' (SIGTERM)' if e.terminated else ''}: {e.kept}", err=True)
+        _say(f"interrupted{' (SIGTERM)' if e.terminated else ''}: {e.kept}")
         return e.exit_code
     except DamcapError as e:
-        typer.echo(f"error: {e}", err=True)
+        _say(f"error: {e}")
         return 2
     except typer.Abort:
-        typer.echo("aborted", err=True)
+        _say("aborted")
         return 130
     except typer.Exit as e:
         return int(getattr(e, "exit_code", 0) or 0)
@@ -119,24 +135,24 @@ def main(argv: list[str] | None = None) -> int:
         ctx = getattr(e, "ctx", None)
         hint = f" (see {ctx.command_path} --help)" if ctx is not None else ""
         message = e.format_message() if hasattr(e, "format_message") else str(e)
-        typer.echo(f"error: {' '.join(message.split())}{hint}", err=True)
+        _say(f"error: {' '.join(message.split())}{hint}")
         return int(getattr(e, "exit_code", 2) or 2)
     except OSError as e:  # permission denied, disk full, read-only filesystem: one line, never a traceback
-        typer.echo(f"error: {os_error_line(e)}", err=True)
+        _say(f"error: {os_error_line(e)}")
         return 2
     except MemoryError as e:
-        typer.echo(f"error: {out_of_memory_line(e)}", err=True)
+        _say(f"error: {out_of_memory_line(e)}")
         return 2
     except RuntimeError as e:
         if not is_out_of_memory(e):
             raise
-        typer.echo(f"error: {out_of_memory_line(e)}", err=True)
+        _say(f"error: {out_of_memory_line(e)}")
         return 2
     except Terminated:
-        typer.echo("interrupted (SIGTERM)", err=True)
+        _say("interrupted (SIGTERM)")
         return 143
     except KeyboardInterrupt:
-        typer.echo("interrupted", err=True)
+        _say("interrupted")
         return 130
     return 0
 

@@ -67,6 +67,21 @@ def write_report_keeping(report: Path, lines: list[str], mark: str) -> None:
     report.write_text("\n".join(lines) + "\n" + (("\n" + keep) if keep else ""))
 
 
+def study_paths(result: Path, report: Path, out: Path | None) -> tuple[Path, Path]:
+    """Where a study writes its results JSON and its report: ``result`` and ``report`` (bench/'s
+    own), or files of the same names in ``out`` (created)."""
+    if out is None:
+        result.parent.mkdir(parents=True, exist_ok=True)
+        return result, report
+    out.mkdir(parents=True, exist_ok=True)
+    return out / result.name, out / report.name
+
+
+def machine_line(machine: dict) -> str:
+    """A report's machine line from :func:`machine_info`'s record: CPU model, cores, UTC date."""
+    return f"Machine: {machine.get('cpu_model', '')}, {machine.get('nproc', '')} cores, {machine.get('date_utc', '')}"
+
+
 def log(msg: str) -> None:
     print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
 

@@ -28,7 +28,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from bench.common import BENCH, RESULTS, command_line, log, machine_info, shared_data_dir
+from bench.common import BENCH, RESULTS, command_line, log, machine_info, machine_line, shared_data_dir, study_paths
 from bench.real_defaults import AUTO_GEOMETRY, RESULT as DEFAULTS_RESULT, build_capture, capture_sources, novel_split
 
 RESULT = RESULTS / "geometry_judge.json"
@@ -86,8 +86,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(row)
     res = {"command": command_line("geometry_judge", argv if argv is not None else sys.argv[1:]), "machine": machine_info(),
            "judge_fit": {"steps": judge_opts.steps, "normal_refine_steps": judge_opts.normal_refine_steps}, "rows": rows}
-    result, report = (RESULT, REPORT) if args.out is None else (args.out / RESULT.name, args.out / REPORT.name)
-    result.parent.mkdir(parents=True, exist_ok=True)
+    result, report = study_paths(RESULT, REPORT, args.out)
     result.write_text(json.dumps(res, indent=1, default=float))
     write_report(res, report)
     return 0
@@ -99,7 +98,7 @@ def write_report(res: dict, report: Path = REPORT) -> None:
              "(the same training views, the same ones held out) choose the geometry on which `damcap fit` at its defaults does best "
              "on novel views, and at what cost against a plain fit?", "",
              f"Command: `{res['command']}`", "",
-             f"Machine: {res['machine'].get('cpu_model', '')}, {res['machine'].get('nproc', '')} cores, {res['machine'].get('date_utc', '')}",
+             machine_line(res["machine"]),
              "", f"Judge fit: fit's defaults without the prior, {res['judge_fit']['steps']} DAM steps, "
              f"{res['judge_fit']['normal_refine_steps']} normal-refinement steps. Novel-view DSSIM: `damcap fit` at its defaults, "
              "other camera rings (bench/real_defaults.md).", "",

@@ -27,7 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import BENCH, CACHE, RESULTS, command_line, log, machine_info, shared_data_dir, write_report_keeping
+from bench.common import (BENCH, CACHE, RESULTS, command_line, log, machine_info, machine_line, shared_data_dir, study_paths,
+                          write_report_keeping)
 
 RESULT = RESULTS / "real_defaults.json"
 HISTORY_MARK = "## Notes"
@@ -174,9 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     data = shared_data_dir()
     sources = capture_sources(data)
-    result, report = (RESULT, REPORT) if args.out is None else (args.out / RESULT.name, args.out / REPORT.name)
-    if args.out is not None:
-        args.out.mkdir(parents=True, exist_ok=True)
+    result, report = study_paths(RESULT, REPORT, args.out)
     base = FitOptions()
     if args.steps is not None:
         base = replace(base, steps=args.steps)
@@ -251,8 +250,7 @@ def write_report(res: dict, report: Path = REPORT) -> None:
              "than 15 deg above or below it (novel views), beside RM++ on the same views. Seconds: the whole fit path "
              "(prediction, fit, refinement, albedo), wall clock on the machine below.", "",
              f"Command (last run; rows accumulate over runs): `{res['command']}`", "",
-             f"Machine: {res['machine'].get('cpu_model', '')}, {res['machine'].get('nproc', '')} cores, "
-             f"{res['machine'].get('date_utc', '')}", ""]
+             machine_line(res["machine"]), ""]
     by: dict = {}
     for r in res["rows"]:
         by.setdefault((r["capture"], r["geometry"]), []).append(r)

@@ -35,7 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import BENCH, RESULTS, command_line, log, machine_info, shared_data_dir, write_report_keeping
+from bench.common import (BENCH, RESULTS, command_line, log, machine_info, machine_line, shared_data_dir, study_paths,
+                          write_report_keeping)
 from bench.real_defaults import AUTO_GEOMETRY, build_capture, capture_sources, novel_split
 
 RESULT = RESULTS / "real_limits.json"
@@ -159,8 +160,7 @@ def main(argv: list[str] | None = None) -> int:
                      "train_dssim": mean_dssim(fitted.model, train), "swaps": scores, "image_tests": image,
                      "fit_seconds": fit_s, "oracle_seconds": oracle_s, "kind": sources.get(name, {}).get("kind", "given capture folder")})
     res = {"command": command_line("real_limits", argv if argv is not None else sys.argv[1:]), "machine": machine_info(), "rows": rows}
-    result, report = (RESULT, REPORT) if args.out is None else (args.out / RESULT.name, args.out / REPORT.name)
-    result.parent.mkdir(parents=True, exist_ok=True)
+    result, report = study_paths(RESULT, REPORT, args.out)
     result.write_text(json.dumps(res, indent=1, default=float))
     write_report(res, report)
     return 0
@@ -174,7 +174,7 @@ def write_report(res: dict, report: Path = REPORT) -> None:
              "too, which no real fit has) are swapped in one at a time, and the defaults' renders are tested for an exposure, a "
              "registration shift and fine detail. Split and captures as in [real_defaults.md](real_defaults.md).", "",
              f"Command: `{res['command']}`", "",
-             f"Machine: {res['machine'].get('cpu_model', '')}, {res['machine'].get('nproc', '')} cores, {res['machine'].get('date_utc', '')}", ""]
+             machine_line(res["machine"]), ""]
     for r in res["rows"]:
         rmpp = r["rm++"]
         lines += [f"## {r['capture']}, {r['geometry']} ({r['kind']}; {r['train']} train views, {r['novel']} novel; RM++ {rmpp:.4f})", "",

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import BENCH, CACHE, RESULTS, command_line, log, machine_info, shared_data_dir, write_report_keeping
+from bench.common import BENCH, CACHE, RESULTS, command_line, log, machine_info, machine_line, shared_data_dir, study_paths, write_report_keeping
 
 RESULT = RESULTS / "segment_prior.json"
 REPORT = BENCH / "segment_prior.md"
@@ -121,9 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     from damcap.appearance.segment.options import SegmentOptions
 
     torch.set_num_threads(2)
-    result, report = (RESULT, REPORT) if args.out is None else (args.out / RESULT.name, args.out / REPORT.name)
-    if args.out is not None:
-        args.out.mkdir(parents=True, exist_ok=True)
+    result, report = study_paths(RESULT, REPORT, args.out)
     prev = json.loads(result.read_text()) if result.is_file() else {}
     rows: list[dict] = prev.get("rows", [])
     captures: dict = prev.get("captures", {})
@@ -168,7 +166,7 @@ def write_report(res: dict, report: Path = REPORT) -> None:
              "Seconds: the whole segment call (auto: three segmentations), wall clock on 2 cores shared with other jobs (so "
              "seconds are noisy).", "",
              f"Command (last run; rows accumulate over runs): `{res['command']}`", "",
-             f"Machine: {m.get('cpu_model', '')}, {m.get('nproc', '')} cores, {m.get('date_utc', '')}", "",
+             machine_line(m), "",
              "Most runs are shortened to fit the machine (*steps*: initialisation + joint steps; the defaults are 300 + 1200); "
              "otherwise `SegmentOptions`' defaults with the number of materials fixed.", ""]
     for name, cap in res["captures"].items():

@@ -7,7 +7,7 @@ scale (95th percentile of the training foreground) so that learning rates do not
 units.
 
 Stopping rule: a few training views are held out; the weights with the lowest held-out data
-cost (L1 at the default quantile) are kept (training on a 3360-weight network can overfit the
+cost (L1 at the default quantile) are kept (training on a few thousand weights can overfit the
 training views and get worse on novel ones). ``holdout_views = 0`` trains on all views and keeps
 the last weights. The history's ``train_l1`` / ``holdout_l1`` are that data cost.
 

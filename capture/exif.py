@@ -104,9 +104,11 @@ def _exposure_from_oiio(path: Path) -> Exposure | None:
     """EXIF exposure via OpenImageIO attributes; None when OpenImageIO cannot open the file."""
     import OpenImageIO as oiio
 
+    from damcap.common.exr import oiio_error
+
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        oiio.geterror()  # clear the error state
+        oiio_error(oiio)  # clear the error state
         return None
     try:
         spec = inp.spec()

@@ -132,14 +132,14 @@ def read_ldr_codes(path: str | os.PathLike) -> tuple[np.ndarray, int]:
     """
     import OpenImageIO as oiio
 
-    from damcap.common.exr import check_header_size, upright
+    from damcap.common.exr import check_header_size, oiio_error, upright
 
     path = Path(path)
     if not path.is_file():
         raise DamcapError(f"{path}: file not found")
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        msg = oiio.geterror().strip().splitlines()
+        msg = oiio_error(oiio).strip().splitlines()
         raise DamcapError(f"{path}: cannot read image ({msg[-1] if msg else 'unknown format'})")
     try:
         spec = inp.spec()
@@ -149,7 +149,7 @@ def read_ldr_codes(path: str | os.PathLike) -> tuple[np.ndarray, int]:
                               "(a floating-point image is already linear)")
         check_header_size(path, spec.width, spec.height, spec.nchannels, 2)
         pixels = inp.read_image(0, 0, 0, spec.nchannels, fmt)
-        err = inp.geterror()
+        err = oiio_error(inp)
         orientation = spec.get_int_attribute("Orientation", 1)
     finally:
         inp.close()

@@ -23,6 +23,17 @@ def _oiio():
     return OpenImageIO
 
 
+def oiio_error(source) -> str:
+    """The error OpenImageIO has pending (and clears) on ``source`` (the module, an ImageInput or
+    an ImageOutput), as text. Its message may quote a damaged file's bytes, which its binding
+    fails to decode as UTF-8: those are returned escaped (``\\x80``) instead of raising."""
+    try:
+        return source.geterror()
+    except UnicodeDecodeError as e:
+        raw = e.object if isinstance(e.object, bytes) else bytes(e.object)
+        return raw.decode("utf-8", "backslashreplace")
+
+
 def _one_line(message: str, path: Path) -> str:
     """OpenImageIO's error text as one short line (it repeats the path on every line)."""
     lines = [ln.replace(f'("{path}")', "").replace(f"({path})", "").replace(str(path), "").strip(" :")
@@ -136,7 +147,7 @@ def image_header(path: str | os.PathLike) -> tuple[int, int, int, int]:
             finally:
                 inp.close()
     if inp is None:
-        raise DamcapError(f"{path}: cannot read image ({_one_line(_oiio().geterror() or chr(10).join(printed), path)})")
+        raise DamcapError(f"{path}: cannot read image ({_one_line(oiio_error(_oiio()) or chr(10).join(printed), path)})")
     return spec.width, spec.height, spec.nchannels, exif_orientation(orientation)
 
 
@@ -159,12 +170,12 @@ def read_exr(path: str | os.PathLike) -> tuple[np.ndarray, tuple[str, ...]]:
     check_format(path)  # OpenImageIO reads any format by content: a PNG named .exr is not an EXR
     inp = _oiio().ImageInput.open(str(path))
     if inp is None:
-        raise DamcapError(f"{path}: cannot read image ({_one_line(_oiio().geterror(), path)})")
+        raise DamcapError(f"{path}: cannot read image ({_one_line(oiio_error(_oiio()), path)})")
     try:
         spec = inp.spec()
         check_header_size(path, spec.width, spec.height, spec.nchannels, 4)
         pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
-        err = inp.geterror()
+        err = oiio_error(inp)
     finally:
         inp.close()
     if pixels is None or err:
@@ -225,12 +236,12 @@ def _write_atomic(path: str | os.PathLike, spec: Any, pixels: np.ndarray) -> Non
     with atomic_path(path) as tmp:
         out = _oiio().ImageOutput.create(str(tmp))
         if out is None:
-            raise DamcapError(f"{path}: cannot create image writer ({_oiio().geterror().strip()})")
+            raise DamcapError(f"{path}: cannot create image writer ({oiio_error(_oiio()).strip()})")
         try:
             if not (out.open(str(tmp), spec) and out.write_image(pixels)):
                 _raise_full_disk(tmp, path, pixels.nbytes)
                 # the line names the file the user asked for, not the hidden temporary one
-                raise DamcapError(f"{path}: cannot write image ({out.geterror().strip().replace(str(tmp), str(path))})")
+                raise DamcapError(f"{path}: cannot write image ({oiio_error(out).strip().replace(str(tmp), str(path))})")
         finally:
             out.close()
         _verify_written(tmp, path, pixels.nbytes)
@@ -254,7 +265,7 @@ def _verify_written(tmp: Path, path: str | os.PathLike, nbytes: int = 0) -> None
     """
     with native_stderr_caught():
         inp = _oiio().ImageInput.open(str(tmp))
-        ok = inp is not None and inp.read_image() is not None and not inp.geterror()
+        ok = inp is not None and inp.read_image() is not None and not oiio_error(inp)
         if inp is not None:
             inp.close()
     if not ok:
@@ -303,12 +314,12 @@ def read_image_u8(path: str | os.PathLike, working_bytes_per_pixel: int = 0) -> 
                 spec = inp.spec()
                 check_header_size(path, spec.width, spec.height, spec.nchannels, 1, working_bytes_per_pixel)
                 px = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
-                err = inp.geterror()  # a truncated JPEG/PNG reads with gray filler and an error here
+                err = oiio_error(inp)  # a truncated JPEG/PNG reads with gray filler and an error here
                 orientation = spec.get_int_attribute("Orientation", 1)
             finally:
                 inp.close()
     if inp is None:
-        raise DamcapError(f"{path}: cannot read image ({_one_line(_oiio().geterror() or chr(10).join(printed), path)})")
+        raise DamcapError(f"{path}: cannot read image ({_one_line(oiio_error(_oiio()) or chr(10).join(printed), path)})")
     if px is None or err:
         raise DamcapError(f"{path}: cannot read pixels, the file is damaged or truncated "
                           f"({_one_line(err or chr(10).join(printed) or 'no data', path)})")

@@ -230,6 +230,7 @@ def proxy_srgb_u8(radiance_lin: np.ndarray, percentile: float = PROXY_PERCENTILE
 def _spec_attributes(path: Path) -> tuple[int, int, dict[str, Any]]:
     import OpenImageIO as oiio
 
+    from damcap.common.exr import oiio_error
     from damcap.common.native_stderr import native_stderr_caught
 
     with native_stderr_caught() as printed:  # libpng prints its own lines on a damaged PNG
@@ -241,7 +242,7 @@ def _spec_attributes(path: Path) -> tuple[int, int, dict[str, Any]]:
             finally:
                 inp.close()
     if inp is None:
-        msg = (oiio.geterror().strip() or "\n".join(printed)).splitlines()
+        msg = (oiio_error(oiio).strip() or "\n".join(printed)).splitlines()
         raise DamcapError(f"{path}: cannot read image ({msg[-1] if msg else 'unknown format'})")
     return spec.width, spec.height, attrs
 

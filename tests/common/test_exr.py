@@ -190,3 +190,20 @@ def test_a_write_cut_short_names_the_file_asked_for(tmp_path, disk):
     else:
         assert line.startswith(f"OSError 27 {out} ") and "File too large (the file size limit, ulimit -f, is 20000 bytes)" in line, line
     assert list(tmp_path.iterdir()) == []
+
+
+def test_oiio_error_escapes_a_message_that_is_not_utf8():
+    """OpenImageIO's binding raises when its error quotes a damaged file's bytes; the text comes
+    back escaped, and a plain message as it is."""
+    from damcap.common.exr import oiio_error
+
+    class Damaged:
+        def geterror(self):
+            raise UnicodeDecodeError("utf-8", b"Attribute 'compression\x80compression'", 22, 23, "invalid start byte")
+
+    class Plain:
+        def geterror(self):
+            return "Could not open file"
+
+    assert oiio_error(Damaged()) == "Attribute 'compression\\x80compression'"
+    assert oiio_error(Plain()) == "Could not open file"

@@ -305,6 +305,9 @@ EXR = {
     "wrong-size": lambda c: _write_exr(_frame(c), np.ones((32, 32, 3), np.float32), ["R", "G", "B"]),
     # a channel name byte damaged to 0x80 (not UTF-8): the error line names it escaped
     "channel-name-not-utf8": lambda c: _frame(c).write_bytes(_frame(c).read_bytes().replace(b"\x00B\x00", b"\x00\x80\x00", 1)),
+    # an attribute's name run into its type by 0x80: OpenImageIO's error quotes the bytes
+    "attribute-name-not-utf8": lambda c: _frame(c).write_bytes(_frame(c).read_bytes().replace(b"compression\x00compression",
+                                                                                              b"compression\x80compression", 1)),
     "radiance-nan": _exr_values(float("nan")),
     "radiance-inf": _exr_values(float("inf")),
     "radiance-negative": _exr_values(-5.0),

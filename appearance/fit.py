@@ -83,9 +83,9 @@ class FitOptions:
     """DAM input: 'vn' (paper), 'nr' (normal + mirrored view), 'vnr'"""
     separable: bool = field(default=True, metadata={"cli_panel": "advanced"})
     """DAM = softplus(f(N) + g(R)), two branches; off: the paper's joint DAM, for 'vn'/'vnr'.
-    ``DamArchitecture.separable``: encoding 'nr', an even width; 1728 weights at the default width 32, 3168 at 44. A novel
-    view pairs normals and mirror directions the training views saw only apart, and the sum
-    extrapolates to such pairs. Trained on one ring of cameras and scored on the others, it
+    ``DamArchitecture.separable``: encoding 'nr', an even width; 1728 weights at the default
+    width 32, 3168 at 44. A novel view pairs normals and mirror directions the training views
+    saw only apart, and the sum extrapolates to such pairs. Trained on one ring of cameras and scored on the others, it
     beat the joint network on every capture of bench/real_defaults.md but the studio sample's
     dense surface (real cape 0.267 against 0.268, fox 0.303 against 0.308, studio 0.294 against
     0.321, blob 0.146 against 0.156); width 44 did worse than 32 on three of the four"""

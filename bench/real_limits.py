@@ -72,9 +72,10 @@ def image_tests(view, render_lin: np.ndarray) -> dict[str, float]:
     import cv2
 
     from damcap.appearance.metrics import dssim
+    from damcap.appearance.pixels import FOREGROUND_COVERAGE
 
     ref, cov = view.data.radiance_lin, view.data.coverage
-    fg = cov > 0.5
+    fg = cov > FOREGROUND_COVERAGE
     g = best_gain(ref, render_lin, fg)
     shifts = [dssim(ref, np.roll(render_lin, (dy, dx), (0, 1)), cov) for dy in range(-SHIFT_PX, SHIFT_PX + 1)
               for dx in range(-SHIFT_PX, SHIFT_PX + 1)]

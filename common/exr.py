@@ -30,8 +30,7 @@ def oiio_error(source) -> str:
     try:
         return source.geterror()
     except UnicodeDecodeError as e:
-        raw = e.object if isinstance(e.object, bytes) else bytes(e.object)
-        return raw.decode("utf-8", "backslashreplace")
+        return bytes(e.object).decode("utf-8", "backslashreplace")
 
 
 def _one_line(message: str, path: Path) -> str:
